@@ -1,0 +1,1 @@
+"""The DHRL paper's MuJoCo environments (installed as ``torchrl_dhrl.envs``)."""
