@@ -1,1 +1,21 @@
-"""torchrl_dhrl.data."""
+"""Replay-buffer relabelling for both DHRL levels.
+
+* :class:`FutureGoalRelabel`: hindsight goals from the future of the same episode (both levels; writes
+  the policy-critic and graph-critic goal / reward pairs from one low-level sample).
+* :class:`HighLevelTransitionBuilder`: high-level transitions, one per issued subgoal, from collected
+  low-level trajectories.
+* :class:`HindsightSubgoalRelabel`: HAC hindsight actions, subgoal testing and the gradual penalty.
+* :class:`SparseGoalReward`: the sparse ``-1`` / ``0`` goal reward both levels train on.
+"""
+
+from torchrl_dhrl.data.future_goals import FutureGoalRelabel
+from torchrl_dhrl.data.high_level_transitions import HighLevelTransitionBuilder
+from torchrl_dhrl.data.rewards import SparseGoalReward
+from torchrl_dhrl.data.subgoal_relabel import HindsightSubgoalRelabel
+
+__all__ = [
+    "FutureGoalRelabel",
+    "HighLevelTransitionBuilder",
+    "HindsightSubgoalRelabel",
+    "SparseGoalReward",
+]

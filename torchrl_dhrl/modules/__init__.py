@@ -1,1 +1,28 @@
-"""torchrl_dhrl.modules."""
+"""torchrl_dhrl.modules: DHRL actors, exploration, the c_h cadence, twin critics and the learned distance."""
+
+from .actors import DEFAULT_NUM_CELLS, GoalConditionedActorNet, HighLevelActor, LowLevelActor
+from .critics import GoalConditionedCritic, GoalConditionedCriticNet, distance_to_q, q_to_distance
+from .distance import GoalDistance
+from .ensemble import EnsembleLinear, EnsembleMLP
+from .exploration import GaussianUniformExplorationModule
+from .policies import HighLevelPolicy, make_low_level_policy
+from .subgoal import NO_SUBGOAL, SubgoalScheduler
+
+__all__ = [
+    "DEFAULT_NUM_CELLS",
+    "NO_SUBGOAL",
+    "EnsembleLinear",
+    "EnsembleMLP",
+    "GaussianUniformExplorationModule",
+    "GoalConditionedActorNet",
+    "GoalConditionedCritic",
+    "GoalConditionedCriticNet",
+    "GoalDistance",
+    "HighLevelActor",
+    "HighLevelPolicy",
+    "LowLevelActor",
+    "SubgoalScheduler",
+    "distance_to_q",
+    "make_low_level_policy",
+    "q_to_distance",
+]

@@ -1,0 +1,118 @@
+"""Cost of DHRL's replay relabelling: low-level sample + FutureGoalRelabel, high-level building and relabel.
+
+Run: ``OMP_NUM_THREADS=1 python benchmarks/bench_relabel.py`` (add ``--device cuda`` on a GPU machine).
+Figures are medians over repeats, in milliseconds per call.
+"""
+
+from __future__ import annotations
+
+import argparse
+import statistics
+import time
+
+import torch
+from tensordict import TensorDict
+from torchrl.data import LazyTensorStorage, TensorDictReplayBuffer
+from torchrl.envs import Compose
+
+from torchrl_dhrl.data import FutureGoalRelabel, HighLevelTransitionBuilder, HindsightSubgoalRelabel
+
+
+def median_ms(fn, repeats: int) -> float:
+    fn()
+    times = []
+    for _ in range(repeats):
+        start = time.perf_counter()
+        fn()
+        if torch.cuda.is_available():
+            torch.cuda.synchronize()
+        times.append((time.perf_counter() - start) * 1e3)
+    return statistics.median(times)
+
+
+def low_level_batch(
+    num_envs: int, horizon: int, obs_dim: int, episode: int, start: int, device
+) -> TensorDict:
+    step = (torch.arange(start, start + horizon, device=device) % episode).expand(num_envs, horizon)
+    position = torch.randn(num_envs, horizon, 2, device=device)
+    return TensorDict(
+        {
+            "observation": torch.randn(num_envs, horizon, obs_dim, device=device),
+            "achieved_goal": position,
+            "desired_goal": torch.randn(num_envs, horizon, 2, device=device),
+            "action": torch.randn(num_envs, horizon, 8, device=device),
+            "step_count": step.unsqueeze(-1),
+            "subgoal": torch.randn(num_envs, horizon, 2, device=device),
+            "new_subgoal": (step % 40 == 0).unsqueeze(-1),
+            ("collector", "traj_ids"): torch.arange(num_envs, device=device)[:, None]
+            + num_envs * (torch.arange(start, start + horizon, device=device) // episode),
+            ("next", "observation"): torch.randn(num_envs, horizon, obs_dim, device=device),
+            ("next", "achieved_goal"): position,
+            ("next", "done"): (step == episode - 1).unsqueeze(-1),
+        },
+        batch_size=[num_envs, horizon],
+        device=device,
+    )
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser()
+    parser.add_argument("--device", default="cpu")
+    parser.add_argument("--capacity", type=int, default=200_000)
+    parser.add_argument("--batch-size", type=int, default=1024)
+    parser.add_argument("--repeats", type=int, default=30)
+    args = parser.parse_args()
+    device = torch.device(args.device)
+    num_envs, horizon, episode = 4, 600, 600
+
+    rb = TensorDictReplayBuffer(
+        storage=LazyTensorStorage(args.capacity, ndim=2, device=device), batch_size=args.batch_size
+    )
+    for i in range(args.capacity // (num_envs * horizon) + 2):  # full and wrapped
+        rb.extend(low_level_batch(num_envs, horizon, 29, episode, i * horizon, device))
+    relabel = FutureGoalRelabel(rb, window=150)
+    sample = rb.sample()
+    print(
+        f"device={device}, low-level storage {tuple(rb.storage.shape)}, batch {args.batch_size}, window 150"
+    )
+    print(f"  rb.sample():                          {median_ms(rb.sample, args.repeats):7.3f} ms")
+    print(
+        f"  FutureGoalRelabel (2 outputs):        {median_ms(lambda: relabel(sample.clone()), args.repeats):7.3f} ms"
+    )
+
+    builder = HighLevelTransitionBuilder()
+    batches = [low_level_batch(num_envs, 40, 29, episode, i * 40, device) for i in range(15)]
+    state = iter(range(10**9))
+
+    def build():
+        builder.build(batches[next(state) % len(batches)])
+
+    print(f"  HighLevelTransitionBuilder [4, 40]:   {median_ms(build, args.repeats):7.3f} ms")
+
+    hi = TensorDictReplayBuffer(storage=LazyTensorStorage(60_000, device=device), batch_size=args.batch_size)
+    hi_builder = HighLevelTransitionBuilder()
+    for i in range(300):
+        records = hi_builder.build(low_level_batch(num_envs, 600, 29, episode, i * 600, device))
+        if records.shape[0]:
+            hi.extend(records)
+    high_relabel = Compose(
+        FutureGoalRelabel(
+            hi,
+            her_ratio=1.0,
+            window=15,
+            out_keys=["desired_goal"],
+            reward_keys=None,
+            traj_key="episode_id",
+            step_count_key="segment_index",
+        ),
+        HindsightSubgoalRelabel(lambda goals: goals.norm(dim=-1)),
+    )
+    high_sample = hi.sample()
+    print(
+        f"  high-level relabel (HER + HAC + GP):  "
+        f"{median_ms(lambda: high_relabel(high_sample.clone()), args.repeats):7.3f} ms"
+    )
+
+
+if __name__ == "__main__":
+    main()

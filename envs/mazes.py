@@ -1,0 +1,158 @@
+"""The table of the five DHRL mazes: every fact of each environment in one :class:`MazeSpec`."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from .agents import AntAgent, PointAgent
+from .goals import BoxGoalSampler, FixedGoalSampler, FreeCellGoalSampler, GoalSampler
+from .layouts import COMPLEX_MAZE, U_MAZE, MazeLayout, bottleneck_walls
+
+__all__ = ["MazeSpec", "MAZES", "MAZE_NAMES", "get_maze_spec"]
+
+
+@dataclass(frozen=True)
+class MazeSpec:
+    """Everything that defines one maze environment.
+
+    Args:
+        name (str): the environment name (e.g. ``"AntMaze"``); the Gymnasium id is ``dhrl/<name>-v0``.
+        layout (MazeLayout): grid, scale and walls.
+        agent (AntAgent or PointAgent): the agent, with its timestep, frame skip and reset noise.
+        episode_length (int): env steps per episode (time limit, truncation only).
+        success_threshold (float): evaluation success radius, measured on the final state.
+        train_goals (GoalSampler): goal distribution of training episodes.
+        test_goals (tuple of (x, y)): the fixed evaluation goals; one is drawn per episode.
+        reward_threshold (float): the sparse reward is ``0`` within this distance of the goal, else ``-1``.
+            Defaults to ``0.5``.
+
+    Examples:
+        >>> from torchrl_dhrl.envs import get_maze_spec
+        >>> spec = get_maze_spec("AntMaze")
+        >>> spec.layout.scale, spec.episode_length, spec.success_threshold, spec.test_goals
+        (8.0, 600, 5.0, ((0.0, 16.0),))
+        >>> spec.gym_id
+        'dhrl/AntMaze-v0'
+    """
+
+    name: str
+    layout: MazeLayout
+    agent: AntAgent | PointAgent
+    episode_length: int
+    success_threshold: float
+    train_goals: GoalSampler
+    test_goals: tuple[tuple[float, float], ...]
+    reward_threshold: float = 0.5
+
+    @property
+    def gym_id(self) -> str:
+        """The registered Gymnasium id."""
+        return f"dhrl/{self.name}-v0"
+
+    @property
+    def test_goal_sampler(self) -> FixedGoalSampler:
+        """Sampler over :attr:`test_goals` (uniform choice of one per episode)."""
+        return FixedGoalSampler(self.test_goals)
+
+    @property
+    def goal_bounds(self) -> tuple[np.ndarray, np.ndarray]:
+        """``(low, high)`` of the goal space: the arena inside the outer walls."""
+        return self.layout.bounds
+
+
+def _u_maze_train_goals(scale: float) -> BoxGoalSampler:
+    """Uniform in the U maze's arena, rejecting the inner wall block ``x < 1.5 s`` and ``s/2 < y < 1.5 s``."""
+    half = scale / 2
+    return BoxGoalSampler(
+        low=(-half, -half),
+        high=(5 * half, 5 * half),
+        excluded=((-np.inf, 3 * half, half, 3 * half),),
+    )
+
+
+def _make_mazes() -> dict[str, MazeSpec]:
+    ant = AntAgent()
+    small = MazeLayout(U_MAZE, scale=4.0)
+    large = MazeLayout(U_MAZE, scale=8.0)
+    complex_layout = MazeLayout(COMPLEX_MAZE, scale=8.0)
+    specs = [
+        MazeSpec(
+            name="PointMaze",
+            layout=small,
+            agent=PointAgent(),
+            episode_length=600,
+            success_threshold=2.5,
+            train_goals=_u_maze_train_goals(4.0),
+            test_goals=((0.0, 8.0),),
+        ),
+        MazeSpec(
+            name="AntMazeSmall",
+            layout=small,
+            agent=ant,
+            episode_length=600,
+            success_threshold=2.5,
+            train_goals=_u_maze_train_goals(4.0),
+            test_goals=((0.0, 8.0),),
+        ),
+        MazeSpec(
+            name="AntMaze",
+            layout=large,
+            agent=ant,
+            episode_length=600,
+            success_threshold=5.0,
+            train_goals=_u_maze_train_goals(8.0),
+            test_goals=((0.0, 16.0),),
+        ),
+        MazeSpec(
+            name="AntMazeBottleneck",
+            layout=MazeLayout(U_MAZE, scale=8.0, extra_walls=bottleneck_walls()),
+            agent=ant,
+            episode_length=600,
+            success_threshold=5.0,
+            # As the reference: the thin walls are not excluded from the train goals.
+            train_goals=_u_maze_train_goals(8.0),
+            test_goals=((0.0, 16.0),),
+        ),
+        MazeSpec(
+            name="AntMazeComplex",
+            layout=complex_layout,
+            agent=ant,
+            episode_length=2000,
+            success_threshold=5.0,
+            train_goals=FreeCellGoalSampler(complex_layout, low=(-4.0, -4.0), high=(52.0, 52.0)),
+            test_goals=((40.0, 8.0), (16.0, 48.0), (40.0, 48.0), (16.0, 32.0)),
+        ),
+    ]
+    return {spec.name: spec for spec in specs}
+
+
+#: Every maze by name.
+MAZES: dict[str, MazeSpec] = _make_mazes()
+#: The valid maze names, in the paper's order.
+MAZE_NAMES: tuple[str, ...] = tuple(MAZES)
+
+
+def get_maze_spec(maze: str | MazeSpec) -> MazeSpec:
+    """Returns the :class:`MazeSpec` of ``maze``, a name (``"AntMaze"`` or ``"dhrl/AntMaze-v0"``) or a spec.
+
+    Raises:
+        ValueError: for an unknown name (the message lists the valid ones).
+        TypeError: for anything else than a string or a :class:`MazeSpec`.
+
+    Examples:
+        >>> from torchrl_dhrl.envs import get_maze_spec
+        >>> get_maze_spec("dhrl/PointMaze-v0").agent.action_dim
+        2
+    """
+    if isinstance(maze, MazeSpec):
+        return maze
+    if not isinstance(maze, str):
+        raise TypeError(f"maze must be a maze name or a MazeSpec, got {type(maze).__name__}.")
+    name = maze
+    if name.startswith("dhrl/") and name.endswith("-v0"):
+        name = name[len("dhrl/") : -len("-v0")]
+    if name not in MAZES:
+        raise ValueError(f"Unknown maze {maze!r}. Valid names: {', '.join(MAZE_NAMES)}.")
+    return MAZES[name]

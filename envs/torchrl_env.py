@@ -1,0 +1,259 @@
+"""Native batched TorchRL environment of the DHRL mazes."""
+
+from __future__ import annotations
+
+import numpy as np
+import torch
+from tensordict import TensorDict, TensorDictBase
+from torchrl.data import Bounded, Categorical, Composite, Unbounded
+from torchrl.envs import EnvBase
+
+from .arena import OVERVIEW_CAMERA
+from .mazes import MazeSpec, get_maze_spec
+from .simulation import MazeSimulation
+
+__all__ = ["MazeEnv", "make_env"]
+
+
+class MazeEnv(EnvBase):
+    """A batch of ``num_envs`` DHRL maze episodes as one TorchRL environment (``batch_size=[num_envs]``).
+
+    One MuJoCo model and ``num_envs`` MjData are stepped in a plain loop by the shared
+    :class:`~torchrl_dhrl.envs.MazeSimulation` core (simulated in float64); this class only converts actions
+    in and float32 tensors out, which keeps TorchRL's per-step overhead amortised over the batch.
+
+    Keys (all with leading dim ``num_envs``):
+
+    * ``"observation"`` float32 ``[obs_dim]``: ``qpos ++ qvel`` (29 for the ant, 6 for the point).
+    * ``"achieved_goal"`` float32 ``[2]``: the agent's (x, y), ``observation[..., :2]``.
+    * ``"desired_goal"`` float32 ``[2]``: the episode's goal.
+    * ``"is_success"`` bool ``[1]``: within the evaluation threshold of the goal (DHRL scores the final
+      state of an episode).
+    * ``"step_count"`` int64 ``[1]``: the step index within the episode, ``0`` at reset.
+    * ``"reward"`` float32 ``[1]``: sparse, ``0`` within ``reward_threshold`` (0.5) of the goal, else ``-1``.
+    * ``"done"``, ``"terminated"``, ``"truncated"`` bool ``[1]``: the only end of an episode is the time limit:
+      ``truncated`` at ``max_episode_steps``, ``terminated`` is always ``False`` and ``done == truncated``.
+
+    Resets honour the ``"_reset"`` mask (partial resets leave the other envs untouched). A reset tensordict
+    carrying a ``"desired_goal"`` entry sets the goals of the envs being reset explicitly (they must lie
+    inside the arena); TorchRL's automatic resets (``rollout``, collectors) never pass it, so they draw
+    fresh goals. Episodes of different envs stay distinguishable in collected data through
+    ``"step_count"`` and the collectors' ``("collector", "traj_ids")``.
+
+    Seeding: :meth:`set_seed` spawns one numpy RNG stream per env (reset noise and goals); the RNG state
+    lives in the env object. The same seed gives the same first observation and the same rollout under the
+    same actions.
+
+    Args:
+        maze (str or MazeSpec): one of :data:`~torchrl_dhrl.envs.MAZE_NAMES` (or ``"dhrl/<name>-v0"``).
+
+    Keyword Args:
+        num_envs (int): number of parallel episodes. Defaults to ``1``.
+        max_episode_steps (int, optional): time limit; defaults to the maze's episode length.
+        eval_goals (bool): draw the fixed test goals instead of train goals. Defaults to ``False``.
+            Can be changed later through the :attr:`eval_goals` attribute.
+        device (torch.device, optional): device of the output tensors. Defaults to CPU.
+        seed (int, optional): seed passed to :meth:`set_seed`.
+
+    Examples:
+        >>> import torch
+        >>> from torchrl.envs.utils import check_env_specs
+        >>> from torchrl_dhrl.envs import MazeEnv
+        >>> env = MazeEnv("AntMazeSmall", num_envs=3, seed=0, max_episode_steps=5)
+        >>> check_env_specs(env)
+        >>> rollout = env.rollout(6, break_when_any_done=False)
+        >>> rollout["observation"].shape, rollout["next", "step_count"][0, :, 0].tolist()
+        (torch.Size([3, 6, 29]), [1, 2, 3, 4, 5, 1])
+        >>> td = env.reset(env.reset().set("desired_goal", torch.tensor([[0.0, 8.0]]).expand(3, 2)))
+        >>> td["desired_goal"][:, 1].tolist()
+        [8.0, 8.0, 8.0]
+    """
+
+    def __init__(
+        self,
+        maze: str | MazeSpec,
+        *,
+        num_envs: int = 1,
+        max_episode_steps: int | None = None,
+        eval_goals: bool = False,
+        device=None,
+        seed: int | None = None,
+    ) -> None:
+        spec = get_maze_spec(maze)
+        sim = MazeSimulation(spec, num_envs, max_episode_steps=max_episode_steps, eval_goals=eval_goals)
+        super().__init__(device=device, batch_size=torch.Size([num_envs]))
+        self._sim = sim
+        self._make_specs()
+        if seed is not None:
+            self.set_seed(seed)
+
+    # ------------------------------------------------------------------ attributes
+    @property
+    def maze(self) -> MazeSpec:
+        """The :class:`~torchrl_dhrl.envs.MazeSpec` of this environment."""
+        return self._sim.spec
+
+    @property
+    def simulation(self) -> MazeSimulation:
+        """The underlying batched simulation core (float64 numpy state)."""
+        return self._sim
+
+    @property
+    def num_envs(self) -> int:
+        """Number of parallel episodes."""
+        return self._sim.num_envs
+
+    @property
+    def max_episode_steps(self) -> int:
+        """Time limit in env steps."""
+        return self._sim.max_episode_steps
+
+    @property
+    def eval_goals(self) -> bool:
+        """Whether resets draw the fixed test goals (``True``) or train goals (``False``)."""
+        return self._sim.eval_goals
+
+    @eval_goals.setter
+    def eval_goals(self, value: bool) -> None:
+        self._sim.eval_goals = bool(value)
+
+    def _make_specs(self) -> None:
+        shape = self.batch_size
+        sim, device = self._sim, self.device
+        low, high = (torch.as_tensor(bound, dtype=torch.float32) for bound in sim.spec.goal_bounds)
+        self.observation_spec = Composite(
+            observation=Unbounded(shape=(*shape, sim.obs_dim), dtype=torch.float32, device=device),
+            achieved_goal=Unbounded(shape=(*shape, 2), dtype=torch.float32, device=device),
+            desired_goal=Bounded(low=low.expand(*shape, 2), high=high.expand(*shape, 2), shape=(*shape, 2),
+                                 dtype=torch.float32, device=device),
+            is_success=Categorical(2, shape=(*shape, 1), dtype=torch.bool, device=device),
+            step_count=Bounded(low=0, high=sim.max_episode_steps, shape=(*shape, 1), dtype=torch.int64,
+                               device=device),
+            shape=shape,
+            device=device,
+        )
+        action_low = torch.as_tensor(sim.agent.action_low, dtype=torch.float32)
+        action_high = torch.as_tensor(sim.agent.action_high, dtype=torch.float32)
+        self.action_spec = Bounded(
+            low=action_low.expand(*shape, sim.action_dim), high=action_high.expand(*shape, sim.action_dim),
+            shape=(*shape, sim.action_dim), dtype=torch.float32, device=device,
+        )
+        self.reward_spec = Bounded(low=-1.0, high=0.0, shape=(*shape, 1), dtype=torch.float32, device=device)
+        self.done_spec = Composite(
+            done=Categorical(2, shape=(*shape, 1), dtype=torch.bool, device=device),
+            terminated=Categorical(2, shape=(*shape, 1), dtype=torch.bool, device=device),
+            truncated=Categorical(2, shape=(*shape, 1), dtype=torch.bool, device=device),
+            shape=shape,
+            device=device,
+        )
+
+    # ------------------------------------------------------------------ conversions
+    def _tensor(self, array: np.ndarray, dtype: torch.dtype) -> torch.Tensor:
+        # ``.to(dtype)`` copies when the dtype changes; same-dtype arrays are copied explicitly since the
+        # simulation reuses its buffers.
+        tensor = torch.from_numpy(array)
+        tensor = tensor.to(dtype) if tensor.dtype != dtype else tensor.clone()
+        return tensor if self.device is None or self.device.type == "cpu" else tensor.to(self.device)
+
+    def _observations(self, success: np.ndarray) -> dict[str, torch.Tensor]:
+        sim = self._sim
+        observation = self._tensor(sim.observation, torch.float32)
+        return {
+            "observation": observation,
+            "achieved_goal": observation[:, :2].contiguous(),
+            "desired_goal": self._tensor(sim.desired_goal, torch.float32),
+            "is_success": self._tensor(success[:, None], torch.bool),
+            "step_count": self._tensor(sim.step_count[:, None], torch.int64),
+        }
+
+    # ------------------------------------------------------------------ EnvBase API
+    def _step(self, tensordict: TensorDictBase) -> TensorDictBase:
+        action = tensordict.get("action")
+        if action.shape != self.action_spec.shape:
+            raise ValueError(
+                f"{self.maze.name} expects an 'action' of shape {tuple(self.action_spec.shape)} "
+                f"(num_envs, action_dim), got {tuple(action.shape)}."
+            )
+        reward, success, truncated = self._sim.step(action.detach().cpu().numpy())
+        out = self._observations(success)
+        truncated = self._tensor(truncated[:, None], torch.bool)
+        out["reward"] = self._tensor(reward[:, None], torch.float32)
+        out["done"] = truncated
+        out["truncated"] = truncated
+        out["terminated"] = torch.zeros_like(truncated)
+        return TensorDict(out, batch_size=self.batch_size, device=self.device)
+
+    def _reset(self, tensordict: TensorDictBase | None = None, **kwargs) -> TensorDictBase:
+        mask = goals = None
+        if tensordict is not None:
+            reset = tensordict.get("_reset", None)
+            if reset is not None:
+                mask = reset.reshape(self.batch_size).cpu().numpy()
+            goals = tensordict.get("desired_goal", None)
+            if goals is not None:
+                if goals.shape != (*self.batch_size, 2):
+                    raise ValueError(
+                        f"A 'desired_goal' passed to reset must have shape {(*self.batch_size, 2)}, "
+                        f"got {tuple(goals.shape)}."
+                    )
+                goals = goals.detach().cpu().numpy()
+                if mask is not None:
+                    goals = goals[mask]
+        self._sim.reset(mask, goals)
+        _, success = self._sim.evaluate()
+        out = self._observations(success)
+        done = torch.zeros((*self.batch_size, 1), dtype=torch.bool, device=self.device)
+        out.update(done=done, terminated=done.clone(), truncated=done.clone())
+        return TensorDict(out, batch_size=self.batch_size, device=self.device)
+
+    def _set_seed(self, seed: int | None) -> None:
+        self._sim.seed(seed)
+
+    def render(self, env_index: int = 0, *, width: int = 480, height: int = 480,
+               camera: str | int = OVERVIEW_CAMERA) -> torch.Tensor:
+        """Offscreen RGB frame (uint8 ``[height, width, 3]``) of env ``env_index`` through MuJoCo's renderer.
+
+        Needs an OpenGL backend (``MUJOCO_GL=egl`` or ``osmesa``). The default camera shows the whole maze
+        from above; ``"ant/track"`` or ``"point/track"`` follow the agent.
+        """
+        return torch.from_numpy(self._sim.render(env_index, width=width, height=height, camera=camera).copy())
+
+    def close(self, *, raise_if_closed: bool = True) -> None:
+        self._sim.close()
+        super().close(raise_if_closed=raise_if_closed)
+
+
+def make_env(
+    name: str,
+    *,
+    num_envs: int = 1,
+    seed: int | None = None,
+    device=None,
+    eval: bool = False,  # noqa: A002 - the documented option name
+    max_episode_steps: int | None = None,
+) -> MazeEnv:
+    """Builds a DHRL maze as a native batched TorchRL environment.
+
+    Args:
+        name (str): ``"PointMaze"``, ``"AntMazeSmall"``, ``"AntMaze"``, ``"AntMazeBottleneck"`` or
+            ``"AntMazeComplex"`` (the Gymnasium ids ``"dhrl/<name>-v0"`` are accepted too).
+
+    Keyword Args:
+        num_envs (int): batch size of the env. Defaults to ``1``.
+        seed (int, optional): seed of the per-env RNG streams.
+        device (torch.device, optional): device of the output tensors.
+        eval (bool): use the fixed test goals (AntMazeComplex: one of its four per episode).
+            Defaults to ``False`` (train goals).
+        max_episode_steps (int, optional): time limit override (defaults to the paper's episode length).
+
+    Raises:
+        ValueError: for an unknown name; the message lists the valid ones.
+
+    Examples:
+        >>> from torchrl_dhrl.envs import make_env
+        >>> env = make_env("AntMaze", num_envs=2, seed=0, eval=True)
+        >>> env.reset()["desired_goal"].tolist()
+        [[0.0, 16.0], [0.0, 16.0]]
+    """
+    return MazeEnv(name, num_envs=num_envs, max_episode_steps=max_episode_steps, eval_goals=eval,
+                   device=device, seed=seed)

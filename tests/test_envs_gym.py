@@ -1,0 +1,116 @@
+"""The Gymnasium goal-env front end: registration, env checker, seeding, compute_reward, options."""
+
+from __future__ import annotations
+
+import warnings
+
+import gymnasium as gym
+import mujoco
+import numpy as np
+import pytest
+import torch
+from gymnasium.utils.env_checker import check_env
+from tensordict import TensorDict
+from torchrl_dhrl.envs import GYM_IDS, MAZE_NAMES, MazeGoalEnv, get_maze_spec, make_env
+
+
+def test_registered_ids():
+    assert GYM_IDS == tuple(f"dhrl/{name}-v0" for name in MAZE_NAMES)
+    for gym_id in GYM_IDS:
+        spec = gym.spec(gym_id)
+        assert spec.max_episode_steps == get_maze_spec(gym_id).episode_length
+
+
+@pytest.mark.parametrize("gym_id", GYM_IDS)
+def test_gymnasium_check_env(gym_id):
+    env = gym.make(gym_id)
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")  # infinite observation bounds and the ant's +-30 action box only warn
+        check_env(env.unwrapped, skip_render_check=True)
+    obs, info = env.reset(seed=0)
+    assert set(obs) == {"observation", "achieved_goal", "desired_goal"}
+    assert all(v.dtype == np.float64 for v in obs.values())
+    assert obs["observation"].shape == (get_maze_spec(gym_id).agent.obs_dim,)
+    np.testing.assert_array_equal(obs["achieved_goal"], obs["observation"][:2])
+    assert isinstance(info["is_success"], bool)
+
+
+def test_seeding_and_determinism():
+    env = gym.make("dhrl/AntMazeSmall-v0")
+    actions = np.random.default_rng(0).uniform(-30, 30, size=(10, 8)).astype(np.float32)
+    runs = []
+    for seed in (1, 1, 2):
+        obs, _ = env.reset(seed=seed)
+        trajectory = [obs["observation"]]
+        for action in actions:
+            obs, *_ = env.step(action)
+            trajectory.append(obs["observation"])
+        runs.append(np.array(trajectory))
+    np.testing.assert_array_equal(runs[0], runs[1])
+    assert not np.array_equal(runs[0], runs[2])
+
+
+def test_compute_reward_vectorised_and_consistent():
+    env = gym.make("dhrl/PointMaze-v0").unwrapped
+    rng = np.random.default_rng(0)
+    ag, dg = rng.uniform(-1, 1, size=(3, 5, 2)), rng.uniform(-1, 1, size=(3, 5, 2))
+    reward = env.compute_reward(ag, dg, [{}] * 15)
+    assert reward.shape == (3, 5)
+    np.testing.assert_array_equal(reward, -(np.linalg.norm(ag - dg, axis=-1) > 0.5).astype(float))
+    obs, _ = env.reset(seed=0, options={"goal": [0.3, 0.0]})
+    for _ in range(20):
+        obs, reward, terminated, truncated, info = env.step(np.array([0.5, 0.0], dtype=np.float32))
+        assert reward == env.compute_reward(obs["achieved_goal"], obs["desired_goal"], info)
+        distance = np.linalg.norm(obs["achieved_goal"] - obs["desired_goal"])
+        assert info["is_success"] == (distance <= 2.5) and not terminated and not truncated
+    assert reward == -1.0  # it drove past the goal
+
+
+def test_reset_options_and_errors():
+    env = gym.make("dhrl/AntMazeComplex-v0")
+    obs, _ = env.reset(seed=0, options={"goal": (40.0, 48.0)})
+    np.testing.assert_array_equal(obs["desired_goal"], [40.0, 48.0])
+    goals = {tuple(env.reset(options={"eval": True})[0]["desired_goal"]) for _ in range(40)}
+    assert goals == set(get_maze_spec("AntMazeComplex").test_goals)
+    train = env.reset(options={"eval": False})[0]["desired_goal"]
+    assert tuple(train) not in goals
+    assert tuple(gym.make("dhrl/AntMaze-v0", eval=True).reset(seed=0)[0]["desired_goal"]) == (0.0, 16.0)
+    with pytest.raises(ValueError, match="outside"):
+        env.reset(options={"goal": (60.0, 0.0)})
+    with pytest.raises(ValueError, match="Unknown reset options"):
+        env.reset(options={"goal_xy": (0.0, 0.0)})
+    env.reset(seed=0)
+    with pytest.raises(ValueError, match="action of shape"):
+        env.step(np.zeros(2))
+    with pytest.raises(ValueError, match="render_mode"):
+        MazeGoalEnv("AntMaze", render_mode="human")
+
+
+def test_time_limit_is_truncation():
+    env = MazeGoalEnv("AntMaze", max_episode_steps=3)
+    env.reset(seed=0)
+    flags = [env.step(env.action_space.sample())[2:4] for _ in range(3)]
+    assert flags == [(False, False), (False, False), (False, True)]
+    wrapped = gym.make("dhrl/PointMaze-v0", max_episode_steps=2)
+    wrapped.reset(seed=0)
+    assert [wrapped.step(wrapped.action_space.sample())[3] for _ in range(2)] == [False, True]
+
+
+def test_gym_and_torchrl_share_the_simulation():
+    """Same state and actions -> the same observations through both front ends (float64 vs float32)."""
+    gym_env = MazeGoalEnv("AntMaze")
+    obs, _ = gym_env.reset(seed=0)
+    rl_env = make_env("AntMaze")
+    rl_env.reset()
+    # Copy the gym env's initial state into the TorchRL env's simulation.
+    src, dst = gym_env.simulation, rl_env.simulation
+    mujoco.mj_copyData(dst.datas[0], dst.model, src.datas[0])
+    dst.observation[:] = src.observation
+    dst.desired_goal[:] = src.desired_goal
+    actions = np.random.default_rng(0).uniform(-30, 30, size=(5, 8)).astype(np.float32)
+    for action in actions:
+        obs, reward, _, _, info = gym_env.step(action)
+        td = rl_env.step(TensorDict({"action": torch.from_numpy(action)[None]}, [1]))["next"]
+        assert obs["observation"].dtype == np.float64 and td["observation"].dtype == torch.float32
+        np.testing.assert_allclose(td["observation"][0].numpy(), obs["observation"], rtol=1e-6, atol=1e-6)
+        assert float(td["reward"]) == reward and bool(td["is_success"]) == info["is_success"]

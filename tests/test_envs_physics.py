@@ -1,0 +1,168 @@
+"""Agent models and dynamics: the point's velocity drive, walls stopping it, the ant's stability."""
+
+from __future__ import annotations
+
+import mujoco
+import numpy as np
+import pytest
+
+from torchrl_dhrl.envs import AntAgent, MazeSimulation, PointAgent, compile_maze_model
+
+ANT_MAZES = ["AntMazeSmall", "AntMaze", "AntMazeBottleneck", "AntMazeComplex"]
+
+
+def _place_point(sim, x, y, yaw):
+    data = sim.datas[0]
+    data.qpos[:] = (x, y, yaw)
+    data.qvel[:] = 0.0
+    mujoco.mj_forward(sim.model, data)
+    sim.observation[0] = np.concatenate([data.qpos, data.qvel])
+
+
+def test_ant_model_facts():
+    model = compile_maze_model("AntMaze")
+    assert (model.nq, model.nv, model.nu) == (15, 14, 8)
+    assert model.opt.timestep == 0.02 and model.opt.integrator == mujoco.mjtIntegrator.mjINT_RK4
+    motors = [model.joint(model.actuator_trnid[k, 0]).name for k in range(model.nu)]
+    assert motors == [f"ant/{p}_{n}" for n in (4, 1, 2, 3) for p in ("hip", "ankle")]
+    np.testing.assert_allclose(model.actuator_ctrlrange, np.tile([-30.0, 30.0], (8, 1)))
+    np.testing.assert_allclose(model.actuator_gear[:, 0], 1.0)
+    hinges = {model.joint(j).name: j for j in range(1, model.njnt)}
+    for n in (1, 2, 3, 4):
+        np.testing.assert_allclose(model.jnt_range[hinges[f"ant/hip_{n}"]], np.deg2rad([-30, 30]))
+        sign = 1 if n in (1, 4) else -1
+        np.testing.assert_allclose(np.sort(model.jnt_range[hinges[f"ant/ankle_{n}"]]),
+                                   np.sort(sign * np.deg2rad([30, 70])))
+        # Ankle axis perpendicular to the leg, in the plane.
+        assert abs(model.jnt_axis[hinges[f"ant/ankle_{n}"]][2]) < 1e-12
+    root = model.joint("ant/root/")
+    assert model.jnt_type[root.id] == mujoco.mjtJoint.mjJNT_FREE and model.dof_damping[0] == 0.0
+    np.testing.assert_allclose(model.dof_damping[6:], 1.0)
+    np.testing.assert_allclose(model.dof_armature[6:], 1.0)
+    assert model.geom("ant/torso_geom").size[0] == 0.25
+    # Init qpos: joints (0, 1, 0, -1, 0, -1, 0, 1) in leg order 1-4 lie inside the joint ranges.
+    qpos = np.array(AntAgent().init_qpos)
+    for k, n in enumerate((1, 2, 3, 4)):
+        low, high = model.jnt_range[hinges[f"ant/ankle_{n}"]]
+        assert low <= qpos[8 + 2 * k] <= high
+
+
+def test_ant_collides_only_with_floor_and_walls():
+    model = compile_maze_model("AntMaze")
+    ant = [g for g in range(model.ngeom) if model.geom(g).name.startswith("ant/")]
+    static = [g for g in range(model.ngeom) if model.geom(g).name.startswith(("wall_", "floor"))]
+
+    def collide(a, b):
+        return bool(model.geom_contype[a] & model.geom_conaffinity[b] or model.geom_contype[b] & model.geom_conaffinity[a])
+
+    assert all(collide(a, s) for a in ant for s in static)
+    assert not any(collide(a, b) for a in ant for b in ant if a != b)
+    goal = model.geom("goal_geom").id
+    assert not any(collide(goal, g) for g in range(model.ngeom) if g != goal)
+
+
+def test_point_free_motion_matches_reference_kinematics():
+    """In free space one env step moves the point by 0.2 * forward along the new heading, as the reference."""
+    sim = MazeSimulation("PointMaze")
+    _place_point(sim, 6.0, 0.0, 0.0)
+    yaw = 0.0
+    x, y = 6.0, 0.0
+    for action in [(1.0, 0.0), (0.5, 0.25), (-1.0, -0.1), (2.0, 1.0)]:  # the last one is clipped
+        forward = np.clip(action[0], -1, 1)
+        yaw += np.clip(action[1], -0.25, 0.25)
+        x, y = x + 0.2 * forward * np.cos(yaw), y + 0.2 * forward * np.sin(yaw)
+        sim.step(np.array([action]))
+        np.testing.assert_allclose(sim.observation[0, :3], [x, y, yaw], atol=1e-9)
+
+
+@pytest.mark.parametrize(
+    "start, heading, axis, limit",
+    [
+        ((0.0, 0.0), np.pi / 2, 1, 2.0),  # up into the inner wall (its face at y = 2)
+        ((8.0, 0.0), 0.0, 0, 10.0),  # right into the outer wall (x = 10)
+        ((0.0, 8.0), np.pi, 0, -2.0),  # left into the outer wall (x = -2)
+    ],
+)
+def test_point_cannot_tunnel_through_walls(start, heading, axis, limit):
+    """Driving the point straight into a wall at full speed for 500 steps: it stops at the face."""
+    sim = MazeSimulation("PointMaze")
+    _place_point(sim, *start, heading)
+    agent = sim.agent
+    reach = agent.nose_offset + agent.nose_half_size[0]  # the nose tip leads
+    positions = []
+    for _ in range(500):
+        sim.step(np.array([[1.0, 0.0]]))
+        positions.append(sim.observation[0, axis])
+    positions = np.array(positions)
+    sign = np.sign(limit - start[axis]) if limit != start[axis] else 1.0
+    penetration = sign * (positions - limit) + reach
+    assert penetration.max() < 0.02  # the nose tip never enters the wall (beyond soft-contact slack)
+    assert penetration[-1] > -0.05  # and it did reach the wall
+
+
+def test_point_model_facts():
+    model = compile_maze_model("PointMaze")
+    assert [model.joint(j).name for j in range(model.njnt)] == ["point/ballx", "point/bally", "point/rot"]
+    assert model.geom("point/pointbody").size[0] == 0.5
+    np.testing.assert_allclose(model.geom("point/pointarrow").size, [0.5, 0.1, 0.1])
+    np.testing.assert_allclose(model.geom("point/pointarrow").pos, [0.6, 0.0, 0.5])
+    agent = PointAgent()
+    assert agent.control_period == pytest.approx(0.02)
+    assert model.opt.timestep * agent.frame_skip == pytest.approx(0.02)
+    # The point does not touch the floor (no vertical dof), only walls.
+    floor = model.geom("floor").id
+    assert model.geom_conaffinity[floor] == 0
+
+
+@pytest.mark.parametrize(
+    "name", ["AntMaze"] + [pytest.param(name, marks=pytest.mark.slow) for name in ANT_MAZES if name != "AntMaze"]
+)
+def test_ant_random_rollout_is_stable(name):
+    """600 random steps (the full episode length) on 3 envs: finite, torso height bounded, it moves."""
+    sim = MazeSimulation(name, 3, seed=0)
+    sim.reset()
+    start = sim.observation.copy()
+    rng = np.random.default_rng(0)
+    heights = []
+    for _ in range(600):
+        sim.step(rng.uniform(-30.0, 30.0, size=(3, 8)))
+        heights.append(sim.observation[:, 2].copy())
+    heights = np.array(heights)
+    assert np.isfinite(sim.observation).all()
+    assert heights.min() > 0.1 and heights.max() < 1.5
+    assert (np.linalg.norm(sim.observation[:, :2] - start[:, :2], axis=1) > 0.05).all()
+    joints = sim.observation[:, 7:15]
+    assert (np.abs(joints - start[:, 7:15]).max(axis=1) > 0.1).all()
+    # Joints stay (softly) within their ranges: |hip| <= 30 deg, ankles <= 70 deg, with slack.
+    assert np.abs(joints).max() < np.deg2rad(80)
+
+
+def test_reset_noise_statistics():
+    """qpos ~ init + U(-0.1, 0.1) (quaternion renormalised), qvel ~ N(0, 0.1)."""
+    sim = MazeSimulation("AntMaze", 400, seed=0)
+    sim.reset()
+    qpos, qvel = sim.observation[:, :15], sim.observation[:, 15:]
+    init = np.array(AntAgent().init_qpos)
+    noise = np.delete(qpos - init, [3, 4, 5, 6], axis=1)
+    assert np.abs(noise).max() <= 0.1
+    assert noise.std() == pytest.approx(0.2 / np.sqrt(12), rel=0.05)
+    np.testing.assert_allclose(np.linalg.norm(qpos[:, 3:7], axis=1), 1.0)
+    assert qvel.std() == pytest.approx(0.1, rel=0.05) and abs(qvel.mean()) < 0.01
+
+
+def test_simulation_errors():
+    sim = MazeSimulation("AntMaze", 2)
+    with pytest.raises(ValueError, match="actions of shape"):
+        sim.step(np.zeros((2, 3)))
+    with pytest.raises(ValueError, match="finite"):
+        sim.step(np.full((2, 8), np.nan))
+    with pytest.raises(ValueError, match="outside"):
+        sim.reset(goals=[[0.0, 30.0], [0.0, 0.0]])
+    with pytest.raises(ValueError, match="shape"):
+        sim.reset(goals=np.zeros((3, 2)))
+    with pytest.raises(ValueError, match="num_envs"):
+        MazeSimulation("AntMaze", 0)
+    with pytest.raises(ValueError, match="max_episode_steps"):
+        MazeSimulation("AntMaze", max_episode_steps=0)
+    with pytest.raises(ValueError, match="Valid names"):
+        MazeSimulation("AntMazeHuge")

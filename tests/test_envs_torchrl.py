@@ -1,0 +1,207 @@
+"""The native batched TorchRL maze env: specs, seeding, resets, goals, rewards, time limit, collectors."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+import torch
+from tensordict import TensorDict
+from torchrl.collectors import Collector
+from torchrl.envs.utils import check_env_specs, step_mdp
+
+from torchrl_dhrl.envs import MAZE_NAMES, MazeEnv, get_maze_spec, make_env, sparse_reward
+
+
+@pytest.mark.parametrize("num_envs", [1, 3])
+@pytest.mark.parametrize("name", MAZE_NAMES)
+def test_check_env_specs(name, num_envs):
+    env = make_env(name, num_envs=num_envs, seed=0, max_episode_steps=2)
+    check_env_specs(env)
+    assert env.batch_size == torch.Size([num_envs])
+    td = env.reset()
+    spec = get_maze_spec(name)
+    assert td["observation"].shape == (num_envs, spec.agent.obs_dim) and td["observation"].dtype == torch.float32
+    assert td["achieved_goal"].dtype == torch.float32 and td["desired_goal"].dtype == torch.float32
+    assert td["is_success"].dtype == torch.bool and td["is_success"].shape == (num_envs, 1)
+    assert td["step_count"].dtype == torch.int64 and (td["step_count"] == 0).all()
+    torch.testing.assert_close(td["achieved_goal"], td["observation"][:, :2])
+
+
+def _rollout(env, actions):
+    td = env.reset()
+    out = []
+    for action in actions:
+        td["action"] = action
+        td = env.step(td)
+        out.append(td["next"].clone())
+        td = step_mdp(td)
+    return torch.stack(out, 1)
+
+
+@pytest.mark.parametrize("name", ["PointMaze", "AntMazeComplex"])
+def test_seeding_is_deterministic(name):
+    torch.manual_seed(0)
+    env = make_env(name, num_envs=2)
+    actions = env.action_spec.rand((5,))
+    runs = []
+    for seed in (3, 3, 4):
+        assert env.set_seed(seed) != seed  # returns the next seed, as TorchRL expects
+        runs.append(_rollout(env, actions))
+    assert (runs[0] == runs[1]).all()
+    assert not torch.equal(runs[0]["observation"], runs[2]["observation"])
+    # The two envs of a batch use different streams.
+    assert not torch.equal(runs[0]["observation"][0], runs[0]["observation"][1])
+    # Seeding at construction gives the same first observation.
+    a, b = make_env(name, num_envs=2, seed=7).reset(), make_env(name, num_envs=2, seed=7).reset()
+    assert (a == b).all()
+
+
+def test_env_streams_do_not_depend_on_batch_neighbours():
+    """Each env draws from its own RNG stream: resetting the other envs does not change what it draws."""
+    env = make_env("AntMaze", num_envs=3, seed=11)
+    first = env.reset()["desired_goal"][0].clone()
+    env2 = make_env("AntMaze", num_envs=3, seed=11)
+    env2.reset(TensorDict({"_reset": torch.tensor([[False], [True], [True]])}, [3]))
+    # Env 0 was not reset in env2: its own stream is untouched, so its next reset draws the same goal.
+    second = env2.reset(TensorDict({"_reset": torch.tensor([[True], [False], [False]])}, [3]))["desired_goal"][0]
+    torch.testing.assert_close(first, second)
+
+
+def test_partial_reset_leaves_other_envs_untouched():
+    torch.manual_seed(0)
+    env_a, env_b = make_env("AntMaze", num_envs=3, seed=5), make_env("AntMaze", num_envs=3, seed=5)
+    actions = env_a.action_spec.rand((8,))
+    td_a, td_b = env_a.reset(), env_b.reset()
+    for t in range(8):
+        if t == 4:
+            before = td_a.clone()
+            td_a = env_a.reset(td_a.set("_reset", torch.tensor([[False], [True], [False]])))
+            for i in (0, 2):
+                assert (td_a[i].exclude("_reset") == before[i].exclude("_reset")).all()
+            assert td_a["step_count"][:, 0].tolist() == [4, 0, 4]
+            assert not torch.equal(td_a["observation"][1], before["observation"][1])
+        td_a = step_mdp(env_a.step(td_a.set("action", actions[t])))
+        td_b = step_mdp(env_b.step(td_b.set("action", actions[t])))
+    # Envs 0 and 2 followed exactly the same trajectory with and without env 1's reset.
+    for i in (0, 2):
+        torch.testing.assert_close(td_a["observation"][i], td_b["observation"][i], rtol=0, atol=0)
+    assert td_a["step_count"][:, 0].tolist() == [8, 4, 8]
+
+
+def test_explicit_goals_through_reset_tensordict():
+    env = make_env("AntMazeSmall", num_envs=3, seed=0)
+    goals = torch.tensor([[0.0, 8.0], [8.0, 8.0], [9.0, -1.0]])
+    td = env.reset(TensorDict({"desired_goal": goals}, [3]))
+    torch.testing.assert_close(td["desired_goal"], goals)
+    # A masked reset with goals only changes the reset envs' goals.
+    mask = torch.tensor([[False], [True], [False]])
+    td = env.reset(TensorDict({"desired_goal": torch.zeros(3, 2), "_reset": mask}, [3]))
+    torch.testing.assert_close(td["desired_goal"][1], torch.zeros(2))
+    np.testing.assert_array_equal(env.simulation.desired_goal, [[0.0, 8.0], [0.0, 0.0], [9.0, -1.0]])
+    # Automatic resets inside a rollout draw fresh goals.
+    env = make_env("AntMazeSmall", num_envs=3, seed=0, max_episode_steps=2)
+    rollout = env.rollout(4, break_when_any_done=False, tensordict=env.reset(TensorDict({"desired_goal": goals}, [3])),
+                          auto_reset=False)
+    torch.testing.assert_close(rollout["desired_goal"][:, 1], goals)
+    assert not torch.isclose(rollout["desired_goal"][:, 2], goals).all(-1).any()
+    # Goals outside the arena or of the wrong shape are refused.
+    with pytest.raises(ValueError, match="outside the AntMazeSmall arena"):
+        env.reset(TensorDict({"desired_goal": torch.tensor([[0.0, 8.0], [0.0, 11.0], [0.0, 0.0]])}, [3]))
+    with pytest.raises(ValueError, match="shape"):
+        env.reset(TensorDict({"desired_goal": torch.zeros(3, 3)}, [3]))
+
+
+@pytest.mark.parametrize("name", ["PointMaze", "AntMaze"])
+def test_reward_success_and_time_limit(name):
+    spec = get_maze_spec(name)
+    env = make_env(name, num_envs=4, seed=1, max_episode_steps=6)
+    torch.manual_seed(1)
+    rollout = env.rollout(13, break_when_any_done=False)
+    nxt = rollout["next"]
+    distance = (nxt["achieved_goal"] - nxt["desired_goal"]).norm(dim=-1, keepdim=True)
+    expected = torch.from_numpy(sparse_reward(nxt["achieved_goal"].numpy(), nxt["desired_goal"].numpy()))
+    torch.testing.assert_close(nxt["reward"], expected[..., None].float())
+    torch.testing.assert_close(nxt["reward"], -(distance > 0.5).float())
+    assert torch.equal(nxt["is_success"], distance <= spec.success_threshold)
+    assert torch.equal(nxt["done"], nxt["truncated"]) and not nxt["terminated"].any()
+    assert nxt["truncated"][0, :, 0].tolist() == [t % 6 == 5 for t in range(13)]
+    assert nxt["step_count"][0, :, 0].tolist() == [1, 2, 3, 4, 5, 6, 1, 2, 3, 4, 5, 6, 1]
+    assert rollout["step_count"][0, :, 0].tolist() == [0, 1, 2, 3, 4, 5, 0, 1, 2, 3, 4, 5, 0]
+
+
+def test_success_on_scripted_point_rollout():
+    """Drive the point straight at an explicit goal: success (within 2.5) and reward (within 0.5) follow."""
+    env = make_env("PointMaze", seed=0)
+    td = env.reset(TensorDict({"desired_goal": torch.tensor([[6.0, 0.0]])}, [1]))
+    assert not td["is_success"].any()  # the start is about 6 away
+    yaw = float(td["observation"][0, 2])
+    distances, successes, rewards = [], [], []
+    for t in range(40):
+        turn = -yaw if t == 0 else 0.0  # the reset yaw noise is below the 0.25 turn limit
+        td = env.step(td.set("action", torch.tensor([[1.0, turn]])))
+        nxt = td["next"]
+        distances.append(float((nxt["achieved_goal"] - nxt["desired_goal"]).norm()))
+        successes.append(bool(nxt["is_success"]))
+        rewards.append(float(nxt["reward"]))
+        td = step_mdp(td)
+    distances = np.array(distances)
+    np.testing.assert_array_equal(successes, distances <= 2.5)
+    np.testing.assert_array_equal(rewards, np.where(distances <= 0.5, 0.0, -1.0))
+    assert any(successes) and not all(successes) and max(rewards) == 0.0
+    # The point moves 0.2 per step towards the goal until it passes it.
+    np.testing.assert_allclose(np.diff(distances[:20]), -0.2, atol=0.02)
+
+
+def test_eval_goals():
+    env = make_env("AntMaze", num_envs=2, eval=True, seed=0)
+    assert env.reset()["desired_goal"].tolist() == [[0.0, 16.0], [0.0, 16.0]]
+    env.eval_goals = False
+    assert env.reset()["desired_goal"].tolist() != [[0.0, 16.0], [0.0, 16.0]]
+    complex_env = make_env("AntMazeComplex", num_envs=50, eval=True, seed=0)
+    goals = {tuple(g) for g in complex_env.reset()["desired_goal"].tolist()}
+    assert goals == set(get_maze_spec("AntMazeComplex").test_goals)
+
+
+def test_collector_keeps_episodes_apart():
+    """With a Collector over 3 envs, each trajectory id is one env's episode with consecutive step counts."""
+    env = make_env("PointMaze", num_envs=3, seed=0, max_episode_steps=7)
+    collector = Collector(env, policy=None, frames_per_batch=60, total_frames=60)
+    batch = next(iter(collector))
+    collector.shutdown()
+    assert batch.batch_size == (3, 20)
+    traj = batch["collector", "traj_ids"]
+    steps = batch["step_count"][..., 0]
+    for i in range(3):
+        new_episode = steps[i, 1:] == 0
+        assert torch.equal(traj[i, 1:] != traj[i, :-1], new_episode)
+        assert torch.equal(torch.where(new_episode, 0, steps[i, :-1] + 1), steps[i, 1:])
+    ids_per_env = [set(traj[i].tolist()) for i in range(3)]
+    assert not (ids_per_env[0] & ids_per_env[1] or ids_per_env[0] & ids_per_env[2] or ids_per_env[1] & ids_per_env[2])
+    # The goal is constant within an episode and changes between episodes.
+    for tid in traj.unique():
+        goals = batch["desired_goal"][traj == tid]
+        assert (goals == goals[0]).all()
+
+
+def test_errors():
+    with pytest.raises(ValueError, match="Valid names: PointMaze, AntMazeSmall"):
+        make_env("AntMazeHuge")
+    with pytest.raises(TypeError):
+        make_env(3)
+    env = make_env("AntMaze", num_envs=2)
+    td = env.reset()
+    with pytest.raises(ValueError, match="expects an 'action' of shape"):
+        env.step(td.set("action", torch.zeros(2, 2)))
+    assert isinstance(make_env("dhrl/AntMaze-v0"), MazeEnv)
+
+
+@pytest.mark.skipif(not torch.cuda.is_available(), reason="needs a CUDA device")
+def test_cuda_device():
+    env = make_env("AntMaze", num_envs=2, seed=0, device="cuda")
+    check_env_specs(env)
+    td = env.rollout(3)
+    assert td["observation"].device.type == "cuda" and td["next", "reward"].device.type == "cuda"
+    cpu = make_env("AntMaze", num_envs=2, seed=0)
+    torch.manual_seed(0)
+    actions = cpu.action_spec.rand((3,))
+    torch.testing.assert_close(_rollout(env, actions.cuda())["observation"].cpu(), _rollout(cpu, actions)["observation"])

@@ -1,0 +1,322 @@
+"""SQGCLoss: targets, clamps, gradient isolation, delayed actor updates, target nets and checkpoints."""
+
+import copy
+import warnings
+
+import pytest
+import torch
+from tensordict import TensorDict
+from torchrl.objectives import SoftUpdate
+
+from torchrl_dhrl.modules import GoalConditionedCritic, GoalDistance, LowLevelActor
+from torchrl_dhrl.objectives import SQGCLoss, make_optimizers
+
+OBS, GOAL, ACT, AMAX, GAMMA = 6, 2, 3, 2.0, 0.99
+
+
+@pytest.fixture(autouse=True)
+def _no_target_warning():
+    with warnings.catch_warnings():
+        warnings.filterwarnings("ignore", message="No target network updater")
+        yield
+
+
+def _nets(seed=0, cells=(32, 32), **critic_kw):
+    torch.manual_seed(seed)
+    actor = LowLevelActor(OBS, GOAL, action_max=AMAX, action_dim=ACT, num_cells=cells)
+    kw = dict(action_max=AMAX, action_dim=ACT, num_cells=cells, gamma=GAMMA, **critic_kw)
+    return actor, GoalConditionedCritic(OBS, GOAL, **kw), GoalConditionedCritic(OBS, GOAL, **kw)
+
+
+def _batch(n=32, seed=1, reward=None, graph_reward=None):
+    g = torch.Generator().manual_seed(seed)
+    return TensorDict(
+        {
+            "observation": torch.randn(n, OBS, generator=g) * 3,
+            "action": torch.rand(n, ACT, generator=g) * 2 * AMAX - AMAX,
+            "goal": torch.randn(n, GOAL, generator=g) * 3,
+            "graph_goal": torch.randn(n, GOAL, generator=g) * 3,
+            ("next", "observation"): torch.randn(n, OBS, generator=g) * 3,
+            ("next", "reward"): -torch.ones(n, 1) if reward is None else reward,
+            ("next", "graph_reward"): -torch.ones(n, 1) if graph_reward is None else graph_reward,
+            ("next", "terminated"): torch.zeros(n, 1, dtype=torch.bool),
+        },
+        [n],
+    )
+
+
+def _manual_pair_loss(actor, critic, data, goal_key, reward_key, lo, hi, not_terminal=None):
+    """An independent TD3 computation through the TensorDictModules (targets = initial nets, no noise)."""
+    with torch.no_grad():
+        nxt = TensorDict({"observation": data["next", "observation"], "waypoint": data[goal_key]}, data.shape)
+        nxt = actor(nxt)
+        bootstrap = critic(nxt)["state_action_value"].min(-1).values
+        if not_terminal is not None:
+            bootstrap = bootstrap * not_terminal
+        y = (data["next", reward_key].squeeze(-1) + GAMMA * bootstrap).clamp(lo, hi)
+    cur = TensorDict(
+        {"observation": data["observation"], "waypoint": data[goal_key], "action": data["action"]}, data.shape
+    )
+    q = critic(cur)["state_action_value"]  # [n, 2]
+    return ((q - y[:, None]) ** 2).mean(0).sum(), y
+
+
+@pytest.mark.parametrize("fuse", [True, False])
+def test_losses_match_manual_td3_with_clamps(fuse):
+    actor, pc, gc = _nets()
+    n = 64
+    # Rewards far outside the clamps: > 0 for a quarter, < -80 for another quarter.
+    reward = torch.cat([torch.full((16, 1), 5.0), torch.full((16, 1), -150.0), -torch.ones(32, 1)])
+    data = _batch(n, reward=reward, graph_reward=reward.flip(0))
+    loss = SQGCLoss(actor, pc, gc, target_noise_std=0.0, fuse_critics=fuse)
+    assert loss.fuse_critics is fuse
+    out = loss(data)
+    ref_p, y_p = _manual_pair_loss(actor, pc, data, "goal", "reward", -80.0, 0.0)
+    ref_g, y_g = _manual_pair_loss(actor, gc, data, "graph_goal", "graph_reward", None, 0.0)
+    torch.testing.assert_close(out["loss_policy_qvalue"], ref_p)
+    torch.testing.assert_close(out["loss_graph_qvalue"], ref_g)
+    torch.testing.assert_close(out["policy_target"], y_p.mean())
+    torch.testing.assert_close(out["graph_target"], y_g.mean())
+    # The clamps bind: policy targets in [-80, 0], graph targets <= 0 but below -80 where r = -150.
+    assert y_p.max() == 0 and y_p.min() == -80
+    assert y_g.max() == 0 and y_g.min() < -150
+    assert out["policy_distance"] > 0 and out["graph_distance"] > 0
+
+
+def test_fused_and_separate_critics_give_identical_gradients():
+    grads = []
+    for fuse in (True, False):
+        actor, pc, gc = _nets()
+        loss = SQGCLoss(actor, pc, gc, target_noise_std=0.0, fuse_critics=fuse, actor_update_interval=1)
+        out = loss(_batch())
+        (out["loss_policy_qvalue"] + out["loss_graph_qvalue"] + out["loss_actor"]).backward()
+        grads.append({k: p.grad.clone() for k, p in loss.named_parameters()})
+    assert grads[0].keys() == grads[1].keys()
+    for k in grads[0]:
+        torch.testing.assert_close(grads[0][k], grads[1][k], msg=k)
+
+
+def _grad_norms(loss):
+    norms = {"actor": 0.0, "policy": 0.0, "graph": 0.0}
+    for name, p in loss.named_parameters():
+        g = 0.0 if p.grad is None else p.grad.abs().sum().item()
+        key = "actor" if name.startswith("actor") else "policy" if name.startswith("policy") else "graph"
+        norms[key] += g
+    return norms
+
+
+@pytest.mark.parametrize("entry,receives", [
+    ("loss_policy_qvalue", {"policy"}),
+    ("loss_graph_qvalue", {"graph"}),
+    ("loss_actor", {"actor"}),
+])
+def test_gradients_reach_only_their_parameters(entry, receives):
+    actor, pc, gc = _nets()
+    loss = SQGCLoss(actor, pc, gc, actor_update_interval=1)
+    out = loss(_batch())
+    out[entry].backward()
+    norms = _grad_norms(loss)
+    for group, value in norms.items():
+        assert (value > 0) == (group in receives), (entry, norms)
+
+
+def test_delayed_actor_update_and_actor_loss_value():
+    actor, pc, gc = _nets()
+    loss = SQGCLoss(actor, pc, gc, actor_update_interval=2, action_l2=0.5)
+    data = _batch()
+    flags = []
+    for _ in range(4):
+        out = loss(data)
+        flags.append(bool(out["actor_updated"]))
+        if not flags[-1]:
+            assert out["loss_actor"] == 0 and not out["loss_actor"].requires_grad
+    assert flags == [False, True, False, True]
+    assert int(loss.update_count) == 4
+    # Actor loss = -Q_1(s, pi(s, g)) + l2 * mean((a / amax)^2), computed independently.
+    td = actor(TensorDict({"observation": data["observation"], "waypoint": data["goal"]}, data.shape))
+    q1 = pc(td)["state_action_value"][:, 0]
+    expected = -q1.mean() + 0.5 * (td["action"] / AMAX).pow(2).mean()
+    torch.testing.assert_close(out["loss_actor"], expected)
+
+
+def test_soft_update_moves_targets_and_targets_start_as_copies():
+    actor, pc, gc = _nets()
+    loss = SQGCLoss(actor, pc, gc)
+    updater = SoftUpdate(loss, eps=0.9)
+    for name in ("actor_network", "policy_critic", "graph_critic"):
+        src, tgt = getattr(loss, f"{name}_params"), getattr(loss, f"target_{name}_params")
+        for key in src.keys(True, True):
+            torch.testing.assert_close(src.get(key).data, tgt.get(key).data)
+    before = {n: getattr(loss, f"target_{n}_params").clone() for n in ("actor_network", "policy_critic", "graph_critic")}
+    optims = make_optimizers(loss)
+    out = loss(_batch())
+    (out["loss_policy_qvalue"] + out["loss_graph_qvalue"]).backward()
+    loss(_batch())["loss_actor"].backward()
+    for opt in optims.values():
+        opt.step()
+    updater.step()
+    for name, old in before.items():
+        src, tgt = getattr(loss, f"{name}_params"), getattr(loss, f"target_{name}_params")
+        for key in src.keys(True, True):
+            if not isinstance(src.get(key), torch.nn.Parameter):
+                continue
+            expected = 0.9 * old.get(key) + 0.1 * src.get(key).data
+            torch.testing.assert_close(tgt.get(key).data, expected)
+            assert not torch.equal(tgt.get(key).data, old.get(key)), (name, key)
+
+
+def test_state_dict_round_trip_resumes_exactly():
+    actor, pc, gc = _nets(seed=0)
+    loss = SQGCLoss(actor, pc, gc, target_noise_std=0.0)
+    updater = SoftUpdate(loss, eps=0.5)
+    optims = make_optimizers(loss)
+    for _ in range(3):
+        out = loss(_batch())
+        sum(v for k, v in out.items() if k.startswith("loss_")).backward()
+        for opt in optims.values():
+            opt.step()
+            opt.zero_grad()
+        updater.step()
+    state = copy.deepcopy(loss.state_dict())
+    optim_state = {k: copy.deepcopy(o.state_dict()) for k, o in optims.items()}
+
+    actor2, pc2, gc2 = _nets(seed=123)
+    loss2 = SQGCLoss(actor2, pc2, gc2, target_noise_std=0.0)
+    loss2.load_state_dict(state)
+    optims2 = make_optimizers(loss2)
+    for k, o in optims2.items():
+        o.load_state_dict(optim_state[k])
+    assert int(loss2.update_count) == 3
+    data = _batch(seed=5)
+    out1, out2 = loss(data), loss2(data)
+    for key in out1.keys():
+        torch.testing.assert_close(out1[key], out2[key], msg=key)
+    # One more identical step keeps them identical (optimiser states resumed too).
+    for lo, opts, out in ((loss, optims, out1), (loss2, optims2, out2)):
+        sum(v for k, v in out.items() if k.startswith("loss_")).backward()
+        for opt in opts.values():
+            opt.step()
+    for (k1, p1), (k2, p2) in zip(loss.named_parameters(), loss2.named_parameters()):
+        assert k1 == k2
+        torch.testing.assert_close(p1, p2)
+    # The acting modules share the loss parameters.
+    torch.testing.assert_close(actor2.module.mlp[0].weight, loss2.actor_network_params["module", "mlp", "0", "weight"])
+
+
+def test_without_sqgc_graph_critics_train_on_policy_batch():
+    actor, pc, gc = _nets()
+    data = _batch()
+    loss = SQGCLoss(actor, pc, gc, target_noise_std=0.0, sqgc=False)
+    out = loss(data.exclude("graph_goal", ("next", "graph_reward")))
+    ref_g, _ = _manual_pair_loss(actor, gc, data, "goal", "reward", None, 0.0)
+    torch.testing.assert_close(out["loss_graph_qvalue"], ref_g)
+    assert "graph_goal" not in loss.in_keys
+    with pytest.raises(KeyError, match="graph-batch goal"):
+        SQGCLoss(actor, pc, gc)(data.exclude("graph_goal"))
+
+
+def test_use_terminated_masks_bootstrap():
+    actor, pc, gc = _nets()
+    data = _batch()
+    data["next", "terminated"][:10] = True
+    not_terminal = 1.0 - data["next", "terminated"].squeeze(-1).float()
+    loss = SQGCLoss(actor, pc, gc, target_noise_std=0.0, use_terminated=True)
+    out = loss(data)
+    ref_p, y = _manual_pair_loss(actor, pc, data, "goal", "reward", -80.0, 0.0, not_terminal)
+    torch.testing.assert_close(out["loss_policy_qvalue"], ref_p)
+    torch.testing.assert_close(y[:10], -torch.ones(10))  # r only
+    # Default: terminated is ignored (DHRL episodes only truncate).
+    ref_default, _ = _manual_pair_loss(actor, pc, data, "goal", "reward", -80.0, 0.0)
+    out_default = SQGCLoss(actor, pc, gc, target_noise_std=0.0)(data)
+    torch.testing.assert_close(out_default["loss_policy_qvalue"], ref_default)
+
+
+def test_leading_batch_dims_and_custom_keys():
+    actor, pc, gc = _nets()
+    data = _batch(24)
+    flat = SQGCLoss(actor, pc, gc, target_noise_std=0.0)(data)
+    nested = SQGCLoss(actor, pc, gc, target_noise_std=0.0)(data.reshape(4, 6))
+    for key in ("loss_policy_qvalue", "loss_graph_qvalue", "policy_q", "graph_distance"):
+        torch.testing.assert_close(flat[key], nested[key])
+    renamed = data.rename_key_("goal", ("her", "goal")).rename_key_(("next", "graph_reward"), ("next", "r_graph"))
+    loss = SQGCLoss(actor, pc, gc, target_noise_std=0.0)
+    loss.set_keys(goal=("her", "goal"), graph_reward="r_graph")
+    out = loss(renamed)
+    torch.testing.assert_close(out["loss_policy_qvalue"], flat["loss_policy_qvalue"])
+    assert ("her", "goal") in loss.in_keys
+
+
+def test_target_noise_is_absolute_and_unclipped_by_default():
+    actor, pc, gc = _nets()
+    data = _batch()
+    torch.manual_seed(0)
+    noisy = SQGCLoss(actor, pc, gc, target_noise_std=0.5)(data)
+    clean = SQGCLoss(actor, pc, gc, target_noise_std=0.0)(data)
+    assert noisy["policy_target"] != clean["policy_target"]
+    loss = SQGCLoss(actor, pc, gc, target_noise_std=100.0)
+    a = loss._target_action(data["next", "observation"], data["goal"])
+    assert (a.abs() <= AMAX).all() and (a.abs() == AMAX).float().mean() > 0.9  # clamped to the action box
+
+
+def test_constructor_errors():
+    actor, pc, gc = _nets()
+    with pytest.raises(ValueError, match="separate"):
+        SQGCLoss(actor, pc, pc)
+    with pytest.raises(ValueError, match="gamma"):
+        SQGCLoss(actor, pc, gc, gamma=0.9)
+    other = GoalConditionedCritic(OBS, GOAL, action_max=AMAX, action_dim=ACT, num_cells=(32, 32), gamma=0.9)
+    with pytest.raises(ValueError, match="gamma"):
+        SQGCLoss(actor, pc, other)
+    with pytest.raises(TypeError, match="GoalConditionedCritic"):
+        SQGCLoss(actor, pc, actor)
+    wide = GoalConditionedCritic(OBS, GOAL, action_max=5.0, action_dim=ACT, num_cells=(8,))
+    with pytest.raises(ValueError, match="box"):
+        SQGCLoss(actor, wide, copy.deepcopy(wide))
+    with pytest.raises(ValueError, match="actor_update_interval"):
+        SQGCLoss(actor, pc, gc, actor_update_interval=0)
+    with pytest.raises(ValueError, match="loss_function"):
+        SQGCLoss(actor, pc, gc, loss_function="huber")
+    with pytest.raises(NotImplementedError):
+        SQGCLoss(actor, pc, gc).make_value_estimator(gamma=0.9)
+    with pytest.raises(ValueError, match="one entry per sample"):
+        SQGCLoss(actor, pc, gc)(_batch().set(("next", "reward"), -torch.ones(32, 2)))
+
+
+def test_mismatched_critic_architectures_fall_back_to_separate_evaluation():
+    actor, pc, _ = _nets()
+    torch.manual_seed(3)
+    gc = GoalConditionedCritic(OBS, GOAL, action_max=AMAX, action_dim=ACT, num_cells=(16,), gamma=GAMMA)
+    loss = SQGCLoss(actor, pc, gc, target_noise_std=0.0)
+    assert not loss.fuse_critics
+    data = _batch()
+    ref_g, _ = _manual_pair_loss(actor, gc, data, "graph_goal", "graph_reward", None, 0.0)
+    torch.testing.assert_close(loss(data)["loss_graph_qvalue"], ref_g)
+
+
+def test_goal_distance_from_loss_follows_training():
+    actor, pc, gc = _nets()
+    loss = SQGCLoss(actor, pc, gc)
+    distance = GoalDistance.from_loss(loss)
+    states, goals = torch.randn(10, OBS), torch.randn(10, GOAL)
+    before = distance(states, goals)
+    optims = make_optimizers(loss, critic_lr=1e-2)
+    for _ in range(3):
+        out = loss(_batch())
+        sum(v for k, v in out.items() if k.startswith("loss_")).backward()
+        for opt in optims.values():
+            opt.step()
+            opt.zero_grad()
+    after = distance(states, goals)
+    assert not torch.allclose(before, after)
+    torch.testing.assert_close(after, GoalDistance(actor, gc)(states, goals))
+
+
+def test_make_optimizers_partitions_parameters():
+    actor, pc, gc = _nets()
+    loss = SQGCLoss(actor, pc, gc)
+    optims = make_optimizers(loss)
+    ids = {k: {id(p) for group in o.param_groups for p in group["params"]} for k, o in optims.items()}
+    assert not ids["actor"] & ids["critic"]
+    assert ids["actor"] | ids["critic"] == {id(p) for p in loss.parameters()}
+    assert {id(p) for p in actor.parameters()} == ids["actor"]
+    assert optims["actor"].param_groups[0]["lr"] == 1e-4 and optims["critic"].param_groups[0]["lr"] == 1e-3

@@ -1,0 +1,80 @@
+"""Packaging checks: the wheel ships the envs as ``torchrl_dhrl.envs`` and the docs' commands agree."""
+
+import re
+import subprocess
+import sys
+import zipfile
+from pathlib import Path
+
+import pytest
+
+ROOT = Path(__file__).resolve().parents[1]
+
+
+@pytest.fixture(scope="module")
+def wheel(tmp_path_factory):
+    out = tmp_path_factory.mktemp("wheel")
+    subprocess.run(
+        [sys.executable, "-m", "pip", "wheel", "--no-deps", "--no-build-isolation", "-q", "-w", str(out), str(ROOT)],
+        check=True,
+        capture_output=True,
+    )
+    wheels = list(out.glob("torchrl_dhrl-*.whl"))
+    assert len(wheels) == 1, wheels
+    return wheels[0]
+
+
+@pytest.mark.slow
+def test_wheel_layout(wheel):
+    names = zipfile.ZipFile(wheel).namelist()
+    assert "torchrl_dhrl/__init__.py" in names
+    assert "torchrl_dhrl/envs/__init__.py" in names
+    # never a bare top-level ``envs`` package in site-packages
+    assert not any(n.startswith("envs/") for n in names), [n for n in names if n.startswith("envs/")]
+    for sub in ("modules", "objectives", "planner", "data"):
+        assert f"torchrl_dhrl/{sub}/__init__.py" in names
+
+
+@pytest.mark.slow
+def test_non_editable_install_imports_envs(wheel, tmp_path):
+    target = tmp_path / "site"
+    subprocess.run(
+        [sys.executable, "-m", "pip", "install", "--no-deps", "-q", "--target", str(target), str(wheel)],
+        check=True,
+        capture_output=True,
+    )
+    code = (
+        "import sys; sys.path.insert(0, sys.argv[1]);"
+        "import torchrl_dhrl.envs as e, gymnasium as gym;"
+        "assert e.__file__.startswith(sys.argv[1]), e.__file__;"
+        "env = e.make_env('PointMaze', seed=0); td = env.reset();"
+        "assert td['observation'].shape[-1] == 6;"
+        "g = gym.make('dhrl/AntMaze-v0'); o, _ = g.reset(seed=0);"
+        "assert o['observation'].shape == (29,);"
+        "print('ok')"
+    )
+    # run from a neutral directory so the source tree cannot shadow the installed wheel
+    res = subprocess.run(
+        [sys.executable, "-c", code, str(target)], cwd=tmp_path, capture_output=True, text=True, timeout=300
+    )
+    assert res.returncode == 0, res.stderr[-3000:]
+    assert res.stdout.strip().endswith("ok")
+
+
+def _readme_commands():
+    text = (ROOT / "README.md").read_text()
+    block = re.search(r"```(?:bash|sh)?\n(.*?)```", text, re.S)
+    assert block, "README must start with a code block holding the two set-up commands"
+    lines = [ln.strip() for ln in block.group(1).splitlines() if ln.strip() and not ln.strip().startswith("#")]
+    return lines
+
+
+def test_readme_has_two_setup_commands_and_ci_runs_the_test_one():
+    lines = _readme_commands()
+    assert len(lines) == 2, lines
+    install, test = lines
+    assert "pip install" in install
+    ci = (ROOT / ".ci" / "run").read_text()
+    # CI runs exactly the README's test command (after its venv activation prefix)
+    test_cmd = test.split("&&")[-1].strip()
+    assert test_cmd in ci.splitlines(), (test_cmd, ci)

@@ -1,0 +1,372 @@
+"""Tests of FutureGoalRelabel (low-level hindsight relabelling) on synthetic, traceable trajectories.
+
+Every achieved goal encodes where it comes from: ``achieved_goal = (episode uid, step)`` and
+``("next", "achieved_goal") = (uid, step + 1)``, so a relabelled goal tells exactly which episode and
+step it was taken from.
+"""
+
+from __future__ import annotations
+
+import math
+
+import pytest
+import torch
+from scipy import stats
+from tensordict import TensorDict
+from torchrl.data import LazyTensorStorage, ListStorage, ReplayBuffer, TensorDictReplayBuffer
+from torchrl.envs import Compose, RenameTransform
+
+from torchrl_dhrl.data import FutureGoalRelabel, SparseGoalReward
+
+SENTINEL = -1000.0  # the stored (chased) goal: never an achieved goal
+
+
+class GoalStream:
+    """Collector-shaped batches ``[num_envs, T]`` of desynchronised episodes of random lengths."""
+
+    def __init__(self, num_envs: int, min_len: int, max_len: int, seed: int = 0) -> None:
+        self.num_envs = num_envs
+        self.min_len, self.max_len = min_len, max_len
+        self.generator = torch.Generator().manual_seed(seed)
+        self.uid = torch.arange(num_envs)
+        self.next_uid = num_envs
+        self.step = torch.zeros(num_envs, dtype=torch.long)
+        self.length = self._lengths(num_envs)
+        self.episode_length: dict[int, int] = {
+            int(u): int(n) for u, n in zip(self.uid, self.length, strict=True)
+        }
+        self.last_written: dict[int, int] = {}  # uid -> largest next-step written so far
+
+    def _lengths(self, n: int) -> torch.Tensor:
+        return torch.randint(self.min_len, self.max_len + 1, (n,), generator=self.generator)
+
+    def batch(self, horizon: int) -> TensorDict:
+        uids, steps, dones = [], [], []
+        for _ in range(horizon):
+            done = self.step + 1 == self.length
+            uids.append(self.uid.clone())
+            steps.append(self.step.clone())
+            dones.append(done)
+            for uid, step in zip(self.uid.tolist(), (self.step + 1).tolist(), strict=True):
+                self.last_written[uid] = step
+            self.step = torch.where(done, 0, self.step + 1)
+            if done.any():
+                n_new = int(done.sum())
+                new_uid = torch.arange(self.next_uid, self.next_uid + n_new)
+                self.next_uid += n_new
+                new_len = self._lengths(n_new)
+                self.uid[done] = new_uid
+                self.length[done] = new_len
+                self.episode_length.update({int(u): int(n) for u, n in zip(new_uid, new_len, strict=True)})
+        uid = torch.stack(uids, 1)
+        step = torch.stack(steps, 1)
+        done = torch.stack(dones, 1)
+        achieved = torch.stack([uid, step], -1).float()
+        next_achieved = torch.stack([uid, step + 1], -1).float()
+        env = torch.arange(self.num_envs)[:, None].expand_as(uid).float()
+        return TensorDict(
+            {
+                "observation": torch.cat([achieved, env.unsqueeze(-1)], -1),
+                "achieved_goal": achieved,
+                "desired_goal": torch.full_like(achieved, SENTINEL),
+                "action": torch.zeros(*uid.shape, 1),
+                "step_count": step.unsqueeze(-1),
+                ("collector", "traj_ids"): uid,
+                ("next", "observation"): torch.cat([next_achieved, env.unsqueeze(-1)], -1),
+                ("next", "achieved_goal"): next_achieved,
+                ("next", "done"): done.unsqueeze(-1),
+                ("next", "truncated"): done.unsqueeze(-1),
+            },
+            batch_size=list(uid.shape),
+        )
+
+    def expected_window(self, achieved: torch.Tensor, window: int) -> torch.Tensor:
+        """min(W, number of stored transitions of the episode from t on), from the ground truth."""
+        uid, step = achieved[..., 0].long(), achieved[..., 1].long()
+        last = torch.tensor([self.last_written[int(u)] for u in uid.reshape(-1)]).reshape(uid.shape)
+        return torch.clamp(last - step, max=window)
+
+
+def check_goals(sample: TensorDict, goal_key: str, window_len: torch.Tensor | None = None) -> torch.Tensor:
+    """Asserts every relabelled goal is a future achieved goal of the same episode; returns the mask."""
+    goal = sample[goal_key]
+    achieved = sample["achieved_goal"]
+    relabelled = goal[..., 0] != SENTINEL
+    assert ((goal == SENTINEL).all(-1) | relabelled).all()
+    ahead = goal[..., 1] - achieved[..., 1]  # = k + 1 with k the offset from the next achieved goal
+    assert (goal[..., 0][relabelled] == achieved[..., 0][relabelled]).all(), "goal from another episode"
+    assert (ahead[relabelled] >= 1).all()
+    if window_len is not None:
+        assert (ahead[relabelled] <= window_len[relabelled]).all(), "goal beyond the window / stored data"
+    return relabelled
+
+
+def sparse_reward(achieved: torch.Tensor, goal: torch.Tensor, threshold: float = 0.5) -> torch.Tensor:
+    distance = (achieved.double() - goal.double()).pow(2).sum(-1, keepdim=True).sqrt()
+    return torch.where(distance > threshold, -1.0, 0.0)
+
+
+def filled_buffer(stream: GoalStream, capacity: int, cycles: int, horizon: int) -> TensorDictReplayBuffer:
+    rb = TensorDictReplayBuffer(storage=LazyTensorStorage(capacity, ndim=2), batch_size=512)
+    for _ in range(cycles):
+        rb.extend(stream.batch(horizon))
+    return rb
+
+
+# ---------------------------------------------------------------------------------------------------
+@pytest.mark.parametrize("window", [1, 7, 150])
+def test_goals_same_episode_within_window_multi_env(window):
+    torch.manual_seed(0)
+    stream = GoalStream(num_envs=4, min_len=5, max_len=40, seed=1)
+    rb = TensorDictReplayBuffer(storage=LazyTensorStorage(4 * 64, ndim=2), batch_size=1024)
+    relabel = FutureGoalRelabel(rb, window=window)
+    for _ in range(12):  # 12 x 16 steps on a 64-step circular time line: wraps around twice
+        rb.extend(stream.batch(16))
+        sample = relabel(rb.sample())
+        expected = stream.expected_window(sample["achieved_goal"], window)
+        coords = sample["index"]
+        assert torch.equal(relabel.window_lengths(coords), expected)
+        for key in ("goal", "graph_goal"):
+            check_goals(sample, key, expected)
+            assert torch.equal(sample["next", key], sample[key])
+
+
+def test_her_ratio_binomial():
+    torch.manual_seed(1)
+    stream = GoalStream(num_envs=3, min_len=10, max_len=30, seed=2)
+    rb = filled_buffer(stream, 3 * 200, cycles=5, horizon=30)
+    relabel = FutureGoalRelabel(
+        rb, her_ratio=(0.8, 1.0, 0.3, 0.0), out_keys=["a", "b", "c", "d"], reward_keys=None
+    )
+    n = 20_000
+    sample = relabel(rb.sample(n))
+    for key, ratio in (("a", 0.8), ("c", 0.3)):
+        fraction = check_goals(sample, key).double().mean().item()
+        sigma = math.sqrt(ratio * (1 - ratio) / n)
+        assert abs(fraction - ratio) < 4 * sigma, (key, fraction)
+    assert check_goals(sample, "b").all()
+    assert not check_goals(sample, "d").any()
+
+
+def test_rewards_match_relabelled_goals():
+    torch.manual_seed(2)
+    stream = GoalStream(num_envs=2, min_len=3, max_len=12, seed=3)
+    rb = filled_buffer(stream, 2 * 100, cycles=4, horizon=25)
+    relabel = FutureGoalRelabel(rb, window=5)
+    sample = relabel(rb.sample(4096))
+    for goal_key, reward_key in (("goal", "reward"), ("graph_goal", "graph_reward")):
+        expected = sparse_reward(sample["next", "achieved_goal"], sample[goal_key]).float()
+        assert torch.equal(sample["next", reward_key], expected)
+        # a goal k = 0 steps ahead is the next achieved goal itself: success
+        ahead = sample[goal_key][..., 1] - sample["achieved_goal"][..., 1]
+        relabelled = sample[goal_key][..., 0] != SENTINEL
+        assert (sample["next", reward_key][relabelled & (ahead == 1)] == 0).all()
+        assert (sample["next", reward_key][relabelled & (ahead > 1)] == -1).all()
+        assert (sample["next", reward_key][~relabelled] == -1).all()
+
+
+def test_custom_reward_fn():
+    stream = GoalStream(num_envs=2, min_len=3, max_len=12, seed=4)
+    rb = filled_buffer(stream, 2 * 50, cycles=2, horizon=20)
+
+    def negative_distance(achieved, goal):
+        return -(achieved - goal).norm(dim=-1)  # [B]: the transform adds the trailing dim
+
+    relabel = FutureGoalRelabel(rb, negative_distance, her_ratio=1.0, out_keys=["goal"], reward_keys=["r"])
+    sample = relabel(rb.sample(256))
+    ahead = sample["goal"][..., 1] - sample["next", "achieved_goal"][..., 1]
+    torch.testing.assert_close(sample["r"], -ahead.unsqueeze(-1))
+
+
+@pytest.mark.parametrize("n_valid", [10, 4])
+def test_offsets_uniform_on_support(n_valid):
+    torch.manual_seed(3)
+    window = 10
+    # one env, one long episode stored; transition t has min(T_t, W) = n_valid future records
+    stream = GoalStream(num_envs=1, min_len=40, max_len=40, seed=5)
+    rb = filled_buffer(stream, 64, cycles=1, horizon=40)
+    relabel = FutureGoalRelabel(rb, window=window, her_ratio=1.0, out_keys=["goal"], reward_keys=None)
+    t = 40 - n_valid
+    draws = 40_000
+    index = torch.tensor([[t, 0]]).expand(draws, 2)
+    sample = rb.storage.get((index[:, 0], index[:, 1]))
+    sample.set("index", index)
+    out = relabel(sample)
+    offset = (out["goal"][:, 1] - out["next", "achieved_goal"][:, 1]).long()
+    counts = torch.bincount(offset, minlength=window)
+    assert counts[n_valid:].sum() == 0 and (counts[:n_valid] > 0).all()
+    assert stats.chisquare(counts[:n_valid].numpy()).pvalue > 1e-4
+
+
+def test_flat_storage_pitfall_and_traj_ids():
+    """rb.extend(batch.reshape(-1)) interleaves envs: done flags alone let goals cross episodes."""
+    torch.manual_seed(4)
+    stream = GoalStream(num_envs=4, min_len=20, max_len=60, seed=6)
+    rb = TensorDictReplayBuffer(storage=LazyTensorStorage(10_000), batch_size=4096)
+    for _ in range(6):
+        rb.extend(stream.batch(25).reshape(-1))
+    naive = FutureGoalRelabel(rb, her_ratio=1.0, out_keys=["goal"], traj_key=None, step_count_key=None)
+    sample = naive(rb.sample())
+    crossed = sample["goal"][:, 0] != sample["achieved_goal"][:, 0]
+    assert crossed.double().mean() > 0.05  # the pitfall is real
+    # trajectory ids tell interleaved chunks apart (step counts alone can coincide across envs)
+    for markers in ({}, {"step_count_key": None, "done_key": None}):
+        relabel = FutureGoalRelabel(rb, her_ratio=1.0, out_keys=["goal"], **markers)
+        sample = relabel(rb.sample())
+        check_goals(sample, "goal")
+        uid, step = sample["achieved_goal"][:, 0].long(), sample["achieved_goal"][:, 1].long()
+        remaining = torch.tensor([stream.episode_length[int(u)] for u in uid]) - step
+        assert (sample["goal"][:, 1] - step <= remaining.clamp(max=150)).all()
+
+
+def test_wrap_around_seam_without_trajectory_ids():
+    """Aligned episodes make the oldest record look like the continuation of the newest one."""
+    torch.manual_seed(5)
+    stream = GoalStream(num_envs=2, min_len=4, max_len=4, seed=7)
+    # 12 time slots = 3 episodes; 5-step batches leave the newest episode of each env unfinished
+    rb = TensorDictReplayBuffer(storage=LazyTensorStorage(2 * 12, ndim=2), batch_size=2048)
+    relabel = FutureGoalRelabel(rb, window=4, her_ratio=1.0, out_keys=["goal"], traj_key=None)
+    seen_seam = False
+    for _ in range(9):
+        rb.extend(stream.batch(5))
+        sample = relabel(rb.sample())
+        expected = stream.expected_window(sample["achieved_goal"], 4)
+        check_goals(sample, "goal", expected)
+        if not rb.storage._is_full:
+            continue
+        newest = rb.storage._last_cursor_index
+        following = rb.storage.get(((newest + 1) % 12, 0))
+        newest_td = rb.storage.get((newest, 0))
+        if not newest_td["next", "done"].item():
+            seen_seam |= bool(following["step_count"] == newest_td["step_count"] + 1)
+    assert seen_seam  # the markers alone could not have told the seam apart
+
+
+def test_seam_after_load_state_dict_uses_writer_cursor():
+    torch.manual_seed(6)
+    stream = GoalStream(num_envs=2, min_len=4, max_len=4, seed=8)
+    rb = filled_buffer(stream, 2 * 12, cycles=7, horizon=5)
+    state = rb.state_dict()
+    restored = TensorDictReplayBuffer(storage=LazyTensorStorage(2 * 12, ndim=2), batch_size=2048)
+    restored.load_state_dict(state)
+    assert restored.storage._is_full and restored.storage._last_cursor_index is None
+    newest = 34 % 12  # 35 steps written: the newest record (step 2 of 4) is followed by an old step 3
+    assert (
+        restored.storage.get((newest + 1, 0))["step_count"]
+        == restored.storage.get((newest, 0))["step_count"] + 1
+    )
+    relabel = FutureGoalRelabel(restored, window=4, her_ratio=1.0, out_keys=["goal"], traj_key=None)
+    sample = relabel(restored.sample())
+    check_goals(sample, "goal", stream.expected_window(sample["achieved_goal"], 4))
+
+
+@pytest.mark.parametrize("batch_size", [[], [4], [6, 4]])
+@pytest.mark.parametrize("ndim", [1, 2])
+def test_batch_shapes_without_buffer(batch_size, ndim):
+    torch.manual_seed(7)
+    stream = GoalStream(num_envs=3, min_len=5, max_len=15, seed=9)
+    if ndim == 2:
+        storage = LazyTensorStorage(3 * 40, ndim=2)
+        data = stream.batch(30)
+        storage.set(range(30), data.transpose(0, 1))
+        index = torch.stack([torch.randint(30, batch_size), torch.randint(3, batch_size)], -1)
+        sample = storage.get((index[..., 0], index[..., 1]))
+    else:
+        storage = LazyTensorStorage(200)
+        data = stream.batch(40)[0]
+        storage.set(range(40), data)
+        index = torch.randint(40, batch_size)
+        sample = storage.get(index)
+    sample.set("index", index)
+    assert sample.batch_size == torch.Size(batch_size)
+    out = FutureGoalRelabel(storage, window=6)(sample)
+    assert out["goal"].shape == torch.Size([*batch_size, 2])
+    assert out["next", "graph_reward"].shape == torch.Size([*batch_size, 1])
+    check_goals(out, "graph_goal")
+    assert check_goals(out, "graph_goal").all()
+
+
+def test_inside_replay_buffer_and_composed():
+    torch.manual_seed(8)
+    stream = GoalStream(num_envs=2, min_len=5, max_len=15, seed=10)
+    rb = TensorDictReplayBuffer(storage=LazyTensorStorage(2 * 50, ndim=2), batch_size=128)
+    # a buffer transform runs at sampling time, before the relabel
+    rb.append_transform(RenameTransform(["observation"], ["state"], create_copy=True))
+    rb.extend(stream.batch(30))
+    pipeline = Compose(
+        FutureGoalRelabel(rb, window=8),
+        RenameTransform([("next", "graph_reward")], [("next", "reward")]),
+    )
+    out = pipeline(rb.sample())
+    assert "state" in out.keys() and ("next", "reward") in out.keys(True)
+    assert ("next", "graph_reward") not in out.keys(True)
+    check_goals(out, "graph_goal", stream.expected_window(out["achieved_goal"], 8))
+    torch.testing.assert_close(
+        out["next", "reward"], sparse_reward(out["next", "achieved_goal"], out["graph_goal"]).float()
+    )
+    # appended inside the buffer it cannot see the sample's storage coordinates: a clear error
+    rb.append_transform(FutureGoalRelabel(rb))
+    with pytest.raises(ValueError, match="TensorDictReplayBuffer.sample"):
+        rb.sample()
+    plain = ReplayBuffer(storage=LazyTensorStorage(100), batch_size=8)
+    plain.extend(stream.batch(10)[0])
+    plain.append_transform(FutureGoalRelabel(plain))
+    with pytest.raises(KeyError, match="TensorDictReplayBuffer.sample"):
+        plain.sample()
+
+
+def test_in_place_relabel_key():
+    stream = GoalStream(num_envs=2, min_len=5, max_len=15, seed=11)
+    rb = filled_buffer(stream, 2 * 50, cycles=1, horizon=30)
+    relabel = FutureGoalRelabel(
+        rb, her_ratio=1.0, out_keys=["desired_goal"], reward_keys=[("next", "reward")], window=3
+    )
+    out = relabel(rb.sample(64))
+    assert check_goals(out, "desired_goal").all()
+    assert torch.equal(out["next", "desired_goal"], out["desired_goal"])
+    assert torch.equal(
+        out["next", "reward"], SparseGoalReward(0.5)(out["next", "achieved_goal"], out["desired_goal"])
+    )
+
+
+def test_errors():
+    stream = GoalStream(num_envs=2, min_len=5, max_len=15, seed=12)
+    rb = filled_buffer(stream, 2 * 50, cycles=1, horizon=10)
+    with pytest.raises(TypeError, match="TensorStorage"):
+        FutureGoalRelabel(ListStorage(10))
+    with pytest.raises(ValueError, match="her_ratio"):
+        FutureGoalRelabel(rb, her_ratio=(0.8, 1.2))
+    with pytest.raises(ValueError, match="one out_key per her_ratio"):
+        FutureGoalRelabel(rb, her_ratio=0.8)
+    with pytest.raises(ValueError, match="one reward key"):
+        FutureGoalRelabel(rb, reward_keys=["r"])
+    with pytest.raises(ValueError, match="window"):
+        FutureGoalRelabel(rb, window=0)
+    with pytest.raises(TypeError, match="callable"):
+        FutureGoalRelabel(rb, reward_fn=3)
+    with pytest.raises(ValueError, match="At least one"):
+        FutureGoalRelabel(rb, traj_key=None, done_key=None, step_count_key=None)
+    relabel = FutureGoalRelabel(rb)
+    sample = rb.sample(8)
+    with pytest.raises(ValueError, match="storage coordinates"):
+        relabel(sample.clone().set("index", sample["index"][:, :1]))
+    with pytest.raises(KeyError, match="desired_goal"):
+        relabel(sample.exclude("desired_goal"))
+    with pytest.raises(KeyError, match="none of the episode markers"):
+        FutureGoalRelabel(rb, traj_key="missing", step_count_key=None, done_key=None)(sample.clone())
+    empty = TensorDictReplayBuffer(storage=LazyTensorStorage(10, ndim=2))
+    with pytest.raises(RuntimeError, match="empty"):
+        FutureGoalRelabel(empty)(sample.clone())
+    with pytest.raises(RuntimeError, match="not inside an environment"):
+        relabel._call(sample)
+    with pytest.raises(ValueError, match="reward_fn must return"):
+        FutureGoalRelabel(rb, lambda a, g: a)(sample.clone())
+
+
+def test_plain_replay_buffer_is_accepted():
+    stream = GoalStream(num_envs=1, min_len=5, max_len=15, seed=13)
+    rb = ReplayBuffer(storage=LazyTensorStorage(100), batch_size=16)
+    rb.extend(stream.batch(50)[0])
+    sample, info = rb.sample(return_info=True)
+    sample.set("index", info["index"])
+    check_goals(FutureGoalRelabel(rb, window=5)(sample), "graph_goal")

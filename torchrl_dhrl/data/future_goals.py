@@ -1,0 +1,432 @@
+"""Hindsight relabelling with future achieved goals of the same episode (DHRL's "future" strategy)."""
+
+from __future__ import annotations
+
+import warnings
+from collections.abc import Callable, Sequence
+
+import torch
+from tensordict import TensorDictBase, is_tensor_collection
+from tensordict.utils import NestedKey
+from torchrl.data.replay_buffers import ReplayBuffer
+from torchrl.data.replay_buffers.storages import Storage, TensorStorage
+from torchrl.envs.transforms import Transform
+
+from torchrl_dhrl.data.rewards import SparseGoalReward
+
+__all__ = ["FutureGoalRelabel"]
+
+_DEFAULT_REWARD_KEYS = (("next", "reward"), ("next", "graph_reward"))
+
+RewardFn = Callable[[torch.Tensor, torch.Tensor], torch.Tensor]
+
+
+def _next(key: NestedKey) -> tuple:
+    return ("next", *key) if isinstance(key, tuple) else ("next", key)
+
+
+def _unravel_key(key: NestedKey) -> NestedKey:
+    if isinstance(key, (list, tuple)):
+        key = tuple(key)
+        return key[0] if len(key) == 1 else key
+    if isinstance(key, str):
+        return key
+    raise TypeError(f"Expected a NestedKey (str or tuple of str), got {key!r}.")
+
+
+class FutureGoalRelabel(Transform):
+    """Relabels the goals of sampled transitions with future achieved goals of the same episode.
+
+    This is the hindsight step of DHRL (and of its reference implementation) for both levels. For each
+    sampled transition ``t`` and each output ``i``, with probability ``her_ratio[i]`` the goal is replaced by
+    the achieved goal reached at the end of transition ``t + k`` of the same episode,
+
+    .. math::
+
+        \\hat g_t = ag_{t + 1 + k}, \\qquad k = \\lfloor U \\cdot \\min(T_t, W) \\rfloor,
+        \\quad U \\sim \\mathcal{U}[0, 1),
+
+    where ``T_t`` is the number of stored transitions of the episode from ``t`` on (``t`` included) and ``W``
+    is ``window`` (150 low-level steps, or the high-level window in high-level steps). The goal is
+    therefore at least one step ahead (``k = 0`` is the transition's own next achieved goal, reward ``0``),
+    never more than ``W`` steps ahead, and never taken from another episode. The reward is then
+    recomputed from the goals with ``reward_fn(achieved_goal[t], goal)`` for every sample (relabelled or
+    not), where ``achieved_goal`` is ``achieved_goal_key`` (the next achieved goal).
+
+    Several outputs can be written from one sample: DHRL's SQGC trains the policy critics with 80 %
+    relabelled goals and the graph critics with 100 %, so the defaults write two goal / reward pairs,
+    ``"goal"`` / ``("next", "reward")`` (ratio 0.8, policy critics) and ``"graph_goal"`` /
+    ``("next", "graph_reward")`` (ratio 1.0, graph critics), the default keys of
+    :class:`~torchrl_dhrl.objectives.SQGCLoss`, drawn independently for the same transitions (the
+    reference draws two independent batches; sharing the transitions halves the sampling cost and each
+    critic still sees its own relabelling distribution). With
+    ``write_next_goal=True`` each goal is also written under ``("next", out_key)`` so a target policy run
+    on ``td["next"]`` sees the same goal.
+
+    **Why a storage-bound transform.** A transform appended with ``rb.append_transform`` only receives the
+    stored records of the sample, never their storage coordinates, so it cannot reach the future records
+    of the same episode; torchrl's :class:`~torchrl.data.HERReplayBuffer` solves this by subclassing the
+    buffer, but it needs a 1-D storage, includes the current step, has no window cap and supports a single
+    ratio. This transform instead holds a reference to the buffer's storage and reads the ``"index"``
+    entry that :class:`~torchrl.data.TensorDictReplayBuffer` writes into every sample: apply it to the
+    output of ``rb.sample()`` (alone or in a :class:`~torchrl.envs.Compose` with further transforms). It
+    works with any sampler, with 1-D storages and with multi-dimensional ones (time first, then lanes,
+    as ``LazyTensorStorage(..., ndim=2)`` stores collector batches of shape ``[num_envs, T]``), and it
+    does not change the buffer class. Sampling and relabelling are two calls, so a writer running in
+    another thread between them could overwrite the window: relabel before the next ``extend``.
+
+    **Episode boundaries.** For each sample, the window of the next ``W`` records along the storage's
+    time dimension (modulo its length, so a circular buffer's wrap-around is followed) is read once and a
+    record ``t + j`` is accepted only if every available marker agrees: same trajectory id
+    (``traj_key``, e.g. the collector's ``("collector", "traj_ids")``), consecutive step counter
+    (``step_count[t + j] == step_count[t] + j``), no done flag at ``t .. t + j - 1`` (``done_key``), and
+    ``t + j`` not past the newest written record (the write seam of a full circular buffer). The first
+    rejected record ends the window. Markers that are ``None`` or absent from the storage are skipped; at
+    least one of the three must be present. Storing ``[num_envs, T]`` batches in a 1-D storage with
+    ``rb.extend(batch.reshape(-1))`` interleaves partial episodes of different envs: with trajectory ids
+    no goal crosses an episode, but windows stop at the end of each chunk. Store such batches with
+    ``LazyTensorStorage(capacity, ndim=2)`` instead, which keeps each env's time line contiguous.
+
+    Args:
+        storage (Storage or ReplayBuffer): the :class:`~torchrl.data.replay_buffers.TensorStorage`
+            (e.g. ``LazyTensorStorage``) the samples come from, or the replay buffer holding it. It must
+            hold TensorDicts with ``achieved_goal_key`` and the markers.
+        reward_fn (callable, optional): ``reward_fn(achieved_goal, goal) -> reward`` on tensors of shape
+            ``[B, goal_dim]``, returning ``[B, 1]`` or ``[B]``. Defaults to
+            :class:`~torchrl_dhrl.data.SparseGoalReward` with threshold ``0.5`` (``-1`` / ``0``).
+
+    Keyword Args:
+        her_ratio (float or sequence of float, optional): relabelling probability of each output, in
+            ``[0, 1]``, drawn independently per sample (Bernoulli, as the reference). Defaults to
+            ``(0.8, 1.0)``.
+        window (int, optional): the maximum look-ahead ``W`` in stored records. Defaults to ``150``.
+        goal_key (NestedKey, optional): the goal the agent actually chased (for the low level: the
+            waypoint). Defaults to ``"desired_goal"``.
+        achieved_goal_key (NestedKey, optional): the achieved goal after the transition, used both as
+            the relabelling source (read from the storage at ``t + k``) and for the reward (read from the
+            sample). Defaults to ``("next", "achieved_goal")``.
+        out_keys (sequence of NestedKey, optional): where each output's goal is written, one per ratio.
+            Passing ``[goal_key]`` relabels in place. Defaults to ``("goal", "graph_goal")``.
+        reward_keys (sequence of NestedKey, optional): where each output's reward is written, one per
+            ratio, or ``None`` to write no reward. Defaults to
+            ``(("next", "reward"), ("next", "graph_reward"))`` for two outputs and
+            ``[("next", "reward")]`` for one.
+        index_key (NestedKey, optional): the storage coordinates of each sample, as written by
+            :class:`~torchrl.data.TensorDictReplayBuffer` (``[*batch]`` for 1-D storages,
+            ``[*batch, ndim]`` otherwise). Defaults to ``"index"``.
+        traj_key (NestedKey, optional): trajectory / episode id marker. Defaults to
+            ``("collector", "traj_ids")``.
+        done_key (NestedKey, optional): end-of-episode marker of each transition. Defaults to
+            ``("next", "done")``.
+        step_count_key (NestedKey, optional): per-episode step counter marker. Defaults to
+            ``"step_count"``.
+        write_next_goal (bool, optional): also write each goal under ``("next", out_key)``. Defaults to
+            ``True``.
+
+    Examples:
+        >>> import torch
+        >>> from tensordict import TensorDict
+        >>> from torchrl.data import LazyTensorStorage, TensorDictReplayBuffer
+        >>> num_envs, T = 2, 8
+        >>> step = torch.arange(T).expand(num_envs, T)
+        >>> achieved = torch.stack([torch.arange(num_envs)[:, None].expand(num_envs, T), step], -1).float()
+        >>> batch = TensorDict(
+        ...     {
+        ...         "observation": achieved,
+        ...         "desired_goal": torch.full((num_envs, T, 2), -1.0),
+        ...         "step_count": step.unsqueeze(-1),
+        ...         ("next", "achieved_goal"): achieved + torch.tensor([0.0, 1.0]),
+        ...         ("next", "done"): (step == T - 1).unsqueeze(-1),
+        ...     },
+        ...     batch_size=[num_envs, T],
+        ... )
+        >>> rb = TensorDictReplayBuffer(storage=LazyTensorStorage(64, ndim=2), batch_size=16)
+        >>> _ = rb.extend(batch)
+        >>> relabel = FutureGoalRelabel(rb, window=3)
+        >>> sample = relabel(rb.sample())
+        >>> goal, achieved = sample["graph_goal"], sample["next", "achieved_goal"]
+        >>> bool((goal[:, 0] == achieved[:, 0]).all())  # same env and episode
+        True
+        >>> offset = goal[:, 1] - achieved[:, 1]  # steps ahead of the next achieved goal
+        >>> bool(((offset >= 0) & (offset < 3)).all())
+        True
+        >>> sample["next", "graph_reward"].shape
+        torch.Size([16, 1])
+    """
+
+    def __init__(
+        self,
+        storage: Storage | ReplayBuffer,
+        reward_fn: RewardFn | None = None,
+        *,
+        her_ratio: float | Sequence[float] = (0.8, 1.0),
+        window: int = 150,
+        goal_key: NestedKey = "desired_goal",
+        achieved_goal_key: NestedKey = ("next", "achieved_goal"),
+        out_keys: Sequence[NestedKey] = ("goal", "graph_goal"),
+        reward_keys: Sequence[NestedKey] | None | str = "default",
+        index_key: NestedKey = "index",
+        traj_key: NestedKey | None = ("collector", "traj_ids"),
+        done_key: NestedKey | None = ("next", "done"),
+        step_count_key: NestedKey | None = "step_count",
+        write_next_goal: bool = True,
+    ) -> None:
+        buffer = None
+        if isinstance(storage, ReplayBuffer):
+            buffer, storage = storage, storage.storage
+        if not isinstance(storage, TensorStorage):
+            raise TypeError(
+                "FutureGoalRelabel needs the TensorStorage the samples come from (e.g. LazyTensorStorage, "
+                f"or the replay buffer holding it), got {type(storage).__name__}."
+            )
+        if isinstance(her_ratio, (int, float)) and not isinstance(her_ratio, bool):
+            her_ratio = (her_ratio,)
+        her_ratio = tuple(float(r) for r in her_ratio)
+        if not her_ratio or any(not 0.0 <= r <= 1.0 for r in her_ratio):
+            raise ValueError(f"her_ratio must be one or more probabilities in [0, 1], got {her_ratio}.")
+        out_keys = [_unravel_key(k) for k in ([out_keys] if isinstance(out_keys, str) else out_keys)]
+        if len(out_keys) != len(her_ratio):
+            raise ValueError(
+                f"Expected one out_key per her_ratio, got {len(out_keys)} out_keys for {len(her_ratio)} ratios."
+            )
+        if isinstance(reward_keys, str) and reward_keys == "default":
+            if len(her_ratio) > 2:
+                raise ValueError(
+                    f"Pass one reward key per her_ratio ({len(her_ratio)}), or reward_keys=None."
+                )
+            reward_keys = [("next", "reward")] if len(her_ratio) == 1 else list(_DEFAULT_REWARD_KEYS)
+        if reward_keys is not None:
+            reward_keys = [
+                _unravel_key(k) for k in ([reward_keys] if isinstance(reward_keys, str) else reward_keys)
+            ]
+            if len(reward_keys) != len(her_ratio):
+                raise ValueError(
+                    f"Expected one reward key per her_ratio, got {len(reward_keys)} reward_keys for "
+                    f"{len(her_ratio)} ratios (pass reward_keys=None to write no reward)."
+                )
+        if isinstance(window, bool) or not isinstance(window, int) or window < 1:
+            raise ValueError(f"window must be a positive integer, got {window!r}.")
+        if reward_fn is None:
+            reward_fn = SparseGoalReward(0.5)
+        elif not callable(reward_fn):
+            raise TypeError(f"reward_fn must be callable, got {type(reward_fn).__name__}.")
+        if traj_key is None and done_key is None and step_count_key is None:
+            raise ValueError("At least one of traj_key, done_key and step_count_key must be given.")
+        goal_key = _unravel_key(goal_key)
+        super().__init__(
+            in_keys=[goal_key, _unravel_key(achieved_goal_key), _unravel_key(index_key)],
+            out_keys=out_keys
+            + ([_next(k) for k in out_keys] if write_next_goal else [])
+            + (reward_keys or []),
+        )
+        self._rb_storage = storage
+        self._rb_writer = getattr(buffer, "_writer", None)
+        self.reward_fn = reward_fn
+        self.her_ratio = her_ratio
+        self.window = window
+        self.goal_key = goal_key
+        self.achieved_goal_key = _unravel_key(achieved_goal_key)
+        self.goal_out_keys = out_keys
+        self.reward_keys = reward_keys
+        self.index_key = _unravel_key(index_key)
+        self.traj_key = None if traj_key is None else _unravel_key(traj_key)
+        self.done_key = None if done_key is None else _unravel_key(done_key)
+        self.step_count_key = None if step_count_key is None else _unravel_key(step_count_key)
+        self.write_next_goal = write_next_goal
+        self._warned_seam = False
+
+    @property
+    def storage(self) -> TensorStorage:
+        """The storage the relabelled goals are read from."""
+        return self._rb_storage
+
+    # ------------------------------------------------------------------ storage access
+    def _field(self, key: NestedKey, required: bool = False) -> torch.Tensor | None:
+        """The written part of one storage entry, shape ``[T_len, *lanes, *feature]`` (a view)."""
+        try:
+            return self._rb_storage.get(key)
+        except KeyError:
+            if required:
+                raise KeyError(
+                    f"FutureGoalRelabel: {key!r} is not in the storage; the replay buffer must store it."
+                ) from None
+            return None
+
+    def _newest_time_index(self, length: int) -> int | None:
+        """Time coordinate of the most recently written record, or ``None`` if unknown."""
+        storage = self._rb_storage
+        cursor = getattr(storage, "_last_cursor_index", None)
+        if cursor is not None:
+            return int(cursor) % length
+        writer_cursor = getattr(self._rb_writer, "_cursor", None)
+        if isinstance(writer_cursor, int) and len(storage) > 0:
+            return (writer_cursor - 1) % length
+        if not storage._is_full:
+            return length - 1
+        return None
+
+    @staticmethod
+    def _marker(field: torch.Tensor, storage_ndim: int) -> torch.Tensor:
+        # markers are stored as [T, *lanes] or [T, *lanes, 1]: keep one scalar per record
+        return field.reshape(*field.shape[:storage_ndim], -1)[..., 0]
+
+    def _coordinates(self, index: torch.Tensor, batch_size: torch.Size, ndim: int) -> torch.Tensor:
+        if not isinstance(index, torch.Tensor):
+            index = torch.as_tensor(index)
+        if index.dtype in (torch.float16, torch.bfloat16, torch.float32, torch.float64, torch.bool):
+            raise TypeError(f"{self.index_key!r} must hold integer storage coordinates, got {index.dtype}.")
+        numel = batch_size.numel()
+        if ndim == 1 and index.shape in (batch_size, batch_size + (1,)):
+            return index.reshape(numel, 1).long()
+        if ndim > 1 and index.shape == batch_size + (ndim,):
+            return index.reshape(numel, ndim).long()
+        expected = tuple(batch_size) if ndim == 1 else (*batch_size, ndim)
+        raise ValueError(
+            f"{self.index_key!r} has shape {tuple(index.shape)}; expected {expected} storage coordinates for "
+            f"a batch of shape {tuple(batch_size)} sampled from a {ndim}-dimensional storage. Apply "
+            "FutureGoalRelabel to the output of TensorDictReplayBuffer.sample() on the same storage (inside the "
+            "buffer, e.g. with rb.append_transform, 'index' is the writer's stored time index, not the sample's "
+            "storage coordinates)."
+        )
+
+    # ------------------------------------------------------------------ relabelling
+    def window_lengths(self, coords: torch.Tensor) -> torch.Tensor:
+        """Number of usable future records ``min(T_t, W)`` for storage coordinates ``coords``.
+
+        ``coords`` is ``[B, ndim]`` (``[B]`` is accepted for 1-D storages), as in the ``"index"`` entry of
+        a sample. ``T_t`` counts the records of the same episode from ``t`` on (``t`` included) stored
+        contiguously along the time dimension. The result, ``[B]`` int64, is ``>= 1`` (the record itself).
+        """
+        storage = self._rb_storage
+        ndim = storage.ndim
+        if coords.ndim == 1 and ndim == 1:
+            coords = coords.unsqueeze(-1)
+        if coords.ndim != 2 or coords.shape[-1] != ndim:
+            raise ValueError(f"coords must have shape [B, {ndim}], got {tuple(coords.shape)}.")
+        achieved = self._field(self.achieved_goal_key, required=True)
+        length = achieved.shape[0]
+        device = achieved.device
+        coords = coords.to(device)
+        time = coords[:, 0]
+        lanes = tuple(coords[:, d : d + 1] for d in range(1, ndim))
+        steps = torch.arange(self.window, device=device)
+        positions = (time.unsqueeze(1) + steps) % length  # [B, W]
+        where = (positions, *lanes)
+
+        newest = self._newest_time_index(length)
+        if newest is None:
+            if not self._warned_seam:
+                warnings.warn(
+                    "FutureGoalRelabel: the storage is full and its last write position is unknown (e.g. "
+                    "right after load_state_dict); episode markers alone guard the wrap-around seam.",
+                    stacklevel=2,
+                )
+                self._warned_seam = True
+            valid = torch.ones(positions.shape, dtype=torch.bool, device=device)
+        else:
+            valid = steps <= ((newest - time) % length).unsqueeze(1)
+
+        found = False
+        if self.traj_key is not None and (traj := self._field(self.traj_key)) is not None:
+            traj = self._marker(traj, ndim)[where]
+            valid &= traj == traj[:, :1]
+            found = True
+        if self.step_count_key is not None and (count := self._field(self.step_count_key)) is not None:
+            count = self._marker(count, ndim)[where]
+            valid &= count == count[:, :1] + steps
+            found = True
+        if self.done_key is not None and (done := self._field(self.done_key)) is not None:
+            done = self._marker(done, ndim)[where].bool()
+            done_before = (done.long().cumsum(1) - done.long()) > 0
+            valid &= ~done_before
+            found = True
+        if not found:
+            raise KeyError(
+                "FutureGoalRelabel: none of the episode markers "
+                f"{[k for k in (self.traj_key, self.step_count_key, self.done_key) if k is not None]} is in "
+                "the storage, so episode boundaries cannot be told apart."
+            )
+        return valid.long().cumprod(1).sum(1).clamp_min(1)
+
+    def forward(self, tensordict: TensorDictBase) -> TensorDictBase:
+        if not is_tensor_collection(tensordict):
+            raise TypeError(f"FutureGoalRelabel expects a TensorDict, got {type(tensordict).__name__}.")
+        storage = self._rb_storage
+        if len(storage) == 0:
+            raise RuntimeError("FutureGoalRelabel: the storage is empty; nothing to relabel from.")
+        index = tensordict.get(self.index_key, None)
+        if index is None:
+            raise KeyError(
+                f"FutureGoalRelabel needs the storage coordinates of each sample under {self.index_key!r}. "
+                "Apply it to the output of TensorDictReplayBuffer.sample() (which writes them), not inside the "
+                "buffer with append_transform: buffer transforms run before the index is known."
+            )
+        goal = tensordict.get(self.goal_key, None)
+        achieved_next = tensordict.get(self.achieved_goal_key, None)
+        for key, value in ((self.goal_key, goal), (self.achieved_goal_key, achieved_next)):
+            if value is None:
+                raise KeyError(f"FutureGoalRelabel: {key!r} is missing from the sample.")
+        batch_size = tensordict.batch_size
+        numel = batch_size.numel()
+        goal_shape = goal.shape[len(batch_size) :]
+        if achieved_next.shape[len(batch_size) :] != goal_shape:
+            raise ValueError(
+                f"{self.goal_key!r} and {self.achieved_goal_key!r} must have the same goal shape, got "
+                f"{tuple(goal_shape)} and {tuple(achieved_next.shape[len(batch_size) :])}."
+            )
+        coords = self._coordinates(index, batch_size, storage.ndim)
+
+        achieved_store = self._field(self.achieved_goal_key, required=True)
+        if achieved_store.shape[storage.ndim :] != goal_shape:
+            raise ValueError(
+                f"Stored {self.achieved_goal_key!r} has goal shape {tuple(achieved_store.shape[storage.ndim :])}, "
+                f"the sampled {self.goal_key!r} has {tuple(goal_shape)}."
+            )
+        n_valid = self.window_lengths(coords)
+        store_device = achieved_store.device
+        coords = coords.to(store_device)
+        time = coords[:, 0]
+        lanes = tuple(coords[:, d] for d in range(1, storage.ndim))
+        length = achieved_store.shape[0]
+
+        goal_flat = goal.reshape(numel, *goal_shape)
+        achieved_flat = achieved_next.reshape(numel, *goal_shape)
+        out_device = goal.device
+        for i, ratio in enumerate(self.her_ratio):
+            offset = (torch.rand(numel, device=store_device) * n_valid).long()
+            offset = torch.minimum(offset, n_valid - 1)
+            future_goal = achieved_store[((time + offset) % length, *lanes)].to(out_device, goal.dtype)
+            relabel = torch.rand(numel, device=out_device) < ratio
+            relabel = relabel.reshape(numel, *([1] * len(goal_shape)))
+            new_goal = torch.where(relabel, future_goal, goal_flat)
+            new_goal_b = new_goal.reshape(*batch_size, *goal_shape)
+            out_key = self.goal_out_keys[i]
+            tensordict.set(out_key, new_goal_b)
+            if self.write_next_goal:
+                tensordict.set(_next(out_key), new_goal_b.clone())
+            if self.reward_keys is not None:
+                reward = self.reward_fn(achieved_flat, new_goal)
+                if reward.shape == (numel,):
+                    reward = reward.unsqueeze(-1)
+                if reward.shape != (numel, 1):
+                    raise ValueError(
+                        f"reward_fn must return a tensor of shape [B, 1] or [B], got {tuple(reward.shape)} for "
+                        f"B={numel}."
+                    )
+                tensordict.set(self.reward_keys[i], reward.reshape(*batch_size, 1))
+        return tensordict
+
+    def _call(self, next_tensordict: TensorDictBase) -> TensorDictBase:
+        raise RuntimeError(
+            "FutureGoalRelabel is a replay-buffer sample transform: apply it to rb.sample() outputs, not "
+            "inside an environment."
+        )
+
+    def _inv_call(self, tensordict: TensorDictBase) -> TensorDictBase:
+        return tensordict
+
+    def __repr__(self) -> str:
+        return (
+            f"{type(self).__name__}(her_ratio={self.her_ratio}, window={self.window}, "
+            f"goal_key={self.goal_key!r}, out_keys={self.goal_out_keys!r}, reward_keys={self.reward_keys!r})"
+        )

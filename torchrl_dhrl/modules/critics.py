@@ -1,0 +1,273 @@
+"""Goal-conditioned twin critics with the temporal-distance parameterisation of DHRL."""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Sequence
+
+import torch
+from tensordict.nn import TensorDictModule
+from tensordict.utils import NestedKey
+from torch import nn
+from torch.nn import functional as F
+from torchrl.data import TensorSpec
+
+from ._utils import as_goal_indices, box_loc_scale, check_last_dim, goal_input, resolve_box
+from .actors import DEFAULT_NUM_CELLS
+from .ensemble import EnsembleMLP
+
+PARAMETERIZATIONS = ("distance", "q")
+
+
+def _check_gamma(gamma: float) -> float:
+    gamma = float(gamma)
+    if not 0.0 < gamma < 1.0:
+        raise ValueError(f"`gamma` must be in (0, 1), got {gamma}.")
+    return gamma
+
+
+def distance_to_q(distance: torch.Tensor, gamma: float) -> torch.Tensor:
+    """``Q = -(1 - gamma^d) / (1 - gamma)``: the return of ``d`` steps of reward -1 followed by 0.
+
+    Examples:
+        >>> import torch
+        >>> distance_to_q(torch.tensor([0.0, 1.0, 2.0]), 0.5)
+        tensor([ 0.0000, -1.0000, -1.5000])
+    """
+    gamma = _check_gamma(gamma)
+    # ``+ 0.0`` turns the -0.0 of d = 0 into 0.0.
+    return torch.expm1(distance * math.log(gamma)) / (1.0 - gamma) + 0.0
+
+
+def q_to_distance(q: torch.Tensor, gamma: float, max_distance: float | None = None) -> torch.Tensor:
+    """Eq. (1) of DHRL: ``d = log_gamma(1 + (1 - gamma) Q)``, clamped to ``[0, max_distance]``.
+
+    ``1 + (1 - gamma) Q <= 0`` (a value at or below ``-1 / (1 - gamma)``, an infinite
+    distance) is guarded so the result stays finite: the argument of the log is floored at
+    the float epsilon, which caps the distance at ``log(eps) / log(gamma)`` (about 1586 steps
+    in float32 at ``gamma = 0.99``) unless a smaller ``max_distance`` is given. Positive
+    values (possible with plain Q critics) give distance 0.
+
+    Examples:
+        >>> import torch
+        >>> q_to_distance(torch.tensor([0.0, -1.0, -1.5, 3.0]), 0.5)
+        tensor([0., 1., 2., 0.])
+        >>> bool(torch.isfinite(q_to_distance(torch.tensor([-1e6]), 0.99)).all())
+        True
+    """
+    gamma = _check_gamma(gamma)
+    eps = torch.finfo(q.dtype).eps if q.is_floating_point() else torch.finfo(torch.float32).eps
+    x = ((1.0 - gamma) * q).clamp(min=eps - 1.0)
+    d = (torch.log1p(x) / math.log(gamma)).clamp(min=0.0) + 0.0
+    if max_distance is not None:
+        d = d.clamp(max=max_distance)
+    return d
+
+
+class GoalConditionedCriticNet(nn.Module):
+    """An ensemble of goal-conditioned Q networks ``Q_k(s, a | g)`` with stacked weights.
+
+    Input: ``observation ++ goal_input ++ scaled_action`` where the goal input is
+    ``goal - observation[..., goal_indices]`` (relative) or the goal itself (absolute), and
+    the action is scaled to ``[-1, 1]`` with its box (the low-level critic sees
+    ``action / action_max``, the high-level critic the subgoal scaled from its box).
+
+    With ``parameterization="distance"`` (default), each member outputs a distance
+    ``d = softplus(raw) >= 0`` and ``Q = -(1 - gamma^d) / (1 - gamma)``, so
+    ``Q`` lies in ``(-1 / (1 - gamma), 0]`` by construction. With ``"q"`` the raw output
+    is Q.
+
+    Args:
+        observation_dim (int): observation size.
+        goal_dim (int): goal size.
+        action_low (Tensor): lower corner of the action box.
+        action_high (Tensor): upper corner of the action box.
+
+    Keyword Args:
+        goal_indices (sequence of int, optional): achieved goal indices (relative mode).
+        relative_goal (bool): relative (default) or absolute goal input.
+        num_nets (int): ensemble size. Defaults to ``2`` (the TD3 twin).
+        num_cells (sequence of int): hidden widths. Defaults to ``(256, 256, 256)``.
+        activation_class (type): hidden activation. Defaults to ``nn.ReLU``.
+        parameterization (str): ``"distance"`` or ``"q"``. Defaults to ``"distance"``.
+        gamma (float): discount, used by the distance parameterisation and Eq. (1).
+            Defaults to ``0.99``.
+
+    Examples:
+        >>> import torch
+        >>> net = GoalConditionedCriticNet(4, 2, -torch.ones(3), torch.ones(3), goal_indices=[0, 1],
+        ...     num_cells=(16,))
+        >>> q = net(torch.randn(5, 4), torch.randn(5, 2), torch.rand(5, 3))
+        >>> q.shape, bool((q <= 0).all())
+        (torch.Size([5, 2]), True)
+    """
+
+    def __init__(
+        self,
+        observation_dim: int,
+        goal_dim: int,
+        action_low: torch.Tensor,
+        action_high: torch.Tensor,
+        *,
+        goal_indices: Sequence[int] | None = None,
+        relative_goal: bool = True,
+        num_nets: int = 2,
+        num_cells: Sequence[int] = DEFAULT_NUM_CELLS,
+        activation_class: type[nn.Module] = nn.ReLU,
+        parameterization: str = "distance",
+        gamma: float = 0.99,
+    ) -> None:
+        super().__init__()
+        if parameterization not in PARAMETERIZATIONS:
+            raise ValueError(f"`parameterization` must be one of {PARAMETERIZATIONS}, got {parameterization!r}.")
+        if num_nets < 1:
+            raise ValueError(f"`num_nets` must be >= 1, got {num_nets}.")
+        self.observation_dim = observation_dim
+        self.goal_dim = goal_dim
+        self.action_dim = int(action_low.shape[-1])
+        self.parameterization = parameterization
+        self.gamma = _check_gamma(gamma)
+        self.relative_goal = relative_goal
+        if relative_goal:
+            idx = as_goal_indices(goal_indices, goal_dim)
+            if int(idx.max()) >= observation_dim:
+                raise ValueError(f"`goal_indices` {idx.tolist()} exceed the observation size {observation_dim}.")
+            self.register_buffer("goal_indices", idx)
+        else:
+            self.goal_indices = None
+        loc, scale = box_loc_scale(action_low, action_high)
+        self.register_buffer("action_loc", loc)
+        self.register_buffer("action_scale", scale)
+        self.ensemble = EnsembleMLP(
+            observation_dim + goal_dim + self.action_dim,
+            1,
+            num_nets,
+            num_cells=num_cells,
+            activation_class=activation_class,
+        )
+
+    @property
+    def num_nets(self) -> int:
+        return self.ensemble.ensemble_size
+
+    def features(self, observation: torch.Tensor, goal: torch.Tensor, action: torch.Tensor) -> torch.Tensor:
+        """The network input ``observation ++ goal_input ++ scaled_action`` (``[*batch, in]``)."""
+        check_last_dim("observation", observation, self.observation_dim)
+        check_last_dim("goal", goal, self.goal_dim)
+        check_last_dim("action", action, self.action_dim)
+        shape = torch.broadcast_shapes(observation.shape[:-1], goal.shape[:-1], action.shape[:-1])
+        observation = observation.expand(*shape, self.observation_dim)
+        goal = goal.expand(*shape, self.goal_dim)
+        action = action.expand(*shape, self.action_dim)
+        scaled = (action - self.action_loc) / self.action_scale
+        return torch.cat([observation, goal_input(observation, goal, self.goal_indices), scaled], -1)
+
+    def q_from_features(self, x: torch.Tensor, per_member: bool = False) -> torch.Tensor:
+        """Q of every member from :meth:`features`: ``[*batch, in]`` (or ``[E, *batch, in]``) -> ``[E, *batch]``."""
+        raw = self.ensemble(x, per_member=per_member).squeeze(-1)
+        if self.parameterization == "distance":
+            return distance_to_q(F.softplus(raw), self.gamma)
+        return raw
+
+    def forward(self, observation: torch.Tensor, goal: torch.Tensor, action: torch.Tensor) -> torch.Tensor:
+        """Returns ``Q_k(s, a | g)`` of every member, ensemble dim last: ``[*batch, num_nets]``."""
+        q = self.q_from_features(self.features(observation, goal, action))
+        return q.movedim(0, -1)
+
+
+class GoalConditionedCritic(TensorDictModule):
+    """A goal-conditioned twin critic as a :class:`~tensordict.nn.TensorDictModule`.
+
+    Reads ``observation``, a goal and an action and writes ``state_action_value`` with
+    shape ``[*batch, num_nets]`` (one column per member of the twin; the members share one
+    stacked-weight network, evaluated in a single batched matmul per layer). See
+    :class:`GoalConditionedCriticNet` for the inputs and the distance parameterisation.
+
+    The same class serves both levels: at the low level the action box is the action
+    spec (the critic sees ``action / action_max``); at the high level the "action" is the
+    subgoal and the box is the subgoal box (the critic sees it scaled to ``[-1, 1]``).
+
+    Args:
+        observation_dim (int): observation size.
+        goal_dim (int): goal size.
+        action_spec (Bounded, optional): the action box. Exclusive with ``action_max`` and
+            ``action_low``/``action_high``.
+
+    Keyword Args:
+        action_max (float or Tensor, optional): symmetric box ``[-action_max, action_max]``.
+        action_low (Tensor or sequence, optional): lower corner of the box.
+        action_high (Tensor or sequence, optional): upper corner of the box.
+        action_dim (int, optional): action size when scalar bounds are given.
+        goal_indices (sequence of int): achieved goal indices. Defaults to ``(0, 1)``.
+        relative_goal (bool): relative (default) or absolute goal input.
+        num_nets (int): ensemble size. Defaults to ``2``.
+        num_cells (sequence of int): hidden widths. Defaults to ``(256, 256, 256)``.
+        activation_class (type): hidden activation. Defaults to ``nn.ReLU``.
+        parameterization (str): ``"distance"`` (default) or ``"q"``.
+        gamma (float): discount. Defaults to ``0.99``.
+        observation_key (NestedKey): Defaults to ``"observation"``.
+        goal_key (NestedKey): Defaults to ``"waypoint"``.
+        action_key (NestedKey): Defaults to ``"action"``.
+        out_key (NestedKey): Defaults to ``"state_action_value"``.
+
+    Examples:
+        >>> import torch
+        >>> from tensordict import TensorDict
+        >>> critic = GoalConditionedCritic(6, 2, action_max=30.0, action_dim=8, num_cells=(32,))
+        >>> td = TensorDict({"observation": torch.randn(4, 6), "waypoint": torch.randn(4, 2),
+        ...                  "action": torch.rand(4, 8)}, [4])
+        >>> critic(td)["state_action_value"].shape
+        torch.Size([4, 2])
+    """
+
+    def __init__(
+        self,
+        observation_dim: int,
+        goal_dim: int,
+        action_spec: TensorSpec | None = None,
+        *,
+        action_max: float | torch.Tensor | None = None,
+        action_low: torch.Tensor | Sequence[float] | None = None,
+        action_high: torch.Tensor | Sequence[float] | None = None,
+        action_dim: int | None = None,
+        goal_indices: Sequence[int] | None = (0, 1),
+        relative_goal: bool = True,
+        num_nets: int = 2,
+        num_cells: Sequence[int] = DEFAULT_NUM_CELLS,
+        activation_class: type[nn.Module] = nn.ReLU,
+        parameterization: str = "distance",
+        gamma: float = 0.99,
+        observation_key: NestedKey = "observation",
+        goal_key: NestedKey = "waypoint",
+        action_key: NestedKey = "action",
+        out_key: NestedKey = "state_action_value",
+    ) -> None:
+        low, high = resolve_box(
+            spec=action_spec, low=action_low, high=action_high, max_abs=action_max, dim=action_dim, key=action_key
+        )
+        net = GoalConditionedCriticNet(
+            observation_dim,
+            goal_dim,
+            low,
+            high,
+            goal_indices=goal_indices if relative_goal else None,
+            relative_goal=relative_goal,
+            num_nets=num_nets,
+            num_cells=num_cells,
+            activation_class=activation_class,
+            parameterization=parameterization,
+            gamma=gamma,
+        )
+        super().__init__(net, in_keys=[observation_key, goal_key, action_key], out_keys=[out_key])
+
+    @property
+    def gamma(self) -> float:
+        return self.module.gamma
+
+    @property
+    def num_nets(self) -> int:
+        return self.module.num_nets
+
+    @property
+    def parameterization(self) -> str:
+        return self.module.parameterization

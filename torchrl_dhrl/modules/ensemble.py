@@ -1,0 +1,163 @@
+"""Ensembles of MLPs with stacked weights, evaluated in one batched matmul per layer."""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Sequence
+
+import torch
+from torch import nn
+
+
+class EnsembleLinear(nn.Module):
+    """A stack of ``ensemble_size`` independent linear layers evaluated with one batched matmul.
+
+    The weight has shape ``[ensemble_size, in_features, out_features]`` and the bias
+    ``[ensemble_size, 1, out_features]`` (ensemble dimension first, like the stacked
+    parameters of :class:`~torchrl.objectives.TD3Loss`). Each member is initialised like
+    :class:`torch.nn.Linear`. The number of members used in :meth:`forward` is read from
+    the weight, so parameters of several ensembles can be concatenated along dim 0 and
+    evaluated together (``TensorDict.to_module``).
+
+    Args:
+        in_features (int): input features.
+        out_features (int): output features.
+        ensemble_size (int): number of members.
+
+    Keyword Args:
+        device (torch.device, optional): where the parameters live.
+        dtype (torch.dtype, optional): parameter dtype.
+
+    Examples:
+        >>> import torch
+        >>> layer = EnsembleLinear(3, 4, ensemble_size=2)
+        >>> layer(torch.randn(10, 3)).shape  # one input shared by both members
+        torch.Size([2, 10, 4])
+        >>> layer(torch.randn(2, 10, 3)).shape  # one input per member
+        torch.Size([2, 10, 4])
+    """
+
+    def __init__(
+        self,
+        in_features: int,
+        out_features: int,
+        ensemble_size: int,
+        *,
+        device: torch.device | None = None,
+        dtype: torch.dtype | None = None,
+    ) -> None:
+        super().__init__()
+        if min(in_features, out_features, ensemble_size) < 1:
+            raise ValueError(
+                f"EnsembleLinear needs positive sizes, got in={in_features}, out={out_features}, "
+                f"ensemble_size={ensemble_size}."
+            )
+        self.in_features = in_features
+        self.out_features = out_features
+        kwargs = {"device": device, "dtype": dtype}
+        self.weight = nn.Parameter(torch.empty(ensemble_size, in_features, out_features, **kwargs))
+        self.bias = nn.Parameter(torch.empty(ensemble_size, 1, out_features, **kwargs))
+        self.reset_parameters()
+
+    @property
+    def ensemble_size(self) -> int:
+        return self.weight.shape[0]
+
+    def reset_parameters(self) -> None:
+        # nn.Linear's default: kaiming_uniform(a=sqrt(5)) == U(-1/sqrt(fan_in), 1/sqrt(fan_in)), same for bias.
+        bound = 1.0 / math.sqrt(self.in_features)
+        with torch.no_grad():
+            self.weight.uniform_(-bound, bound)
+            self.bias.uniform_(-bound, bound)
+
+    def forward(self, x: torch.Tensor) -> torch.Tensor:
+        """Maps ``[N, in]`` (shared by all members) or ``[E, N, in]`` (one per member) to ``[E, N, out]``."""
+        weight, bias = self.weight, self.bias
+        if x.ndim == 2:
+            # One GEMM for all members: [N, in] @ [in, E * out] -> [N, E, out] -> [E, N, out].
+            n_members = weight.shape[0]
+            flat = weight.permute(1, 0, 2).reshape(self.in_features, n_members * self.out_features)
+            out = (x @ flat).view(x.shape[0], n_members, self.out_features).transpose(0, 1)
+            return out + bias
+        if x.ndim == 3:
+            return torch.baddbmm(bias, x, weight)
+        raise ValueError(f"EnsembleLinear expects [N, in] or [E, N, in] inputs, got shape {tuple(x.shape)}.")
+
+    def extra_repr(self) -> str:
+        return f"in_features={self.in_features}, out_features={self.out_features}, ensemble_size={self.ensemble_size}"
+
+
+class EnsembleMLP(nn.Module):
+    """An ensemble of identical MLPs with stacked weights (one batched matmul per layer).
+
+    Args:
+        in_features (int): input features.
+        out_features (int): output features per member.
+        ensemble_size (int): number of members (2 for a TD3 twin critic).
+
+    Keyword Args:
+        num_cells (sequence of int): hidden widths. Defaults to ``(256, 256, 256)``.
+        activation_class (type): hidden activation. Defaults to :class:`torch.nn.ReLU`.
+        device (torch.device, optional): where the parameters live.
+
+    Examples:
+        >>> import torch
+        >>> mlp = EnsembleMLP(5, 1, ensemble_size=2, num_cells=(32, 32))
+        >>> mlp(torch.randn(4, 7, 5)).shape  # shared input with batch [4, 7]
+        torch.Size([2, 4, 7, 1])
+        >>> mlp(torch.randn(2, 4, 5), per_member=True).shape
+        torch.Size([2, 4, 1])
+    """
+
+    def __init__(
+        self,
+        in_features: int,
+        out_features: int,
+        ensemble_size: int,
+        *,
+        num_cells: Sequence[int] = (256, 256, 256),
+        activation_class: type[nn.Module] = nn.ReLU,
+        device: torch.device | None = None,
+    ) -> None:
+        super().__init__()
+        widths = [in_features, *num_cells, out_features]
+        self.layers = nn.ModuleList(
+            EnsembleLinear(w_in, w_out, ensemble_size, device=device)
+            for w_in, w_out in zip(widths[:-1], widths[1:])
+        )
+        self.activation = activation_class()
+        self.in_features = in_features
+        self.out_features = out_features
+
+    @property
+    def ensemble_size(self) -> int:
+        return self.layers[0].ensemble_size
+
+    def forward(self, x: torch.Tensor, per_member: bool = False) -> torch.Tensor:
+        """Evaluates every member.
+
+        Args:
+            x (Tensor): ``[*batch, in]`` shared by all members, or ``[E, *batch, in]`` when
+                ``per_member=True``.
+            per_member (bool): whether the leading dim of ``x`` indexes the members.
+
+        Returns:
+            ``[E, *batch, out]``.
+        """
+        n_members = self.layers[0].weight.shape[0]
+        if per_member:
+            if x.ndim < 2 or x.shape[0] != n_members:
+                raise ValueError(
+                    f"per-member inputs need a leading dim of {n_members} members, got {tuple(x.shape)}."
+                )
+            lead = x.shape[1:-1]
+            h = x.reshape(n_members, -1, x.shape[-1])
+        else:
+            lead = x.shape[:-1]
+            h = x.reshape(-1, x.shape[-1])
+        last = len(self.layers) - 1
+        for i, layer in enumerate(self.layers):
+            h = layer(h)
+            if i < last:
+                h = self.activation(h)
+        return h.reshape(n_members, *lead, self.out_features)

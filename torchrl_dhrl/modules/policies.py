@@ -1,0 +1,168 @@
+"""Acting policies: the actors composed with their exploration (and, for the high level, the c_h cadence)."""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+
+import torch
+from tensordict.nn import TensorDictSequential
+from tensordict.utils import NestedKey
+from torch import nn
+from torchrl.envs import TensorDictPrimer
+
+from .actors import DEFAULT_NUM_CELLS, HighLevelActor
+from .exploration import GaussianUniformExplorationModule
+from .subgoal import SubgoalScheduler
+
+
+class HighLevelPolicy(TensorDictSequential):
+    """The acting high-level policy: ``pi_hi`` -> subgoal noise -> hold for ``c_h`` steps.
+
+    A :class:`~tensordict.nn.TensorDictSequential` of three small modules, exposed as
+    attributes:
+
+    * :attr:`actor` -- a :class:`HighLevelActor` writing the deterministic proposal to
+      ``proposal_key`` (this is the network to give to
+      :class:`~torchrl_dhrl.objectives.HighLevelLoss`);
+    * :attr:`exploration` -- absolute Gaussian noise in goal units, clipped to the subgoal
+      box, active only under ``ExplorationType.RANDOM`` (off under ``DETERMINISTIC``);
+    * :attr:`scheduler` -- a :class:`SubgoalScheduler` that adopts the (noisy) proposal only
+      every ``interval`` steps and at reset, so noise only matters on issuing steps.
+
+    It writes ``subgoal``, ``new_subgoal`` (bool ``[1]``) and ``subgoal_step`` (int64 ``[1]``).
+    Append :meth:`make_primer` to the env so the held subgoal crosses steps and resets
+    (:func:`torchrl.modules.utils.get_primers_from_module` finds it too).
+
+    Args:
+        observation_dim (int): observation size.
+        goal_dim (int): goal size.
+        subgoal_low (Tensor or sequence of float): lower corner of the subgoal box.
+        subgoal_high (Tensor or sequence of float): upper corner of the subgoal box.
+        interval (int): ``c_h``, env steps per subgoal.
+
+    Keyword Args:
+        noise_sigma (float or Tensor): absolute subgoal noise std in goal units
+            (reference: 2 for the mazes, 0.1 for Reacher3D). Defaults to ``2.0``.
+        goal_indices (sequence of int): achieved goal indices. Defaults to ``(0, 1)``.
+        relative_goal (bool): relative goal input for ``pi_hi``. Defaults to ``False``.
+        num_cells (sequence of int): hidden widths. Defaults to ``(256, 256, 256)``.
+        activation_class (type): hidden activation. Defaults to ``nn.ReLU``.
+        observation_key (NestedKey): Defaults to ``"observation"``.
+        goal_key (NestedKey): the final goal. Defaults to ``"desired_goal"``.
+        subgoal_key (NestedKey): Defaults to ``"subgoal"``.
+        proposal_key (NestedKey): Defaults to ``"subgoal_proposal"``.
+        new_subgoal_key (NestedKey): Defaults to ``"new_subgoal"``.
+        counter_key (NestedKey): Defaults to ``"subgoal_step"``.
+        step_count_key (NestedKey, optional): Defaults to ``"step_count"``.
+
+    Examples:
+        >>> import torch
+        >>> from tensordict import TensorDict
+        >>> policy = HighLevelPolicy(6, 2, [-4.0, -4.0], [20.0, 20.0], interval=3, num_cells=(32,))
+        >>> td = TensorDict({"observation": torch.randn(2, 6), "desired_goal": torch.randn(2, 2),
+        ...                  "subgoal_step": torch.full((2, 1), -1)}, [2])
+        >>> flags = [policy(td)["new_subgoal"].all().item() for _ in range(6)]
+        >>> flags
+        [True, False, False, True, False, False]
+    """
+
+    def __init__(
+        self,
+        observation_dim: int,
+        goal_dim: int,
+        subgoal_low: torch.Tensor | Sequence[float],
+        subgoal_high: torch.Tensor | Sequence[float],
+        interval: int,
+        *,
+        noise_sigma: float | torch.Tensor = 2.0,
+        goal_indices: Sequence[int] | None = (0, 1),
+        relative_goal: bool = False,
+        num_cells: Sequence[int] = DEFAULT_NUM_CELLS,
+        activation_class: type[nn.Module] = nn.ReLU,
+        observation_key: NestedKey = "observation",
+        goal_key: NestedKey = "desired_goal",
+        subgoal_key: NestedKey = "subgoal",
+        proposal_key: NestedKey = "subgoal_proposal",
+        new_subgoal_key: NestedKey = "new_subgoal",
+        counter_key: NestedKey = "subgoal_step",
+        step_count_key: NestedKey | None = "step_count",
+    ) -> None:
+        actor = HighLevelActor(
+            observation_dim,
+            goal_dim,
+            subgoal_low,
+            subgoal_high,
+            goal_indices=goal_indices,
+            relative_goal=relative_goal,
+            num_cells=num_cells,
+            activation_class=activation_class,
+            observation_key=observation_key,
+            goal_key=goal_key,
+            subgoal_key=proposal_key,
+        )
+        exploration = GaussianUniformExplorationModule(
+            low=actor.low,
+            high=actor.high,
+            sigma=noise_sigma,
+            relative_sigma=False,
+            uniform_prob=0.0,
+            action_key=proposal_key,
+        )
+        scheduler = SubgoalScheduler(
+            interval,
+            goal_dim=goal_dim,
+            proposal_key=proposal_key,
+            subgoal_key=subgoal_key,
+            new_subgoal_key=new_subgoal_key,
+            counter_key=counter_key,
+            step_count_key=step_count_key,
+        )
+        super().__init__(actor, exploration, scheduler)
+
+    @property
+    def actor(self) -> HighLevelActor:
+        return self.module[0]
+
+    @property
+    def exploration(self) -> GaussianUniformExplorationModule:
+        return self.module[1]
+
+    @property
+    def scheduler(self) -> SubgoalScheduler:
+        return self.module[2]
+
+    def make_primer(self) -> TensorDictPrimer:
+        """The :class:`~torchrl.envs.TensorDictPrimer` to append to the env (see :meth:`SubgoalScheduler.make_primer`)."""
+        return self.scheduler.make_primer()
+
+
+def make_low_level_policy(
+    actor: nn.Module,
+    *,
+    sigma: float = 0.1,
+    uniform_prob: float = 0.2,
+) -> TensorDictSequential:
+    """Composes a low-level actor with the reference exploration (0.1 * action_max noise, 20% uniform).
+
+    Args:
+        actor (LowLevelActor): the deterministic actor; its ``spec`` gives the action box.
+
+    Keyword Args:
+        sigma (float): Gaussian std as a fraction of the box half-width. Defaults to ``0.1``.
+        uniform_prob (float): probability of a uniform random action. Defaults to ``0.2``.
+
+    Examples:
+        >>> import torch
+        >>> from tensordict import TensorDict
+        >>> from torchrl_dhrl.modules import LowLevelActor
+        >>> actor = LowLevelActor(6, 2, action_max=30.0, action_dim=8, num_cells=(32,))
+        >>> policy = make_low_level_policy(actor)
+        >>> td = TensorDict({"observation": torch.randn(4, 6), "waypoint": torch.randn(4, 2)}, [4])
+        >>> policy(td)["action"].shape
+        torch.Size([4, 8])
+    """
+    action_key = actor.out_keys[0]
+    exploration = GaussianUniformExplorationModule(
+        actor.spec, sigma=sigma, relative_sigma=True, uniform_prob=uniform_prob, action_key=action_key
+    )
+    return TensorDictSequential(actor, exploration)

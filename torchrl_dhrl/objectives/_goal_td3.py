@@ -1,0 +1,298 @@
+"""Shared machinery of the DHRL TD3-style losses (goal-conditioned actor, stacked-weight twin critics)."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import torch
+from tensordict import TensorDict, TensorDictBase, TensorDictParams
+from tensordict.nn import TensorDictModule
+from tensordict.utils import NestedKey
+from torchrl.envs.utils import set_exploration_type
+from torchrl.objectives import LossModule
+from torchrl.objectives.utils import distance_loss
+
+from torchrl_dhrl.modules._utils import check_positional_keys, run_positional
+from torchrl_dhrl.modules.critics import GoalConditionedCritic, q_to_distance
+
+LOSS_FUNCTIONS = ("l2", "l1", "smooth_l1")
+
+
+@dataclass
+class _CriticGroup:
+    """One critic pair and the data it is trained on (a goal, a reward and the target clamp)."""
+
+    name: str
+    goal: torch.Tensor
+    reward: torch.Tensor
+    target_min: float | None
+    target_max: float | None
+
+
+def _ensemble_keys(params: TensorDictBase) -> list:
+    return [key for key in params.keys(True, True) if "ensemble" in (key if isinstance(key, tuple) else (key,))]
+
+
+def _same_architecture(a: GoalConditionedCritic, b: GoalConditionedCritic) -> bool:
+    """Whether two critics can be evaluated as one stacked ensemble (same inputs, widths and maths)."""
+    na, nb = a.module, b.module
+    if type(na) is not type(nb) or type(na.ensemble.activation) is not type(nb.ensemble.activation):
+        return False
+    scalars = ("observation_dim", "goal_dim", "action_dim", "parameterization", "gamma", "relative_goal")
+    if any(getattr(na, s) != getattr(nb, s) for s in scalars):
+        return False
+    for buf in ("goal_indices", "action_loc", "action_scale"):
+        ba, bb = getattr(na, buf, None), getattr(nb, buf, None)
+        if (ba is None) != (bb is None) or (ba is not None and not torch.equal(ba, bb)):
+            return False
+    shapes_a = [p.shape[1:] for p in na.ensemble.parameters()]
+    shapes_b = [p.shape[1:] for p in nb.ensemble.parameters()]
+    return shapes_a == shapes_b
+
+
+class _GoalConditionedTD3Base(LossModule):
+    """Common parts of :class:`SQGCLoss` and :class:`HighLevelLoss`.
+
+    Subclasses register their critics with :meth:`_register_critic` and describe, per
+    call, which critic is trained on which goal/reward (:class:`_CriticGroup`).
+    """
+
+    actor_network: TensorDictModule
+    actor_network_params: TensorDictParams
+    target_actor_network_params: TensorDictParams
+
+    def _init_common(
+        self,
+        actor_network: TensorDictModule,
+        critics: dict[str, GoalConditionedCritic],
+        *,
+        gamma: float | None,
+        action_l2: float,
+        target_noise_std: float,
+        target_noise_clip: float | None,
+        actor_update_interval: int,
+        use_terminated: bool,
+        loss_function: str,
+        fuse_critics: bool,
+    ) -> None:
+        check_positional_keys(actor_network, 2, "actor_network")
+        first = next(iter(critics.values()))
+        for name, critic in critics.items():
+            if not isinstance(critic, GoalConditionedCritic):
+                raise TypeError(
+                    f"`{name}` must be a GoalConditionedCritic (stacked-weight twin), got {type(critic).__name__}."
+                )
+            if critic.gamma != first.gamma:
+                raise ValueError(f"All critics must share one gamma; got {critic.gamma} and {first.gamma}.")
+        critic_gamma = first.gamma
+        if gamma is not None and abs(float(gamma) - critic_gamma) > 1e-12:
+            raise ValueError(
+                f"`gamma`={gamma} differs from the critics' gamma={critic_gamma}: the distance "
+                "parameterisation and Eq. (1) need the same discount. Build the critics with that gamma."
+            )
+        if action_l2 < 0:
+            raise ValueError(f"`action_l2` must be >= 0, got {action_l2}.")
+        if target_noise_std < 0:
+            raise ValueError(f"`target_noise_std` must be >= 0, got {target_noise_std}.")
+        if target_noise_clip is not None and target_noise_clip <= 0:
+            raise ValueError(f"`target_noise_clip` must be > 0 or None, got {target_noise_clip}.")
+        if not isinstance(actor_update_interval, int) or actor_update_interval < 1:
+            raise ValueError(f"`actor_update_interval` must be a positive int, got {actor_update_interval!r}.")
+        if loss_function not in LOSS_FUNCTIONS:
+            raise ValueError(f"`loss_function` must be one of {LOSS_FUNCTIONS}, got {loss_function!r}.")
+
+        net = first.module
+        self._check_actor_box(actor_network, net.action_loc - net.action_scale, net.action_loc + net.action_scale)
+        self.convert_to_functional(actor_network, "actor_network", create_target_params=True)
+        for name, critic in critics.items():
+            self.convert_to_functional(critic, name, create_target_params=True)
+        self.register_buffer("action_loc", net.action_loc.detach().clone())
+        self.register_buffer("action_scale", net.action_scale.detach().clone())
+        self.register_buffer("update_count", torch.zeros((), dtype=torch.long))
+        self.gamma = critic_gamma
+        self.action_l2 = float(action_l2)
+        self.target_noise_std = float(target_noise_std)
+        self.target_noise_clip = target_noise_clip
+        self.actor_update_interval = actor_update_interval
+        self.use_terminated = use_terminated
+        self.loss_function = loss_function
+        names = list(critics)
+        self._critic_names = names
+        self._ensemble_keys = {name: _ensemble_keys(getattr(self, f"{name}_params")) for name in names}
+        self.fuse_critics = fuse_critics and all(_same_architecture(first, c) for c in critics.values())
+
+    @staticmethod
+    def _check_actor_box(actor: TensorDictModule, low: torch.Tensor, high: torch.Tensor) -> None:
+        spec = getattr(actor, "spec", None)
+        if spec is None:
+            return
+        out_key = actor.out_keys[0]
+        try:
+            entry = spec[out_key]
+        except (KeyError, TypeError):
+            return
+        space = getattr(entry, "space", None)
+        if space is None or not hasattr(space, "low"):
+            return
+        if not (
+            torch.allclose(space.low.to(low), low, atol=1e-5) and torch.allclose(space.high.to(high), high, atol=1e-5)
+        ):
+            raise ValueError(
+                f"The actor's box [{space.low.tolist()}, {space.high.tolist()}] differs from the critics' "
+                f"action box [{low.tolist()}, {high.tolist()}]: build both from the same bounds."
+            )
+
+    # ------------------------------------------------------------------ keys
+    def _forward_value_estimator_keys(self, **kwargs) -> None:
+        self._in_keys = None
+
+    @property
+    def in_keys(self) -> list:
+        if getattr(self, "_in_keys", None) is None:
+            self._in_keys = self._compute_in_keys()
+        return self._in_keys
+
+    @in_keys.setter
+    def in_keys(self, value) -> None:
+        self._in_keys = value
+
+    def _compute_in_keys(self) -> list:
+        raise NotImplementedError
+
+    def make_value_estimator(self, value_type=None, **hyperparams):
+        raise NotImplementedError(
+            f"{type(self).__name__} computes its one-step TD3 targets itself; the discount is the critics' "
+            "gamma (set it when building the critics)."
+        )
+
+    @staticmethod
+    def _get(tensordict: TensorDictBase, key: NestedKey, what: str) -> torch.Tensor:
+        value = tensordict.get(key, None)
+        if value is None:
+            raise KeyError(
+                f"The loss input has no {key!r} entry ({what}). Map your layout with `loss.set_keys(...)`; "
+                f"present keys: {list(tensordict.keys(True, True))}."
+            )
+        return value
+
+    @staticmethod
+    def _as_flat(value: torch.Tensor, n: int, name: str) -> torch.Tensor:
+        if value.numel() != n:
+            raise ValueError(f"{name} must have one entry per sample ({n}), got shape {tuple(value.shape)}.")
+        return value.reshape(n)
+
+    # ------------------------------------------------------------- networks
+    def _actor(self, params: TensorDictBase, observation: torch.Tensor, goal: torch.Tensor) -> torch.Tensor:
+        with params.to_module(self.actor_network), set_exploration_type(self.deterministic_sampling_mode):
+            return run_positional(self.actor_network, observation, goal)
+
+    def _target_action(self, next_observation: torch.Tensor, goal: torch.Tensor) -> torch.Tensor:
+        """``pi'(s', g) + noise``, clamped to the action box (no gradient)."""
+        action = self._actor(self.target_actor_network_params, next_observation, goal)
+        if self.target_noise_std > 0:
+            noise = torch.randn_like(action) * self.target_noise_std
+            if self.target_noise_clip is not None:
+                noise = noise.clamp(-self.target_noise_clip, self.target_noise_clip)
+            action = action + noise
+        low, high = self.action_loc - self.action_scale, self.action_loc + self.action_scale
+        return torch.maximum(torch.minimum(action, high), low)
+
+    def _q_members(
+        self,
+        names: list[str],
+        params: list[TensorDictBase],
+        inputs: list[tuple[torch.Tensor, torch.Tensor, torch.Tensor]],
+    ) -> list[torch.Tensor]:
+        """Q of every member of each named critic on its own ``(observation, goal, action)``: ``[E_i, N]`` each.
+
+        With ``fuse_critics``, the ensembles' weights are concatenated along the member dim
+        and all critics run as one stacked ensemble (one batched matmul per layer). The
+        features are computed inside ``to_module`` so the critics' buffers follow the
+        loss's device.
+        """
+        if len(names) > 1 and self.fuse_critics:
+            fused = TensorDict()
+            head = params[0]
+            for key in head.keys(True, True):
+                if key in self._ensemble_keys[names[0]]:
+                    fused.set(key, torch.cat([p.get(key) for p in params], 0))
+                else:
+                    fused.set(key, head.get(key))
+            sizes = [p.get(self._ensemble_keys[n][0]).shape[0] for n, p in zip(names, params)]
+            module = getattr(self, names[0])
+            with fused.to_module(module):
+                net = module.module
+                x = torch.cat([net.features(*inp).expand(size, -1, -1) for inp, size in zip(inputs, sizes)], 0)
+                q = net.q_from_features(x, per_member=True)
+            return list(q.split(sizes, 0))
+        out = []
+        for name, p, inp in zip(names, params, inputs):
+            module = getattr(self, name)
+            with p.to_module(module):
+                out.append(module.module.q_from_features(module.module.features(*inp)))
+        return out
+
+    def _critic_terms(
+        self,
+        observation: torch.Tensor,
+        action: torch.Tensor,
+        next_observation: torch.Tensor,
+        not_terminal: torch.Tensor | None,
+        groups: list[_CriticGroup],
+    ) -> list[tuple[torch.Tensor, torch.Tensor]]:
+        """Predicted Q (``[E, N]``) and clamped TD3 targets (``[N]``) for each critic group."""
+        names = [g.name for g in groups]
+        n = observation.shape[0]
+        with torch.no_grad():
+            next_obs = next_observation.repeat(len(groups), 1)
+            goals = torch.cat([g.goal for g in groups], 0)
+            next_actions = self._target_action(next_obs, goals).split(n, 0)
+            target_params = [getattr(self, f"target_{name}_params") for name in names]
+            next_inputs = [(next_observation, g.goal, a) for g, a in zip(groups, next_actions)]
+            next_q = self._q_members(names, target_params, next_inputs)
+            targets = []
+            for g, q_next in zip(groups, next_q):
+                bootstrap = q_next.min(0).values
+                if not_terminal is not None:
+                    bootstrap = bootstrap * not_terminal
+                target = g.reward + self.gamma * bootstrap
+                targets.append(target.clamp(min=g.target_min, max=g.target_max))
+        params = [getattr(self, f"{name}_params") for name in names]
+        q = self._q_members(names, params, [(observation, g.goal, action) for g in groups])
+        return list(zip(q, targets))
+
+    def _value_loss_of(self, q: torch.Tensor, target: torch.Tensor) -> torch.Tensor:
+        """Sum over members of the mean TD loss of each member."""
+        return distance_loss(q, target.expand_as(q), loss_function=self.loss_function).mean(-1).sum(0)
+
+    def _actor_terms(
+        self, critic_name: str, observation: torch.Tensor, goal: torch.Tensor
+    ) -> tuple[torch.Tensor, dict]:
+        """``-Q_1(s, pi(s, g) | g) + action_l2 * mean(scaled_action^2)``, critic parameters detached."""
+        action = self._actor(self.actor_network_params, observation, goal)
+        params = getattr(self, f"{critic_name}_params")
+        first = TensorDict()
+        for key in params.keys(True, True):
+            value = params.get(key)
+            first.set(key, value.detach()[:1] if key in self._ensemble_keys[critic_name] else value)
+        module = getattr(self, critic_name)
+        with first.to_module(module):
+            q1 = module.module.q_from_features(module.module.features(observation, goal, action))[0]
+        scaled = (action - self.action_loc) / self.action_scale
+        penalty = scaled.pow(2).mean()
+        loss = -q1.mean() + self.action_l2 * penalty
+        return loss, {"actor_q": q1.detach().mean(), "actor_action_l2": penalty.detach()}
+
+    def _due_actor_update(self) -> bool:
+        self.update_count += 1
+        return int(self.update_count) % self.actor_update_interval == 0
+
+    def _diagnostics(self, prefix: str | None, q: torch.Tensor, target: torch.Tensor) -> dict:
+        """Mean Q, mean target and mean Eq. (1) distance (of the pessimistic member) of a critic pair."""
+        q = q.detach()
+        p = f"{prefix}_" if prefix else ""
+        return {
+            f"{p}q": q.mean(),
+            f"{p}target": target.detach().mean(),
+            f"{p}distance": q_to_distance(q.min(0).values, self.gamma).mean(),
+        }

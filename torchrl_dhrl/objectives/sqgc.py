@@ -1,0 +1,301 @@
+"""SQGCLoss: the low-level loss of DHRL with Separate Q-networks for Graph and Critic."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import torch
+from tensordict import TensorDict, TensorDictBase, TensorDictParams
+from tensordict.nn import TensorDictModule
+from tensordict.utils import NestedKey
+
+from torchrl_dhrl.modules.critics import GoalConditionedCritic
+
+from ._goal_td3 import _CriticGroup, _GoalConditionedTD3Base
+
+
+class SQGCLoss(_GoalConditionedTD3Base):
+    r"""The low-level TD3 loss of DHRL with Separate Q-networks for Graph and Critic (SQGC, Sec. 4.2).
+
+    Two twin critics share one actor ``pi_lo(a | s, g)``:
+
+    * the **policy critics** ``Q_critic`` train the actor; they learn from the *policy batch*,
+      whose goals are relabelled with probability 0.8 (the rest keep the waypoint actually
+      chased, so failures are seen);
+    * the **graph critics** ``Q_graph`` give the temporal distances of the graph (Eq. (1),
+      :class:`~torchrl_dhrl.modules.GoalDistance`); they learn from the *graph batch*, whose
+      goals are all relabelled to future achieved goals, so failures never inflate distances.
+
+    Each pair has target networks (update them with
+    :class:`~torchrl.objectives.SoftUpdate`, reference ``eps=0.995`` every 10 updates). For
+    each pair, with target actor ``pi'`` and target critics ``Q'``:
+
+    .. math::
+
+        y = \mathrm{clamp}\big(r + \gamma \min_k Q'_k(s', \mathrm{clip}(\pi'(s', g) + \epsilon) \mid g)\big),
+        \quad \epsilon \sim \mathcal{N}(0, \sigma^2)
+
+    clamped to ``[-clip_return, 0]`` for the policy critics and to ``<= 0`` for the graph
+    critics (reference). Each member regresses ``y`` (summed over members, mean over
+    samples). The actor loss, every ``actor_update_interval``-th call of :meth:`forward`,
+    is ``-Q_critic,1(s, pi(s, g) | g) + action_l2 * mean((a / action_max)^2)`` on the policy
+    batch, with the critic parameters detached.
+
+    **No terminal states.** DHRL episodes only truncate, and the reference bootstraps
+    through every transition, ignoring ``done``; so does this loss by default.
+    ``use_terminated=True`` masks the bootstrap with ``("next", "terminated")``.
+
+    **Expected batch layout** (all keys configurable with :meth:`set_keys`): one batch of
+    transitions carrying *two* relabelled goals, as written by the relabelling transform::
+
+        "observation"                 [B, obs_dim]
+        "action"                      [B, action_dim]
+        "goal"                        [B, goal_dim]   policy-batch goal (80% relabelled)
+        "graph_goal"                  [B, goal_dim]   graph-batch goal (100% relabelled)
+        ("next", "observation")       [B, obs_dim]
+        ("next", "reward")            [B, 1]          r(ag_{t+1}, goal)
+        ("next", "graph_reward")      [B, 1]          r(ag_{t+1}, graph_goal)
+        ("next", "terminated")        [B, 1]          only read with use_terminated=True
+
+    Sharing the transitions lets the four critics run as one stacked ensemble
+    (``fuse_critics``). Any leading batch shape is accepted (it is flattened).
+
+    Args:
+        actor_network (TensorDictModule): the deterministic low-level actor reading
+            ``(observation, goal)`` in the order of its ``in_keys`` and writing the action
+            first (e.g. :class:`~torchrl_dhrl.modules.LowLevelActor`). Its parameters are
+            shared, not copied: the acting policy follows training.
+        policy_critic (GoalConditionedCritic): the policy critic twin.
+        graph_critic (GoalConditionedCritic): the graph critic twin (same action box and gamma).
+
+    Keyword Args:
+        gamma (float, optional): checked against the critics' gamma (the critics own it:
+            the distance parameterisation needs it). Defaults to the critics'.
+        clip_return (float, optional): lower clamp ``-clip_return`` of the policy critics'
+            targets (reference 80); ``None`` for none. Defaults to ``80.0``.
+        graph_clip_return (float, optional): lower clamp of the graph critics' targets;
+            ``None`` (reference) for none.
+        action_l2 (float): weight of the action penalty. Defaults to ``0.01``.
+        target_noise_std (float): std of the target-policy noise, in action units
+            (reference 0.05, unclipped). Defaults to ``0.05``.
+        target_noise_clip (float, optional): clip of that noise; ``None`` (default) for none.
+        actor_update_interval (int): the actor is updated every this many calls of
+            :meth:`forward` (TD3 delay). Defaults to ``2``.
+        use_terminated (bool): mask the bootstrap with ``terminated``. Defaults to ``False``.
+        sqgc (bool): ``False`` gives the paper's "without SQGC" ablation: the graph critics
+            are trained on the policy batch (goal/reward keys) instead of the graph batch.
+            Defaults to ``True``.
+        loss_function (str): ``"l2"`` (default, reference MSE), ``"l1"`` or ``"smooth_l1"``.
+        fuse_critics (bool): evaluate all four critics as one stacked ensemble when their
+            architectures match. Defaults to ``True``.
+
+    The counter of :meth:`forward` calls is the ``update_count`` buffer, so a ``state_dict``
+    round trip resumes the actor-update schedule. :meth:`value_loss` and :meth:`actor_loss`
+    are also exposed (like :class:`~torchrl.objectives.TD3Loss`) for loops that step the
+    critics before computing the actor loss.
+
+    Examples:
+        >>> import torch
+        >>> from tensordict import TensorDict
+        >>> from torchrl.objectives import SoftUpdate
+        >>> from torchrl_dhrl.modules import GoalConditionedCritic, LowLevelActor
+        >>> obs_dim, goal_dim, act_dim, B = 6, 2, 3, 8
+        >>> actor = LowLevelActor(obs_dim, goal_dim, action_max=1.0, action_dim=act_dim, num_cells=(32,))
+        >>> make_critic = lambda: GoalConditionedCritic(obs_dim, goal_dim, action_max=1.0,
+        ...     action_dim=act_dim, num_cells=(32,))
+        >>> loss = SQGCLoss(actor, make_critic(), make_critic())
+        >>> updater = SoftUpdate(loss, eps=0.995)
+        >>> data = TensorDict({
+        ...     "observation": torch.randn(B, obs_dim), "action": torch.rand(B, act_dim) * 2 - 1,
+        ...     "goal": torch.randn(B, goal_dim), "graph_goal": torch.randn(B, goal_dim),
+        ...     ("next", "observation"): torch.randn(B, obs_dim),
+        ...     ("next", "reward"): -torch.ones(B, 1), ("next", "graph_reward"): -torch.ones(B, 1),
+        ... }, [B])
+        >>> out = loss(data)
+        >>> sorted(k for k in out.keys() if k.startswith("loss_"))
+        ['loss_actor', 'loss_graph_qvalue', 'loss_policy_qvalue']
+        >>> sum(v for k, v in out.items() if k.startswith("loss_")).backward()
+    """
+
+    @dataclass
+    class _AcceptedKeys:
+        """Configurable tensordict keys of :class:`SQGCLoss` (set with ``set_keys``).
+
+        Attributes:
+            observation (NestedKey): the state; also read at ``("next", observation)``.
+                Defaults to ``"observation"``.
+            action (NestedKey): the action taken. Defaults to ``"action"``.
+            goal (NestedKey): the policy-batch goal (80% relabelled). Defaults to ``"goal"``.
+            reward (NestedKey): the policy-batch reward, read at ``("next", reward)``.
+                Defaults to ``"reward"``.
+            graph_goal (NestedKey): the graph-batch goal (100% relabelled).
+                Defaults to ``"graph_goal"``.
+            graph_reward (NestedKey): the graph-batch reward, read at ``("next", graph_reward)``.
+                Defaults to ``"graph_reward"``.
+            terminated (NestedKey): read at ``("next", terminated)`` with ``use_terminated``.
+                Defaults to ``"terminated"``.
+        """
+
+        observation: NestedKey = "observation"
+        action: NestedKey = "action"
+        goal: NestedKey = "goal"
+        reward: NestedKey = "reward"
+        graph_goal: NestedKey = "graph_goal"
+        graph_reward: NestedKey = "graph_reward"
+        terminated: NestedKey = "terminated"
+
+    tensor_keys: _AcceptedKeys
+    default_keys = _AcceptedKeys
+    default_value_estimator = None
+    out_keys = [
+        "loss_policy_qvalue",
+        "loss_graph_qvalue",
+        "loss_actor",
+        "actor_updated",
+        "policy_q",
+        "policy_target",
+        "policy_distance",
+        "graph_q",
+        "graph_target",
+        "graph_distance",
+    ]
+
+    policy_critic: TensorDictModule
+    policy_critic_params: TensorDictParams
+    target_policy_critic_params: TensorDictParams
+    graph_critic: TensorDictModule
+    graph_critic_params: TensorDictParams
+    target_graph_critic_params: TensorDictParams
+
+    def __init__(
+        self,
+        actor_network: TensorDictModule,
+        policy_critic: GoalConditionedCritic,
+        graph_critic: GoalConditionedCritic,
+        *,
+        gamma: float | None = None,
+        clip_return: float | None = 80.0,
+        graph_clip_return: float | None = None,
+        action_l2: float = 0.01,
+        target_noise_std: float = 0.05,
+        target_noise_clip: float | None = None,
+        actor_update_interval: int = 2,
+        use_terminated: bool = False,
+        sqgc: bool = True,
+        loss_function: str = "l2",
+        fuse_critics: bool = True,
+    ) -> None:
+        super().__init__()
+        if policy_critic is graph_critic:
+            raise ValueError("`policy_critic` and `graph_critic` must be two separate modules.")
+        for name, value in (("clip_return", clip_return), ("graph_clip_return", graph_clip_return)):
+            if value is not None and value <= 0:
+                raise ValueError(f"`{name}` must be > 0 or None, got {value}.")
+        self._init_common(
+            actor_network,
+            {"policy_critic": policy_critic, "graph_critic": graph_critic},
+            gamma=gamma,
+            action_l2=action_l2,
+            target_noise_std=target_noise_std,
+            target_noise_clip=target_noise_clip,
+            actor_update_interval=actor_update_interval,
+            use_terminated=use_terminated,
+            loss_function=loss_function,
+            fuse_critics=fuse_critics,
+        )
+        self.clip_return = clip_return
+        self.graph_clip_return = graph_clip_return
+        self.sqgc = sqgc
+
+    def _compute_in_keys(self) -> list:
+        k = self.tensor_keys
+        keys = [k.observation, k.action, k.goal, ("next", k.observation), ("next", k.reward)]
+        if self.sqgc:
+            keys += [k.graph_goal, ("next", k.graph_reward)]
+        if self.use_terminated:
+            keys.append(("next", k.terminated))
+        return keys
+
+    def _unpack(self, tensordict: TensorDictBase) -> dict:
+        k = self.tensor_keys
+        td = tensordict.reshape(-1) if tensordict.ndim != 1 else tensordict
+        n = td.shape[0]
+        data = {
+            "observation": self._get(td, k.observation, "the state"),
+            "action": self._get(td, k.action, "the action taken"),
+            "goal": self._get(td, k.goal, "the policy-batch goal"),
+            "next_observation": self._get(td, ("next", k.observation), "the next state"),
+            "reward": self._as_flat(self._get(td, ("next", k.reward), "the policy-batch reward"), n, "reward"),
+        }
+        if self.sqgc:
+            data["graph_goal"] = self._get(td, k.graph_goal, "the graph-batch goal")
+            data["graph_reward"] = self._as_flat(
+                self._get(td, ("next", k.graph_reward), "the graph-batch reward"), n, "graph reward"
+            )
+        else:
+            data["graph_goal"], data["graph_reward"] = data["goal"], data["reward"]
+        data["not_terminal"] = None
+        if self.use_terminated:
+            terminated = self._get(td, ("next", k.terminated), "the terminated flag")
+            data["not_terminal"] = 1.0 - self._as_flat(terminated, n, "terminated").to(data["reward"].dtype)
+        return data
+
+    def value_loss(self, tensordict: TensorDictBase) -> tuple[torch.Tensor, dict]:
+        """The TD losses of both critic pairs: ``(loss_policy + loss_graph, metadata)``.
+
+        ``metadata`` holds ``loss_policy_qvalue``, ``loss_graph_qvalue`` and the diagnostics
+        (mean Q, mean target and mean Eq. (1) distance of both pairs).
+        """
+        d = self._unpack(tensordict)
+        groups = [
+            _CriticGroup("policy_critic", d["goal"], d["reward"], _neg(self.clip_return), 0.0),
+            _CriticGroup("graph_critic", d["graph_goal"], d["graph_reward"], _neg(self.graph_clip_return), 0.0),
+        ]
+        (q_policy, y_policy), (q_graph, y_graph) = self._critic_terms(
+            d["observation"], d["action"], d["next_observation"], d["not_terminal"], groups
+        )
+        loss_policy = self._value_loss_of(q_policy, y_policy)
+        loss_graph = self._value_loss_of(q_graph, y_graph)
+        metadata = {
+            "loss_policy_qvalue": loss_policy,
+            "loss_graph_qvalue": loss_graph,
+            **self._diagnostics("policy", q_policy, y_policy),
+            **self._diagnostics("graph", q_graph, y_graph),
+        }
+        return loss_policy + loss_graph, metadata
+
+    def actor_loss(self, tensordict: TensorDictBase) -> tuple[torch.Tensor, dict]:
+        """The actor loss on the policy batch against the first policy critic: ``(loss, metadata)``."""
+        k = self.tensor_keys
+        td = tensordict.reshape(-1) if tensordict.ndim != 1 else tensordict
+        observation = self._get(td, k.observation, "the state")
+        goal = self._get(td, k.goal, "the policy-batch goal")
+        return self._actor_terms("policy_critic", observation, goal)
+
+    def forward(self, tensordict: TensorDictBase) -> TensorDictBase:
+        """Computes ``loss_policy_qvalue``, ``loss_graph_qvalue`` and (every ``actor_update_interval``-th
+        call, else a constant 0) ``loss_actor``, plus diagnostics and the ``actor_updated`` flag.
+
+        Sum the ``loss_*`` entries and back-propagate once: the critic losses reach only the
+        critics (targets are computed without gradient) and the actor loss only the actor
+        (critic parameters are detached there). On steps without an actor update the actor
+        has no gradient, so optimisers leave it untouched (``zero_grad(set_to_none=True)``).
+        """
+        _, metadata = self.value_loss(tensordict)
+        due = self._due_actor_update()
+        if due:
+            loss_actor, _ = self.actor_loss(tensordict)
+        else:
+            loss_actor = torch.zeros((), device=self.action_loc.device)
+        return TensorDict(
+            {
+                **metadata,
+                "loss_actor": loss_actor,
+                "actor_updated": torch.tensor(due, device=self.action_loc.device),
+            },
+            batch_size=[],
+        )
+
+
+def _neg(value: float | None) -> float | None:
+    return None if value is None else -float(value)

@@ -1,0 +1,223 @@
+"""Frontier-based goal shifting (FGS, DHRL Algorithm 5)."""
+
+from __future__ import annotations
+
+import math
+
+import torch
+from tensordict import TensorDictBase
+from tensordict.nn import TensorDictModuleBase
+from tensordict.utils import NestedKey, unravel_key
+from torch import Tensor
+
+from .graph_planner import GraphPlanner
+
+FGS_WEIGHTINGS = ("path_length", "softmax", "reference")
+
+
+class FrontierGoalShifting(TensorDictModuleBase):
+    """Moves training goals that the graph already covers to its frontier (DHRL Algorithm 5).
+
+    Called by the recipe at the start of training episodes, batched over envs. For each env,
+    when the goal ``g`` is already inside the graph (``min_v d(v -> g) < cutoff``, with ``v`` the
+    landmark states), the goal is replaced by a landmark sampled toward the rim of the graph,
+    plus uniform noise ``U(-noise, noise)`` per axis. Landmark weights come from the graph
+    distance ``c_v`` from the episode's start state to each landmark (the planner's start
+    connection rules plus the all-pairs table, :meth:`LandmarkGraph.reach_costs`):
+
+    - ``"path_length"`` (default): ``w_v = c_v`` for reachable landmarks, ``0`` for unreachable
+      ones. Far-along landmarks of the *connected* graph are favoured, which is what "frontier"
+      means for exploration; landmarks the graph cannot reach (often artefacts of distances that
+      are still optimistic across walls) are never proposed.
+    - ``"softmax"``: ``w_v = exp(c_v / temperature)`` over reachable landmarks, a sharper focus
+      on the rim (``temperature`` defaults to the cutoff).
+    - ``"reference"``: the reference implementation's rule, ``w_v = c_v`` for reachable
+      landmarks and ``unreachable_weight`` (5000) for unreachable ones. With path lengths of a
+      few hundred steps, unreachable landmarks then take most of the probability mass.
+
+    Rows with no positive weight (no graph, nothing reachable) keep their goal. The paper's
+    text weights by ``-Q(s_0, pi(s_0, v) | v)``, a monotone function of the *direct* learned
+    distance; the graph distance used here is its multi-hop counterpart, as in the reference.
+
+    Randomness comes from ``generator`` (a :class:`torch.Generator` on the graph's device) when
+    given, from the global torch RNG otherwise.
+
+    Args:
+        planner (GraphPlanner): provides the graph, the distance and the cutoff. Not registered
+            as a submodule (FGS holds no state of its own).
+
+    Keyword Args:
+        noise (float): half-width of the uniform noise added per goal axis. Defaults to ``3.0``.
+        weighting (str): ``"path_length"``, ``"softmax"`` or ``"reference"``. Defaults to
+            ``"path_length"``.
+        temperature (float, optional): softmax temperature in steps. Defaults to the cutoff.
+        unreachable_weight (float): weight of unreachable landmarks for ``"reference"``.
+            Defaults to ``5000.0``.
+        cutoff (float, optional): "goal is in the graph" threshold. Defaults to the planner's.
+        low (float or Tensor, optional): lower bound to clamp shifted goals to.
+        high (float or Tensor, optional): upper bound to clamp shifted goals to.
+        generator (torch.Generator, optional): the random generator.
+        observation_key (NestedKey): the start state. Defaults to ``"observation"``.
+        goal_key (NestedKey): the goal to shift. Defaults to ``"desired_goal"``.
+        out_goal_key (NestedKey, optional): where to write the (possibly shifted) goal. Defaults
+            to ``goal_key``.
+        shifted_key (NestedKey): bool ``[1]`` entry telling which goals were shifted. Defaults to
+            ``"goal_shifted"``.
+
+    Examples:
+        >>> import torch
+        >>> from tensordict import TensorDict
+        >>> dist = lambda s, g: (g - s[..., :2]).norm(dim=-1)
+        >>> planner = GraphPlanner(dist, goal_dim=2, cutoff=1.5, max_landmarks=20, early_stop=0.9)
+        >>> xs = torch.linspace(0, 5, 51)
+        >>> line = torch.stack([xs, torch.zeros_like(xs)], -1)
+        >>> planner = planner.build(line, line.clone())
+        >>> fgs = FrontierGoalShifting(planner, noise=0.0, generator=torch.Generator().manual_seed(0))
+        >>> td = TensorDict(
+        ...     observation=torch.zeros(2, 2),
+        ...     desired_goal=torch.tensor([[2.5, 0.0], [20.0, 20.0]]),
+        ...     batch_size=[2],
+        ... )
+        >>> td = fgs(td)
+        >>> td["goal_shifted"].squeeze(-1).tolist()
+        [True, False]
+        >>> td["desired_goal"][1].tolist()
+        [20.0, 20.0]
+    """
+
+    def __init__(
+        self,
+        planner: GraphPlanner,
+        *,
+        noise: float = 3.0,
+        weighting: str = "path_length",
+        temperature: float | None = None,
+        unreachable_weight: float = 5000.0,
+        cutoff: float | None = None,
+        low: float | Tensor | None = None,
+        high: float | Tensor | None = None,
+        generator: torch.Generator | None = None,
+        observation_key: NestedKey = "observation",
+        goal_key: NestedKey = "desired_goal",
+        out_goal_key: NestedKey | None = None,
+        shifted_key: NestedKey = "goal_shifted",
+    ) -> None:
+        super().__init__()
+        if not isinstance(planner, GraphPlanner):
+            raise TypeError(f"`planner` must be a GraphPlanner, got {type(planner).__name__}.")
+        if weighting not in FGS_WEIGHTINGS:
+            raise ValueError(f"`weighting` must be one of {FGS_WEIGHTINGS}, got {weighting!r}.")
+        for name, value in (("noise", noise), ("unreachable_weight", unreachable_weight)):
+            if isinstance(value, bool) or not isinstance(value, (int, float)) or not value >= 0:
+                raise ValueError(f"`{name}` must be a number >= 0, got {value!r}.")
+        if temperature is not None and not temperature > 0:
+            raise ValueError(f"`temperature` must be > 0, got {temperature!r}.")
+        if cutoff is not None and not cutoff > 0:
+            raise ValueError(f"`cutoff` must be > 0, got {cutoff!r}.")
+        self.__dict__["_planner"] = planner  # not a submodule: the planner owns the graph buffers
+        self.noise = float(noise)
+        self.weighting = weighting
+        self._temperature = temperature
+        self.unreachable_weight = float(unreachable_weight)
+        self._cutoff = cutoff
+        self.low = low
+        self.high = high
+        self.generator = generator
+        self.observation_key = unravel_key(observation_key)
+        self.goal_key = unravel_key(goal_key)
+        self.out_goal_key = self.goal_key if out_goal_key is None else unravel_key(out_goal_key)
+        self.shifted_key = unravel_key(shifted_key)
+        self.in_keys = [self.observation_key, self.goal_key]
+        self.out_keys = [self.out_goal_key, self.shifted_key]
+
+    @property
+    def planner(self) -> GraphPlanner:
+        """The planner whose graph defines the frontier."""
+        return self.__dict__["_planner"]
+
+    @property
+    def cutoff(self) -> float:
+        """The "goal is already in the graph" threshold, in steps."""
+        return self.planner.cutoff if self._cutoff is None else float(self._cutoff)
+
+    @property
+    def temperature(self) -> float:
+        """The softmax temperature, in steps."""
+        return self.cutoff if self._temperature is None else float(self._temperature)
+
+    @torch.no_grad()
+    def weights(self, states: Tensor) -> Tensor:
+        """Unnormalised sampling weights ``[B, K]`` of the landmarks for start ``states[B, obs_dim]``."""
+        reach = self.planner.graph.reach_costs(states, self.planner.distance)
+        reachable = torch.isfinite(reach)
+        if self.weighting == "path_length":
+            return torch.where(reachable, reach, torch.zeros_like(reach))
+        if self.weighting == "reference":
+            return torch.where(reachable, reach, torch.full_like(reach, self.unreachable_weight))
+        logits = torch.where(reachable, reach / self.temperature, torch.full_like(reach, -math.inf))
+        # rows without any reachable landmark give NaN: zero weight (no shift)
+        return torch.softmax(logits, dim=-1).nan_to_num(0.0)
+
+    @torch.no_grad()
+    def shift(self, states: Tensor, goals: Tensor) -> tuple[Tensor, Tensor]:
+        """Shifts the goals that the graph already covers.
+
+        Args:
+            states (Tensor): ``[B, obs_dim]`` episode start states.
+            goals (Tensor): ``[B, goal_dim]`` goals.
+
+        Returns:
+            ``(new_goals, shifted)``: ``[B, goal_dim]`` goals and the ``[B]`` bool mask of the
+            rows that were replaced.
+        """
+        if states.ndim != 2 or goals.ndim != 2 or states.shape[0] != goals.shape[0]:
+            raise ValueError(
+                "`states` [B, obs_dim] and `goals` [B, goal_dim] must be 2-D with the same B, got "
+                f"{tuple(states.shape)} and {tuple(goals.shape)}."
+            )
+        shifted = torch.zeros(goals.shape[0], dtype=torch.bool, device=goals.device)
+        if not self.planner.has_graph or goals.shape[0] == 0:
+            return goals.clone(), shifted
+        weights = self.weights(states)
+        in_graph = self.planner.distance_from_graph(goals) < self.cutoff
+        shifted = in_graph & (weights.sum(dim=-1) > 0)
+        new_goals = goals.clone()
+        rows = shifted.nonzero().squeeze(-1)
+        if rows.numel():
+            picks = torch.multinomial(weights[rows], 1, generator=self.generator).squeeze(-1)
+            noise = torch.rand(
+                rows.numel(),
+                goals.shape[-1],
+                generator=self.generator,
+                device=goals.device,
+                dtype=goals.dtype,
+            )
+            candidate = self.planner.landmark_goals[picks].to(goals.dtype) + (2 * noise - 1) * self.noise
+            if self.low is not None or self.high is not None:
+                candidate = candidate.clamp(
+                    min=self._bound(self.low, candidate), max=self._bound(self.high, candidate)
+                )
+            new_goals[rows] = candidate
+        return new_goals, shifted
+
+    @staticmethod
+    def _bound(value, like: Tensor):
+        if value is None or not isinstance(value, Tensor):
+            return None if value is None else torch.full_like(like, float(value))
+        return value.to(like)
+
+    def forward(self, tensordict: TensorDictBase) -> TensorDictBase:
+        """Shifts ``goal_key`` for every row of ``tensordict`` (pass the rows of starting episodes)."""
+        batch = tensordict.batch_size
+        for key in self.in_keys:
+            if tensordict.get(key, None) is None:
+                raise KeyError(f"{type(self).__name__} needs {key!r} in the tensordict.")
+        states = tensordict.get(self.observation_key)
+        goals = tensordict.get(self.goal_key)
+        num = batch.numel()
+        new_goals, shifted = self.shift(
+            states.reshape(num, states.shape[-1]), goals.reshape(num, goals.shape[-1])
+        )
+        tensordict.set(self.out_goal_key, new_goals.reshape(goals.shape))
+        tensordict.set(self.shifted_key, shifted.reshape(*batch, 1))
+        return tensordict

@@ -1,0 +1,497 @@
+"""The landmark graph of DHRL: FPS landmarks, cutoff edges, all-pairs shortest paths, batched queries."""
+
+from __future__ import annotations
+
+import math
+from typing import NamedTuple
+
+import torch
+from torch import Tensor, nn
+
+from ._distance import DEFAULT_CHUNK_SIZE, DistanceFn, check_chunk_size, paired_distances, pairwise_distances
+from .fps import FPS_STRATEGIES, farthest_point_sampling
+from .shortest_paths import floyd_warshall, reconstruct_paths
+
+#: Buffers whose shapes follow the number of landmarks (resized when a state dict is loaded).
+_GRAPH_BUFFERS = (
+    "landmark_states",
+    "landmark_goals",
+    "landmark_distances",
+    "edge_weights",
+    "shortest_distances",
+    "next_hop",
+    "hop_counts",
+)
+
+
+class GraphPlan(NamedTuple):
+    """A batch of planned waypoint sequences, as returned by :meth:`LandmarkGraph.plan`.
+
+    The waypoints of row ``b`` are the landmarks ``path[b, :length[b]]`` followed by the subgoal.
+
+    Attributes:
+        path (Tensor): ``[B, L]`` int64 landmark indices, padded with ``-1``.
+        length (Tensor): ``[B]`` int64 number of landmarks on the stored path.
+        budgets (Tensor): ``[B, L + 1]`` float, the estimated number of steps of each hop:
+            ``budgets[b, t]`` is the length of the edge leading to waypoint ``t`` (start -> first
+            landmark for ``t = 0``, landmark -> subgoal for ``t = length``; ``inf`` past the end).
+        truncated (Tensor): ``[B]`` bool, the path had more than ``L`` landmarks and was cut; the
+            tracker replans once the stored part is used up.
+        cost (Tensor): ``[B]`` float, estimated steps of the plan to the subgoal (``inf`` when the
+            subgoal is unreachable).
+        reachable (Tensor): ``[B]`` bool, the subgoal is reachable directly or through the graph;
+            ``False`` rows use the fallback (the reachable landmark nearest to the subgoal, then
+            the subgoal) or go straight for the subgoal.
+    """
+
+    path: Tensor
+    length: Tensor
+    budgets: Tensor
+    truncated: Tensor
+    cost: Tensor
+    reachable: Tensor
+
+
+def _check_positive(name: str, value: float, allow_zero: bool = False) -> float:
+    if isinstance(value, bool) or not isinstance(value, (int, float)) or math.isnan(value):
+        raise TypeError(f"`{name}` must be a number, got {value!r}.")
+    if value < 0 or (value == 0 and not allow_zero):
+        raise ValueError(f"`{name}` must be {'>= 0' if allow_zero else '> 0'}, got {value}.")
+    return float(value)
+
+
+class LandmarkGraph(nn.Module):
+    """Directed landmark graph with precomputed all-pairs shortest paths (the graph level of DHRL).
+
+    :meth:`build` selects landmarks among candidate states by farthest point sampling with the
+    temporal distance (Algorithm 2 of the paper: from each chosen *state* to every candidate's
+    *achieved goal*), computes the landmark distance matrix ``D[i, j] = d(state_i -> goal_j)``,
+    keeps the edges ``i -> j`` with ``D[i, j] < cutoff`` or ``D[i, j] < nn_factor * min_k D[i, k]``
+    (so every landmark has an outgoing edge), and solves all shortest paths once
+    (:func:`~torchrl_dhrl.planner.floyd_warshall`, with a next-hop table). :meth:`plan` then
+    answers a batch of ``(state, subgoal)`` queries with tensor operations only: the best plan is
+    ``min_{i, j} d(s, i) + D*[i, j] + d(j, sg)`` over the entry landmarks ``i`` connected to the
+    state and the exit landmarks ``j`` connected to the subgoal.
+
+    Everything that describes the graph lives in registered buffers, so ``state_dict()`` /
+    ``load_state_dict()`` round-trip it; the buffers are resized on load because the number of
+    landmarks varies from build to build. ``version`` increases at every rebuild, which lets
+    trackers holding landmark indices detect stale plans.
+
+    The distance is passed to each method rather than stored, so that one graph serves a learned
+    distance (whose parameters belong to the learner, not to this module) or an oracle.
+
+    Args:
+        cutoff (float): edge threshold in steps, for graph edges and for connecting a query's
+            state and subgoal. Defaults to ``30.0`` (the reference value for the mazes).
+        max_landmarks (int): landmarks selected by FPS. Defaults to ``300``.
+        early_stop (float): FPS stops once the largest remaining min-distance is below this
+            value. Defaults to ``10.0``.
+        min_landmarks (int, optional): FPS early stopping needs at least this many landmarks.
+            Defaults to ``max_landmarks // 10``.
+        nn_factor (float): an edge ``i -> j`` is also kept when ``D[i, j]`` is below
+            ``nn_factor`` times the distance from ``i`` to its nearest landmark. Defaults to ``1.2``.
+        start_fallback_factor (float): when no landmark is within ``cutoff`` of a query state, the
+            state is connected to the landmarks within ``start_fallback_factor`` times its
+            smallest landmark distance. Defaults to ``1.5``.
+        chunk_size (int): maximum number of pairs per distance call. Defaults to ``65536``.
+        fps_strategy (str): ``"lazy"`` or ``"dense"`` (same result, see
+            :func:`~torchrl_dhrl.planner.farthest_point_sampling`). Defaults to ``"lazy"``.
+
+    Examples:
+        >>> import torch
+        >>> dist = lambda s, g: (g - s[..., :2]).norm(dim=-1)
+        >>> graph = LandmarkGraph(cutoff=1.5, max_landmarks=20, early_stop=0.9)
+        >>> xs = torch.linspace(0, 5, 51)
+        >>> states = torch.stack([xs, torch.zeros_like(xs)], -1)
+        >>> graph = graph.build(states, states.clone(), dist)
+        >>> graph.num_landmarks
+        5
+        >>> plan = graph.plan(torch.tensor([[0.0, 0.0]]), torch.tensor([[5.0, 0.0]]), dist)
+        >>> [round(x, 1) for x in graph.landmark_goals[plan.path[0, : plan.length[0]]][:, 0].tolist()]
+        [0.0, 1.2, 2.5, 3.7, 5.0]
+    """
+
+    def __init__(
+        self,
+        cutoff: float = 30.0,
+        max_landmarks: int = 300,
+        early_stop: float = 10.0,
+        min_landmarks: int | None = None,
+        nn_factor: float = 1.2,
+        start_fallback_factor: float = 1.5,
+        chunk_size: int = DEFAULT_CHUNK_SIZE,
+        fps_strategy: str = "lazy",
+    ) -> None:
+        super().__init__()
+        self.cutoff = _check_positive("cutoff", cutoff)
+        if isinstance(max_landmarks, bool) or not isinstance(max_landmarks, int) or max_landmarks < 1:
+            raise ValueError(f"`max_landmarks` must be a positive int, got {max_landmarks!r}.")
+        self.max_landmarks = max_landmarks
+        self.early_stop = _check_positive("early_stop", early_stop, allow_zero=True)
+        if min_landmarks is not None and (not isinstance(min_landmarks, int) or min_landmarks < 0):
+            raise ValueError(f"`min_landmarks` must be a non-negative int, got {min_landmarks!r}.")
+        self.min_landmarks = max_landmarks // 10 if min_landmarks is None else min_landmarks
+        self.nn_factor = _check_positive("nn_factor", nn_factor)
+        self.start_fallback_factor = _check_positive("start_fallback_factor", start_fallback_factor)
+        if self.start_fallback_factor < 1.0:
+            raise ValueError(f"`start_fallback_factor` must be >= 1, got {start_fallback_factor}.")
+        self.chunk_size = check_chunk_size(chunk_size)
+        if fps_strategy not in FPS_STRATEGIES:
+            raise ValueError(f"`fps_strategy` must be one of {FPS_STRATEGIES}, got {fps_strategy!r}.")
+        self.fps_strategy = fps_strategy
+        self.register_buffer("landmark_states", torch.zeros(0, 0))
+        self.register_buffer("landmark_goals", torch.zeros(0, 0))
+        self.register_buffer("landmark_distances", torch.zeros(0, 0))
+        self.register_buffer("edge_weights", torch.zeros(0, 0))
+        self.register_buffer("shortest_distances", torch.zeros(0, 0))
+        self.register_buffer("next_hop", torch.zeros(0, 0, dtype=torch.int64))
+        self.register_buffer("hop_counts", torch.zeros(0, 0, dtype=torch.int64))
+        self.register_buffer("version", torch.zeros((), dtype=torch.int64))
+
+    # ------------------------------------------------------------------ properties
+    @property
+    def num_landmarks(self) -> int:
+        """The number of landmarks (``0`` before the first build)."""
+        return self.landmark_goals.shape[0]
+
+    @property
+    def has_graph(self) -> bool:
+        """Whether the graph has at least one landmark."""
+        return self.num_landmarks > 0
+
+    @property
+    def edge_mask(self) -> Tensor:
+        """``[K, K]`` bool adjacency (no self loops)."""
+        mask = torch.isfinite(self.edge_weights)
+        mask.fill_diagonal_(False)
+        return mask
+
+    @property
+    def edges(self) -> Tensor:
+        """``[E, 2]`` int64 directed edges ``(i, j)`` as landmark index pairs (e.g. for plotting)."""
+        return self.edge_mask.nonzero()
+
+    @property
+    def edge_costs(self) -> Tensor:
+        """``[E]`` weights of :attr:`edges`, in the same order."""
+        return self.edge_weights[self.edge_mask]
+
+    # ------------------------------------------------------------------ building
+    def clear(self) -> LandmarkGraph:
+        """Removes every landmark (queries then go straight for the subgoal)."""
+        device = self.version.device
+        for name in _GRAPH_BUFFERS:
+            old = getattr(self, name)
+            setattr(self, name, torch.zeros(0, 0, dtype=old.dtype, device=device))
+        self.version += 1
+        return self
+
+    @torch.no_grad()
+    def build(self, candidate_states: Tensor, candidate_goals: Tensor, distance: DistanceFn) -> LandmarkGraph:
+        """Rebuilds the graph from scratch from candidate states (e.g. sampled from the replay buffer).
+
+        Args:
+            candidate_states (Tensor): ``[N, obs_dim]`` states.
+            candidate_goals (Tensor): ``[N, goal_dim]`` their achieved goals.
+            distance (callable): ``distance(states, goals) -> steps``.
+
+        Returns:
+            this graph, rebuilt (on the device of the candidates).
+        """
+        if candidate_states.ndim != 2 or candidate_goals.ndim != 2:
+            raise ValueError(
+                "`candidate_states` and `candidate_goals` must be 2-D [N, dim], got shapes "
+                f"{tuple(candidate_states.shape)} and {tuple(candidate_goals.shape)}."
+            )
+        if candidate_states.shape[0] == 0:
+            return self.clear()
+        result = farthest_point_sampling(
+            candidate_states,
+            candidate_goals,
+            distance,
+            self.max_landmarks,
+            early_stop=self.early_stop,
+            min_count=self.min_landmarks,
+            strategy=self.fps_strategy,
+            chunk_size=self.chunk_size,
+        )
+        states = candidate_states[result.indices]
+        goals = candidate_goals[result.indices]
+        matrix = result.landmark_distances
+        missing = torch.isnan(matrix)
+        if missing.any():
+            rows, cols = missing.nonzero(as_tuple=True)
+            matrix[rows, cols] = paired_distances(distance, states[rows], goals[cols], self.chunk_size).to(
+                matrix.dtype
+            )
+        return self.set_distance_matrix(states, goals, matrix)
+
+    @torch.no_grad()
+    def set_landmarks(self, states: Tensor, goals: Tensor, distance: DistanceFn) -> LandmarkGraph:
+        """Uses the given landmarks as they are (no sampling): computes their distances, edges and paths.
+
+        Args:
+            states (Tensor): ``[K, obs_dim]`` landmark states.
+            goals (Tensor): ``[K, goal_dim]`` landmark goals (achieved goals of ``states``).
+            distance (callable): ``distance(states, goals) -> steps``.
+        """
+        self._check_landmarks(states, goals)
+        matrix = pairwise_distances(distance, states, goals, self.chunk_size)
+        return self.set_distance_matrix(states, goals, matrix)
+
+    @torch.no_grad()
+    def set_distance_matrix(self, states: Tensor, goals: Tensor, distances: Tensor) -> LandmarkGraph:
+        """Builds edges and shortest paths from landmarks and a given ``[K, K]`` distance matrix.
+
+        ``distances[i, j]`` is ``d(states[i] -> goals[j])``; its diagonal is ignored (set to 0) and
+        negative values (possible from an unclamped learned critic) are clamped to 0.
+        """
+        self._check_landmarks(states, goals)
+        num = states.shape[0]
+        if distances.shape != (num, num):
+            raise ValueError(f"`distances` must have shape {(num, num)}, got {tuple(distances.shape)}.")
+        if torch.isnan(distances).any():
+            raise ValueError("`distances` contains NaN.")
+        matrix = distances.to(device=states.device, dtype=states.dtype).clamp_min(0.0)
+        matrix.fill_diagonal_(0.0)
+        if num == 0:
+            return self.clear()
+        off_diag = matrix.clone()
+        off_diag.fill_diagonal_(math.inf)
+        nearest = off_diag.min(dim=1, keepdim=True).values
+        keep = (off_diag < self.cutoff) | (off_diag < self.nn_factor * nearest)
+        weights = torch.where(keep, off_diag, torch.full_like(off_diag, math.inf))
+        weights.fill_diagonal_(0.0)
+        paths = floyd_warshall(weights)
+        self.landmark_states = states.detach().clone()
+        self.landmark_goals = goals.detach().clone()
+        self.landmark_distances = matrix
+        self.edge_weights = weights
+        self.shortest_distances = paths.distances
+        self.next_hop = paths.next_hop
+        self.hop_counts = paths.hop_counts
+        self.version = self.version.to(states.device) + 1
+        return self
+
+    @staticmethod
+    def _check_landmarks(states: Tensor, goals: Tensor) -> None:
+        if states.ndim != 2 or goals.ndim != 2 or states.shape[0] != goals.shape[0]:
+            raise ValueError(
+                "Landmark `states` [K, obs_dim] and `goals` [K, goal_dim] must be 2-D with the same K, "
+                f"got {tuple(states.shape)} and {tuple(goals.shape)}."
+            )
+        if not states.is_floating_point() or not goals.is_floating_point():
+            raise TypeError("Landmark `states` and `goals` must be floating tensors.")
+
+    # ------------------------------------------------------------------ queries
+    def _check_query(self, states: Tensor, goals: Tensor | None = None) -> None:
+        if states.ndim < 1:
+            raise ValueError(f"`states` must have a feature dim, got shape {tuple(states.shape)}.")
+        if self.has_graph:
+            if states.shape[-1] != self.landmark_states.shape[-1]:
+                raise ValueError(
+                    f"`states` have {states.shape[-1]} features but the landmarks have "
+                    f"{self.landmark_states.shape[-1]}."
+                )
+            if states.device != self.landmark_states.device:
+                raise ValueError(
+                    f"Query on {states.device} but the graph lives on {self.landmark_states.device}; "
+                    "move the planner with `.to(device)`."
+                )
+            if goals is not None and goals.shape[-1] != self.landmark_goals.shape[-1]:
+                raise ValueError(
+                    f"`goals` have {goals.shape[-1]} features but the landmark goals have "
+                    f"{self.landmark_goals.shape[-1]}."
+                )
+
+    @torch.no_grad()
+    def start_costs(self, states: Tensor, distance: DistanceFn) -> Tensor:
+        """``[B, K]`` cost of the edges start -> landmark (``inf`` where not connected).
+
+        A state connects to the landmarks within ``cutoff``; when there are none, to the
+        landmarks within ``start_fallback_factor`` times its smallest landmark distance.
+        """
+        to_landmarks = pairwise_distances(distance, states, self.landmark_goals, self.chunk_size)
+        return self._connect_start(to_landmarks)
+
+    def _connect_start(self, to_landmarks: Tensor) -> Tensor:
+        inf = torch.full((), math.inf, dtype=to_landmarks.dtype, device=to_landmarks.device)
+        within = to_landmarks < self.cutoff
+        nearest = to_landmarks.min(dim=-1, keepdim=True).values
+        fallback = (to_landmarks <= self.start_fallback_factor * nearest) & torch.isfinite(to_landmarks)
+        connected = torch.where(within.any(dim=-1, keepdim=True), within, fallback)
+        return torch.where(connected, to_landmarks, inf)
+
+    def _reach(self, start_cost: Tensor) -> tuple[Tensor, Tensor]:
+        """Graph distance start -> every landmark and the entry landmark achieving it: ``[B, K]`` each."""
+        num_rows, num = start_cost.shape
+        connected = torch.isfinite(start_cost)
+        width = int(connected.sum(dim=-1).max()) if num_rows else 0
+        if width == 0:
+            return (
+                torch.full_like(start_cost, math.inf),
+                torch.zeros(num_rows, num, dtype=torch.int64, device=start_cost.device),
+            )
+        # entry landmarks of each row, padded (padding has an infinite entry cost)
+        order = torch.sort(connected.to(torch.uint8), dim=-1, descending=True, stable=True).indices[:, :width]
+        entry_cost = start_cost.gather(1, order)  # [B, E]
+        through = entry_cost.unsqueeze(-1) + self.shortest_distances[order]  # [B, E, K]
+        cost, arg = through.min(dim=1)
+        return cost, order.gather(1, arg)
+
+    @torch.no_grad()
+    def reach_costs(self, states: Tensor, distance: DistanceFn) -> Tensor:
+        """``[..., K]`` estimated steps from each state to each landmark through the graph (``inf``: unreachable)."""
+        self._check_query(states)
+        batch = states.shape[:-1]
+        flat = states.reshape(-1, states.shape[-1])
+        if not self.has_graph:
+            return torch.zeros(*batch, 0, dtype=states.dtype, device=states.device)
+        cost, _ = self._reach(self.start_costs(flat, distance))
+        return cost.reshape(*batch, self.num_landmarks)
+
+    @torch.no_grad()
+    def distance_from_graph(self, goals: Tensor, distance: DistanceFn) -> Tensor:
+        """``min_k d(landmark_state_k -> goal)`` for goals ``[..., goal_dim]`` -> ``[...]`` (``inf`` without graph)."""
+        batch = goals.shape[:-1]
+        if not self.has_graph:
+            return torch.full(batch, math.inf, dtype=goals.dtype, device=goals.device)
+        if goals.shape[-1] != self.landmark_goals.shape[-1]:
+            raise ValueError(
+                f"`goals` have {goals.shape[-1]} features but the landmark goals have "
+                f"{self.landmark_goals.shape[-1]}."
+            )
+        flat = goals.reshape(-1, goals.shape[-1])
+        # [K, M] = d(landmark_state_k -> goal_m)
+        matrix = pairwise_distances(distance, self.landmark_states, flat, self.chunk_size)
+        return matrix.min(dim=0).values.reshape(batch)
+
+    @torch.no_grad()
+    def plan(
+        self, states: Tensor, subgoals: Tensor, distance: DistanceFn, max_path_length: int | None = None
+    ) -> GraphPlan:
+        """Plans waypoint sequences for a batch of ``(state, subgoal)`` queries.
+
+        The state and the subgoal are temporarily added to the graph: state -> landmark edges as
+        in :meth:`start_costs`, landmark -> subgoal edges within ``cutoff``, and a direct edge
+        state -> subgoal within ``cutoff``. The cheapest route is chosen with the precomputed
+        all-pairs table. When the subgoal cannot be reached, the plan leads to the reachable
+        landmark nearest to the subgoal (by ``d(landmark_state -> subgoal)``) and then to the
+        subgoal; when no landmark is reachable (or there is no graph), the plan is the subgoal
+        alone. A plan is always returned.
+
+        Args:
+            states (Tensor): ``[B, obs_dim]`` current states.
+            subgoals (Tensor): ``[B, goal_dim]`` subgoals.
+            distance (callable): ``distance(states, goals) -> steps``.
+            max_path_length (int, optional): landmarks kept per path; longer paths are truncated
+                (``GraphPlan.truncated``). Defaults to no limit.
+
+        Returns:
+            GraphPlan: the plans, one row per query.
+        """
+        if states.ndim != 2 or subgoals.ndim != 2 or states.shape[0] != subgoals.shape[0]:
+            raise ValueError(
+                "`states` [B, obs_dim] and `subgoals` [B, goal_dim] must be 2-D with the same B, got "
+                f"{tuple(states.shape)} and {tuple(subgoals.shape)}."
+            )
+        self._check_query(states, subgoals)
+        num_rows, device = states.shape[0], states.device
+        width = 0 if max_path_length is None else max_path_length
+        if not self.has_graph or num_rows == 0:
+            cost = (
+                paired_distances(distance, states, subgoals, self.chunk_size)
+                if num_rows
+                else (torch.zeros(0, device=device))
+            )
+            budgets = torch.full((num_rows, width + 1), math.inf, dtype=cost.dtype, device=device)
+            budgets[:, 0] = cost
+            return GraphPlan(
+                path=torch.full((num_rows, width), -1, dtype=torch.int64, device=device),
+                length=torch.zeros(num_rows, dtype=torch.int64, device=device),
+                budgets=budgets,
+                truncated=torch.zeros(num_rows, dtype=torch.bool, device=device),
+                cost=torch.where(cost < self.cutoff, cost, torch.full_like(cost, math.inf)),
+                reachable=cost < self.cutoff,
+            )
+        to_landmarks = pairwise_distances(distance, states, self.landmark_goals, self.chunk_size)  # [B, K]
+        # [K, B] -> [B, K]: d(landmark_state_k -> subgoal_b)
+        from_landmarks = pairwise_distances(
+            distance, self.landmark_states, subgoals, self.chunk_size
+        ).transpose(0, 1)
+        straight = paired_distances(distance, states, subgoals, self.chunk_size)  # [B]
+        inf = torch.full((), math.inf, dtype=to_landmarks.dtype, device=device)
+
+        start_cost = self._connect_start(to_landmarks)
+        reach, entry = self._reach(start_cost)  # [B, K]
+        exit_cost = torch.where(from_landmarks < self.cutoff, from_landmarks, inf)
+        via_cost, via_exit = (reach + exit_cost).min(dim=-1)
+        direct_cost = torch.where(straight < self.cutoff, straight, inf)
+        use_direct = torch.isfinite(direct_cost) & (direct_cost <= via_cost)
+        use_graph = torch.isfinite(via_cost) & ~use_direct
+        # fallback: the reachable landmark nearest to the subgoal (when that distance is finite)
+        near = torch.where(torch.isfinite(reach), from_landmarks, inf)
+        near_cost, near_exit = near.min(dim=-1)
+        use_fallback = ~use_direct & ~use_graph & torch.isfinite(near_cost)
+        exits = torch.where(use_graph, via_exit, near_exit)
+        has_path = use_graph | use_fallback
+        rows = torch.arange(num_rows, device=device)
+        entries = entry[rows, exits]
+        sources = torch.where(has_path, entries, exits)
+        paths, lengths = reconstruct_paths(self.next_hop, self.hop_counts, sources, exits, max_path_length)
+        full_lengths = torch.where(has_path, self.hop_counts[sources, exits] + 1, 0)
+        lengths = torch.where(has_path, lengths, 0)
+        paths = paths.masked_fill(~has_path.unsqueeze(-1), -1)
+        if max_path_length is not None and paths.shape[1] < max_path_length:
+            pad = torch.full(
+                (num_rows, max_path_length - paths.shape[1]), -1, dtype=paths.dtype, device=device
+            )
+            paths = torch.cat([paths, pad], dim=1)
+        truncated = full_lengths > lengths
+        # hop budgets: start -> path[0], path[t-1] -> path[t], last landmark -> subgoal
+        num_cols = paths.shape[1]
+        budgets = torch.full((num_rows, num_cols + 1), math.inf, dtype=to_landmarks.dtype, device=device)
+        if num_cols:
+            first = paths[:, 0].clamp_min(0)
+            budgets[:, 0] = torch.where(has_path, to_landmarks[rows, first], inf)
+            if num_cols > 1:
+                prev, nxt = paths[:, :-1].clamp_min(0), paths[:, 1:].clamp_min(0)
+                hop = self.landmark_distances[prev, nxt]
+                valid = torch.arange(1, num_cols, device=device).unsqueeze(0) < lengths.unsqueeze(1)
+                budgets[:, 1:num_cols] = torch.where(valid, hop, inf)
+        last = paths.gather(1, (lengths - 1).clamp_min(0).unsqueeze(1)).squeeze(1).clamp_min(0)
+        final_hop = torch.where(has_path, from_landmarks[rows, last], straight)
+        final_hop = torch.where(truncated, inf, final_hop)
+        budgets.scatter_(1, lengths.unsqueeze(1), final_hop.unsqueeze(1))
+        cost = torch.where(use_direct, direct_cost, torch.where(use_graph, via_cost, inf))
+        return GraphPlan(
+            path=paths,
+            length=lengths,
+            budgets=budgets,
+            truncated=truncated,
+            cost=cost,
+            reachable=use_direct | use_graph,
+        )
+
+    # ------------------------------------------------------------------ state dict
+    def _load_from_state_dict(
+        self, state_dict, prefix, local_metadata, strict, missing_keys, unexpected_keys, error_msgs
+    ):
+        # the number of landmarks varies between builds: adopt the stored shapes before loading
+        for name in _GRAPH_BUFFERS:
+            key = prefix + name
+            if key in state_dict:
+                current = getattr(self, name)
+                stored = state_dict[key]
+                setattr(self, name, torch.empty(stored.shape, dtype=current.dtype, device=current.device))
+        super()._load_from_state_dict(
+            state_dict, prefix, local_metadata, strict, missing_keys, unexpected_keys, error_msgs
+        )
+
+    def extra_repr(self) -> str:
+        return (
+            f"num_landmarks={self.num_landmarks}, cutoff={self.cutoff}, max_landmarks={self.max_landmarks}, "
+            f"early_stop={self.early_stop}, nn_factor={self.nn_factor}, "
+            f"start_fallback_factor={self.start_fallback_factor}"
+        )
