@@ -23,7 +23,6 @@ import time
 import mujoco
 import numpy as np
 import torch
-
 from torchrl_dhrl.envs import MAZE_NAMES, compile_maze_model, get_maze_spec, make_env
 
 
@@ -65,7 +64,9 @@ def torchrl_steps_per_second(name: str, num_envs: int, steps: int, seed: int = 0
 
 
 def main(argv: list[str] | None = None) -> None:
-    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser = argparse.ArgumentParser(
+        description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter
+    )
     parser.add_argument("--steps", type=int, default=2000, help="env steps per measurement")
     parser.add_argument("--mazes", nargs="+", default=list(MAZE_NAMES), choices=list(MAZE_NAMES))
     args = parser.parse_args(argv)
@@ -78,7 +79,9 @@ def main(argv: list[str] | None = None) -> None:
         raw = raw_steps_per_second(name, args.steps)
         single = torchrl_steps_per_second(name, 1, args.steps // 2)
         batched = torchrl_steps_per_second(name, 16, args.steps)
-        print(f"{name:<18} {raw:>9.0f} {single:>9.0f} {raw / single:>6.2f} {batched:>9.0f} {raw / batched:>6.2f}")
+        print(
+            f"{name:<18} {raw:>9.0f} {single:>9.0f} {raw / single:>6.2f} {batched:>9.0f} {raw / batched:>6.2f}"
+        )
 
 
 if __name__ == "__main__":

@@ -76,9 +76,8 @@ def main() -> None:
         f"device={device}, low-level storage {tuple(rb.storage.shape)}, batch {args.batch_size}, window 150"
     )
     print(f"  rb.sample():                          {median_ms(rb.sample, args.repeats):7.3f} ms")
-    print(
-        f"  FutureGoalRelabel (2 outputs):        {median_ms(lambda: relabel(sample.clone()), args.repeats):7.3f} ms"
-    )
+    relabel_ms = median_ms(lambda: relabel(sample.clone()), args.repeats)
+    print(f"  FutureGoalRelabel (2 outputs):        {relabel_ms:7.3f} ms")
 
     builder = HighLevelTransitionBuilder()
     batches = [low_level_batch(num_envs, 40, 29, episode, i * 40, device) for i in range(15)]

@@ -91,7 +91,10 @@ class AntAgent:
     friction: tuple[float, float, float] = (1.0, 0.5, 0.5)
     margin: float = 0.01
     ctrl_limit: float = 30.0
-    init_qpos: tuple[float, ...] = (0.0, 0.0, 0.55, 1.0, 0.0, 0.0, 0.0, 0.0, 1.0, 0.0, -1.0, 0.0, -1.0, 0.0, 1.0)
+    # Torso position, identity quaternion, then (hip, ankle) of legs 1-4.
+    init_qpos: tuple[float, ...] = (
+        (0.0, 0.0, 0.55) + (1.0, 0.0, 0.0, 0.0) + (0.0, 1.0, 0.0, -1.0, 0.0, -1.0, 0.0, 1.0)
+    )
     qpos_noise: float = 0.1
     qvel_noise: float = 0.1
     timestep: float = 0.02
@@ -153,7 +156,9 @@ class AntAgent:
 
         torso = root.worldbody.add("body", name="torso")
         torso.add("geom", name="torso_geom", type="sphere", size=[self.torso_radius])
-        torso.add("camera", name="track", mode="trackcom", pos=(0.0, -6.0, 6.0), xyaxes=(1, 0, 0, 0, 0.7, 0.7))
+        torso.add(
+            "camera", name="track", mode="trackcom", pos=(0.0, -6.0, 6.0), xyaxes=(1, 0, 0, 0, 0.7, 0.7)
+        )
         hip_range = np.deg2rad([-self.hip_range_deg, self.hip_range_deg])
         joints = {}
         for number, (leg, (dx, dy), sign) in enumerate(self.legs, start=1):
@@ -161,26 +166,45 @@ class AntAgent:
             lower = (self.lower_leg * dx, self.lower_leg * dy, 0.0)
             ankle_range = np.sort(sign * np.deg2rad(self.ankle_range_deg))
             leg_body = torso.add("body", name=f"{leg}_leg")
-            leg_body.add("geom", name=f"aux_{number}_geom", type="capsule", size=[self.leg_radius],
-                         fromto=(0.0, 0.0, 0.0) + upper)
+            leg_body.add(
+                "geom",
+                name=f"aux_{number}_geom",
+                type="capsule",
+                size=[self.leg_radius],
+                fromto=(0.0, 0.0, 0.0) + upper,
+            )
             hip_body = leg_body.add("body", name=f"aux_{number}", pos=upper)
             joints[f"hip_{number}"] = hip_body.add(
                 "joint", name=f"hip_{number}", type="hinge", axis=(0, 0, 1), range=hip_range
             )
-            hip_body.add("geom", name=f"{leg}_upper_geom", type="capsule", size=[self.leg_radius],
-                         fromto=(0.0, 0.0, 0.0) + upper)
+            hip_body.add(
+                "geom",
+                name=f"{leg}_upper_geom",
+                type="capsule",
+                size=[self.leg_radius],
+                fromto=(0.0, 0.0, 0.0) + upper,
+            )
             ankle_body = hip_body.add("body", name=f"{leg}_foot", pos=upper)
             # In-plane axis perpendicular to the leg direction (dx, dy): (-dy, dx, 0).
             joints[f"ankle_{number}"] = ankle_body.add(
                 "joint", name=f"ankle_{number}", type="hinge", axis=(-dy, dx, 0), range=ankle_range
             )
-            ankle_body.add("geom", name=f"{leg}_lower_geom", type="capsule", size=[self.leg_radius],
-                           fromto=(0.0, 0.0, 0.0) + lower)
+            ankle_body.add(
+                "geom",
+                name=f"{leg}_lower_geom",
+                type="capsule",
+                size=[self.leg_radius],
+                fromto=(0.0, 0.0, 0.0) + lower,
+            )
         for number in self.motor_leg_order:
             for part in ("hip", "ankle"):
                 root.actuator.add(
-                    "motor", name=f"{part}_{number}_motor", joint=joints[f"{part}_{number}"], gear=[1],
-                    ctrllimited=True, ctrlrange=(-self.ctrl_limit, self.ctrl_limit),
+                    "motor",
+                    name=f"{part}_{number}_motor",
+                    joint=joints[f"{part}_{number}"],
+                    gear=[1],
+                    ctrllimited=True,
+                    ctrlrange=(-self.ctrl_limit, self.ctrl_limit),
                 )
         return root
 
@@ -326,14 +350,20 @@ class PointAgent:
         # nose's off-axis mass, turning would push the translation sideways during the step.
         volume = 4.0 / 3.0 * np.pi * self.radius**3 + 8.0 * float(np.prod(self.nose_half_size))
         mass = self.density * volume
-        body.add("inertial", pos=(0.0, 0.0, self.radius), mass=mass,
-                 diaginertia=[0.4 * mass * self.radius**2] * 3)
+        body.add(
+            "inertial", pos=(0.0, 0.0, self.radius), mass=mass, diaginertia=[0.4 * mass * self.radius**2] * 3
+        )
         body.add("joint", name="ballx", type="slide", axis=(1, 0, 0))
         body.add("joint", name="bally", type="slide", axis=(0, 1, 0))
         body.add("joint", name="rot", type="hinge", axis=(0, 0, 1))
         body.add("geom", name="pointbody", type="sphere", size=[self.radius], pos=(0.0, 0.0, self.radius))
-        body.add("geom", name="pointarrow", type="box", size=self.nose_half_size,
-                 pos=(self.nose_offset, 0.0, self.radius))
+        body.add(
+            "geom",
+            name="pointarrow",
+            type="box",
+            size=self.nose_half_size,
+            pos=(self.nose_offset, 0.0, self.radius),
+        )
         body.add("camera", name="track", mode="trackcom", pos=(0.0, -6.0, 6.0), xyaxes=(1, 0, 0, 0, 0.7, 0.7))
         return root
 

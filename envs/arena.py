@@ -59,35 +59,77 @@ def build_maze_mjcf(maze: str | MazeSpec) -> mjcf.RootElement:
     low, high = spec.layout.extent
     center = (low + high) / 2
     half_extent = float(np.max(high - low)) / 2
-    root.asset.add("texture", name="grid", type="2d", builtin="checker", width=512, height=512,
-                   rgb1=(0.55, 0.6, 0.55), rgb2=(0.45, 0.5, 0.45))
-    root.asset.add("material", name="floor", texture="grid", texrepeat=(1, 1), texuniform=True,
-                   reflectance=0.0)
-    root.worldbody.add("light", name="sun", directional=True, pos=(0.0, 0.0, 10.0), dir=(0.3, 0.3, -1.0),
-                       diffuse=(0.6, 0.6, 0.6), castshadow=False)
+    root.asset.add(
+        "texture",
+        name="grid",
+        type="2d",
+        builtin="checker",
+        width=512,
+        height=512,
+        rgb1=(0.55, 0.6, 0.55),
+        rgb2=(0.45, 0.5, 0.45),
+    )
+    root.asset.add(
+        "material", name="floor", texture="grid", texrepeat=(1, 1), texuniform=True, reflectance=0.0
+    )
     root.worldbody.add(
-        "geom", name="floor", type="plane", material="floor",
-        pos=(float(center[0]), float(center[1]), 0.0), size=(half_extent, half_extent, 1.0),
-        contype=0, conaffinity=AGENT_CONTYPE if agent.touches_floor else 0, condim=3,
+        "light",
+        name="sun",
+        directional=True,
+        pos=(0.0, 0.0, 10.0),
+        dir=(0.3, 0.3, -1.0),
+        diffuse=(0.6, 0.6, 0.6),
+        castshadow=False,
+    )
+    root.worldbody.add(
+        "geom",
+        name="floor",
+        type="plane",
+        material="floor",
+        pos=(float(center[0]), float(center[1]), 0.0),
+        size=(half_extent, half_extent, 1.0),
+        contype=0,
+        conaffinity=AGENT_CONTYPE if agent.touches_floor else 0,
+        condim=3,
     )
     for k, box in enumerate(spec.layout.wall_boxes):
         extra = {} if box.friction is None else {"friction": box.friction}
         root.worldbody.add(
-            "geom", name=f"wall_{k}", type="box", pos=box.center, size=box.half_size, rgba=_WALL_RGBA,
-            contype=0, conaffinity=AGENT_CONTYPE, condim=3, **extra,
+            "geom",
+            name=f"wall_{k}",
+            type="box",
+            pos=box.center,
+            size=box.half_size,
+            rgba=_WALL_RGBA,
+            contype=0,
+            conaffinity=AGENT_CONTYPE,
+            condim=3,
+            **extra,
         )
     marker = root.worldbody.add("body", name=GOAL_BODY, mocap=True, pos=(0.0, 0.0, 0.0))
-    marker.add("geom", name="goal_geom", type="sphere", size=[spec.reward_threshold], rgba=_GOAL_RGBA,
-               contype=0, conaffinity=0, group=1)
+    marker.add(
+        "geom",
+        name="goal_geom",
+        type="sphere",
+        size=[spec.reward_threshold],
+        rgba=_GOAL_RGBA,
+        contype=0,
+        conaffinity=0,
+        group=1,
+    )
     # A camera looking straight down (-z) with +y up; high enough to see the whole grid.
     height = half_extent / np.tan(np.deg2rad(_OVERVIEW_FOVY) / 2) * 1.05
-    root.worldbody.add("camera", name=OVERVIEW_CAMERA, pos=(float(center[0]), float(center[1]), float(height)),
-                       fovy=_OVERVIEW_FOVY)
+    root.worldbody.add(
+        "camera",
+        name=OVERVIEW_CAMERA,
+        pos=(float(center[0]), float(center[1]), float(height)),
+        fovy=_OVERVIEW_FOVY,
+    )
     agent.attach_to(root)
     return root
 
 
-@functools.lru_cache(maxsize=None)
+@functools.cache
 def _maze_xml(maze: MazeSpec) -> str:
     return build_maze_mjcf(maze).to_xml_string()
 

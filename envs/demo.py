@@ -32,7 +32,9 @@ def random_trajectories(name: str, *, num_envs: int, steps: int | None, seed: in
 
 
 def main(argv: list[str] | None = None) -> Path:
-    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser = argparse.ArgumentParser(
+        description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter
+    )
     parser.add_argument("--out", type=Path, default=Path("outputs/mazes"), help="output folder")
     parser.add_argument("--num-envs", type=int, default=4, help="random episodes per maze (one batched env)")
     parser.add_argument("--steps", type=int, default=None, help="steps per episode (default: episode length)")

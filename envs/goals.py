@@ -9,6 +9,7 @@ draws, not one Python iteration per goal.
 from __future__ import annotations
 
 from dataclasses import dataclass
+from functools import cached_property
 
 import numpy as np
 
@@ -31,7 +32,9 @@ def _rejection_sample(rng: np.random.Generator, n: int, low, high, accept, accep
         if filled == n:
             return out
         remaining = n - filled
-        candidates = rng.uniform(low, high, size=(int(np.ceil(remaining / acceptance * _OVERSAMPLING)) + 4, 2))
+        candidates = rng.uniform(
+            low, high, size=(int(np.ceil(remaining / acceptance * _OVERSAMPLING)) + 4, 2)
+        )
         kept = candidates[accept(candidates)][:remaining]
         out[filled : filled + len(kept)] = kept
         filled += len(kept)
@@ -83,7 +86,7 @@ class BoxGoalSampler(GoalSampler):
         inside = (x > rect[:, 0]) & (x < rect[:, 1]) & (y > rect[:, 2]) & (y < rect[:, 3])
         return inside.any(axis=-1)
 
-    @property
+    @cached_property
     def acceptance(self) -> float:
         """Fraction of the box kept (rectangles assumed disjoint)."""
         low, high = np.asarray(self.low), np.asarray(self.high)
@@ -96,7 +99,9 @@ class BoxGoalSampler(GoalSampler):
         return float(max(1.0 - removed / area, 1e-3))
 
     def sample(self, rng: np.random.Generator, n: int) -> np.ndarray:
-        return _rejection_sample(rng, n, self.low, self.high, lambda xy: ~self._in_excluded(xy), self.acceptance)
+        return _rejection_sample(
+            rng, n, self.low, self.high, lambda xy: ~self._in_excluded(xy), self.acceptance
+        )
 
     def contains(self, xy) -> np.ndarray:
         xy = np.asarray(xy, dtype=np.float64)
@@ -128,7 +133,7 @@ class FreeCellGoalSampler(GoalSampler):
     low: tuple[float, float]
     high: tuple[float, float]
 
-    @property
+    @cached_property
     def acceptance(self) -> float:
         """Fraction of free cells among the cells of the sampling box (estimated on a fine lattice)."""
         axes = [np.linspace(lo, hi, 101) for lo, hi in zip(self.low, self.high, strict=True)]

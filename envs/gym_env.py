@@ -48,7 +48,7 @@ class MazeGoalEnv(gym.Env):
         >>> obs["observation"].shape, obs["desired_goal"].tolist()
         ((29,), [0.0, 16.0])
         >>> obs, reward, terminated, truncated, info = env.step(env.action_space.sample())
-        >>> reward == env.unwrapped.compute_reward(obs["achieved_goal"], obs["desired_goal"], info)
+        >>> bool(reward == env.unwrapped.compute_reward(obs["achieved_goal"], obs["desired_goal"], info))
         True
     """
 
@@ -66,8 +66,9 @@ class MazeGoalEnv(gym.Env):
     ) -> None:
         spec = get_maze_spec(maze)
         if render_mode is not None and render_mode not in self.metadata["render_modes"]:
-            raise ValueError(f"render_mode must be None or one of {self.metadata['render_modes']}, "
-                             f"got {render_mode!r}.")
+            raise ValueError(
+                f"render_mode must be None or one of {self.metadata['render_modes']}, got {render_mode!r}."
+            )
         self._sim = MazeSimulation(spec, 1, max_episode_steps=max_episode_steps, eval_goals=eval)
         self.render_mode = render_mode
         self.width, self.height = width, height
@@ -81,8 +82,9 @@ class MazeGoalEnv(gym.Env):
                 "desired_goal": spaces.Box(low, high, shape=(2,), dtype=np.float64),
             }
         )
-        self.action_space = spaces.Box(agent.action_low.astype(np.float32), agent.action_high.astype(np.float32),
-                                       dtype=np.float32)
+        self.action_space = spaces.Box(
+            agent.action_low.astype(np.float32), agent.action_high.astype(np.float32), dtype=np.float32
+        )
 
     @property
     def maze(self) -> MazeSpec:
@@ -110,8 +112,11 @@ class MazeGoalEnv(gym.Env):
             raise ValueError(f"Unknown reset options {sorted(unknown)}; supported: 'goal', 'eval'.")
         self._sim.rngs[0] = self.np_random
         goal = options.get("goal")
-        self._sim.reset(None, None if goal is None else np.asarray(goal, dtype=np.float64)[None],
-                        eval_goals=options.get("eval"))
+        self._sim.reset(
+            None,
+            None if goal is None else np.asarray(goal, dtype=np.float64)[None],
+            eval_goals=options.get("eval"),
+        )
         _, success = self._sim.evaluate()
         return self._get_obs(), {"is_success": bool(success[0])}
 

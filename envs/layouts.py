@@ -200,8 +200,10 @@ class MazeLayout:
         bounds = np.array([box.xy_bounds for box in self.wall_boxes])  # [W, 4]
         x, y = xy[..., 0, None], xy[..., 1, None]
         inside = (
-            (x > bounds[:, 0] - margin) & (x < bounds[:, 1] + margin)
-            & (y > bounds[:, 2] - margin) & (y < bounds[:, 3] + margin)
+            (x > bounds[:, 0] - margin)
+            & (x < bounds[:, 1] + margin)
+            & (y > bounds[:, 2] - margin)
+            & (y < bounds[:, 3] + margin)
         )
         return inside.any(axis=-1)
 

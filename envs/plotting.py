@@ -27,7 +27,9 @@ def _trajectories(trajectory) -> list[np.ndarray]:
         return [trajectory[:, :2]]
     if trajectory.ndim == 3:
         return [t[:, :2] for t in trajectory]
-    raise ValueError(f"trajectory must be [T, D], [B, T, D] or a list of [T, D], got shape {trajectory.shape}.")
+    raise ValueError(
+        f"trajectory must be [T, D], [B, T, D] or a list of [T, D], got shape {trajectory.shape}."
+    )
 
 
 def plot_maze(
@@ -71,8 +73,8 @@ def plot_maze(
         >>> from torchrl_dhrl.envs import plot_maze
         >>> ax = plot_maze("AntMazeSmall", trajectory=np.array([[0.0, 0.0], [4.0, 0.0], [8.0, 2.0]]),
         ...                landmarks=np.array([[0.0, 0.0], [8.0, 0.0], [8.0, 8.0]]), edges=[[0, 1], [1, 2]])
-        >>> ax.get_xlim()
-        (-6.0, 14.0)
+        >>> [float(v) for v in ax.get_xlim()]
+        [-6.0, 14.0]
     """
     import matplotlib.pyplot as plt
     from matplotlib.collections import LineCollection
@@ -105,8 +107,9 @@ def plot_maze(
         ax.scatter(nodes[:, 0], nodes[:, 1], s=8, c="#1f5fbf", zorder=3, label="landmarks")
     if trajectory is not None:
         for k, xy in enumerate(_trajectories(trajectory)):
-            (line,) = ax.plot(xy[:, 0], xy[:, 1], lw=1.0, alpha=0.8, zorder=4,
-                              label="trajectory" if k == 0 else None)
+            (line,) = ax.plot(
+                xy[:, 0], xy[:, 1], lw=1.0, alpha=0.8, zorder=4, label="trajectory" if k == 0 else None
+            )
             ax.plot(xy[-1, 0], xy[-1, 1], "o", ms=3, color=line.get_color(), zorder=4)
     if path is not None:
         path = _as_numpy(path)[:, :2]

@@ -31,11 +31,11 @@ def sparse_reward(achieved_goal, desired_goal, threshold: float = 0.5) -> np.nda
     Examples:
         >>> import numpy as np
         >>> from torchrl_dhrl.envs import sparse_reward
-        >>> sparse_reward(np.array([[0.0, 0.0], [0.0, 0.4]]), np.array([0.0, 1.0])).tolist()
+        >>> sparse_reward(np.array([[0.0, 0.0], [0.0, 0.6]]), np.array([0.0, 1.0])).tolist()
         [-1.0, 0.0]
     """
     distance = np.linalg.norm(np.asarray(achieved_goal) - np.asarray(desired_goal), axis=-1)
-    return -(distance > threshold).astype(np.float64)
+    return np.where(distance > threshold, -1.0, 0.0)
 
 
 class MazeSimulation:
@@ -148,8 +148,10 @@ class MazeSimulation:
             raise ValueError(f"Expected goals of shape ({count}, 2) or (2,), got {tuple(goals.shape)}.")
         if not np.isfinite(goals).all():
             raise ValueError("Goals must be finite.")
-        outside = ((goals < self._goal_low - _GOAL_BOUNDS_TOLERANCE)
-                   | (goals > self._goal_high + _GOAL_BOUNDS_TOLERANCE)).any(axis=-1)
+        outside = (
+            (goals < self._goal_low - _GOAL_BOUNDS_TOLERANCE)
+            | (goals > self._goal_high + _GOAL_BOUNDS_TOLERANCE)
+        ).any(axis=-1)
         if outside.any():
             raise ValueError(
                 f"Goal {goals[outside][0].tolist()} lies outside the {self.spec.name} arena: goals must be in "
@@ -240,7 +242,7 @@ class MazeSimulation:
         """Sparse reward (``-1``/``0`` at the reward threshold) and success (within the evaluation threshold)
         of the current states against the desired goals."""
         distance = np.linalg.norm(self.achieved_goal - self.desired_goal, axis=-1)
-        reward = -(distance > self.spec.reward_threshold).astype(np.float64)
+        reward = np.where(distance > self.spec.reward_threshold, -1.0, 0.0)
         return reward, distance <= self.spec.success_threshold
 
     def compute_reward(self, achieved_goal, desired_goal) -> np.ndarray:
@@ -248,8 +250,9 @@ class MazeSimulation:
         return sparse_reward(achieved_goal, desired_goal, self.spec.reward_threshold)
 
     # ------------------------------------------------------------------ rendering
-    def render(self, index: int = 0, *, width: int = 480, height: int = 480,
-               camera: str | int = OVERVIEW_CAMERA) -> np.ndarray:
+    def render(
+        self, index: int = 0, *, width: int = 480, height: int = 480, camera: str | int = OVERVIEW_CAMERA
+    ) -> np.ndarray:
         """Offscreen RGB render ``[height, width, 3]`` (uint8) of env ``index``.
 
         Needs an OpenGL backend (``MUJOCO_GL=egl`` or ``osmesa``). The default camera looks straight down on

@@ -124,19 +124,28 @@ class MazeEnv(EnvBase):
         self.observation_spec = Composite(
             observation=Unbounded(shape=(*shape, sim.obs_dim), dtype=torch.float32, device=device),
             achieved_goal=Unbounded(shape=(*shape, 2), dtype=torch.float32, device=device),
-            desired_goal=Bounded(low=low.expand(*shape, 2), high=high.expand(*shape, 2), shape=(*shape, 2),
-                                 dtype=torch.float32, device=device),
+            desired_goal=Bounded(
+                low=low.expand(*shape, 2),
+                high=high.expand(*shape, 2),
+                shape=(*shape, 2),
+                dtype=torch.float32,
+                device=device,
+            ),
             is_success=Categorical(2, shape=(*shape, 1), dtype=torch.bool, device=device),
-            step_count=Bounded(low=0, high=sim.max_episode_steps, shape=(*shape, 1), dtype=torch.int64,
-                               device=device),
+            step_count=Bounded(
+                low=0, high=sim.max_episode_steps, shape=(*shape, 1), dtype=torch.int64, device=device
+            ),
             shape=shape,
             device=device,
         )
         action_low = torch.as_tensor(sim.agent.action_low, dtype=torch.float32)
         action_high = torch.as_tensor(sim.agent.action_high, dtype=torch.float32)
         self.action_spec = Bounded(
-            low=action_low.expand(*shape, sim.action_dim), high=action_high.expand(*shape, sim.action_dim),
-            shape=(*shape, sim.action_dim), dtype=torch.float32, device=device,
+            low=action_low.expand(*shape, sim.action_dim),
+            high=action_high.expand(*shape, sim.action_dim),
+            shape=(*shape, sim.action_dim),
+            dtype=torch.float32,
+            device=device,
         )
         self.reward_spec = Bounded(low=-1.0, high=0.0, shape=(*shape, 1), dtype=torch.float32, device=device)
         self.done_spec = Composite(
@@ -178,7 +187,7 @@ class MazeEnv(EnvBase):
         out = self._observations(success)
         truncated = self._tensor(truncated[:, None], torch.bool)
         out["reward"] = self._tensor(reward[:, None], torch.float32)
-        out["done"] = truncated
+        out["done"] = truncated.clone()  # no terminal states: done == truncated (distinct tensors)
         out["truncated"] = truncated
         out["terminated"] = torch.zeros_like(truncated)
         return TensorDict(out, batch_size=self.batch_size, device=self.device)
@@ -209,8 +218,9 @@ class MazeEnv(EnvBase):
     def _set_seed(self, seed: int | None) -> None:
         self._sim.seed(seed)
 
-    def render(self, env_index: int = 0, *, width: int = 480, height: int = 480,
-               camera: str | int = OVERVIEW_CAMERA) -> torch.Tensor:
+    def render(
+        self, env_index: int = 0, *, width: int = 480, height: int = 480, camera: str | int = OVERVIEW_CAMERA
+    ) -> torch.Tensor:
         """Offscreen RGB frame (uint8 ``[height, width, 3]``) of env ``env_index`` through MuJoCo's renderer.
 
         Needs an OpenGL backend (``MUJOCO_GL=egl`` or ``osmesa``). The default camera shows the whole maze
@@ -255,5 +265,11 @@ def make_env(
         >>> env.reset()["desired_goal"].tolist()
         [[0.0, 16.0], [0.0, 16.0]]
     """
-    return MazeEnv(name, num_envs=num_envs, max_episode_steps=max_episode_steps, eval_goals=eval,
-                   device=device, seed=seed)
+    return MazeEnv(
+        name,
+        num_envs=num_envs,
+        max_episode_steps=max_episode_steps,
+        eval_goals=eval,
+        device=device,
+        seed=seed,
+    )

@@ -6,7 +6,6 @@ import mujoco
 import numpy as np
 import pytest
 from scipy import stats
-
 from torchrl_dhrl.envs import (
     COMPLEX_MAZE,
     MAZE_NAMES,
@@ -36,8 +35,9 @@ def _grid_distance_to_wall(grid, row, col, drow, dcol, scale):
 def _ray(model, data, origin, direction):
     geomid = np.zeros(1, dtype=np.int32)
     groups = np.array([1, 0, 0, 0, 0, 0], dtype=np.uint8)  # group 0: walls and agent (goal marker is group 1)
-    distance = mujoco.mj_ray(model, data, np.asarray(origin, float), np.asarray(direction, float), groups, 1, -1,
-                             geomid)
+    distance = mujoco.mj_ray(
+        model, data, np.asarray(origin, float), np.asarray(direction, float), groups, 1, -1, geomid
+    )
     return distance, int(geomid[0])
 
 
@@ -75,13 +75,21 @@ def test_wall_geoms_cover_grid_walls(name):
     n_grid = sum(line.count("1") for line in layout.grid)
     assert len(walls) == n_grid + len(layout.extra_walls)
     rows, cols = np.nonzero(np.array([[c == "1" for c in line] for line in layout.grid]))
-    expected = {(round(c * layout.scale - layout.origin_offset[0], 6), round(r * layout.scale -
-                layout.origin_offset[1], 6)) for r, c in zip(rows, cols, strict=True)}
-    centers = {(round(float(model.geom_pos[g][0]), 6), round(float(model.geom_pos[g][1]), 6))
-               for g in walls[:n_grid]}
+    expected = {
+        (
+            round(c * layout.scale - layout.origin_offset[0], 6),
+            round(r * layout.scale - layout.origin_offset[1], 6),
+        )
+        for r, c in zip(rows, cols, strict=True)
+    }
+    centers = {
+        (round(float(model.geom_pos[g][0]), 6), round(float(model.geom_pos[g][1]), 6)) for g in walls[:n_grid]
+    }
     assert centers == expected
-    np.testing.assert_allclose(model.geom_size[walls[:n_grid]],
-                               np.tile([layout.scale / 2, layout.scale / 2, layout.scale / 4], (n_grid, 1)))
+    np.testing.assert_allclose(
+        model.geom_size[walls[:n_grid]],
+        np.tile([layout.scale / 2, layout.scale / 2, layout.scale / 4], (n_grid, 1)),
+    )
 
 
 def test_layout_coordinates():
@@ -95,7 +103,11 @@ def test_layout_coordinates():
     complex_low, complex_high = MazeLayout(COMPLEX_MAZE, scale=8.0).bounds
     np.testing.assert_allclose(complex_low, [-4, -4]) and np.testing.assert_allclose(complex_high, [52, 52])
     assert small.in_free_cell([[0.0, 0.0], [4.0, 4.0], [8.0, 4.0], [100.0, 0.0]]).tolist() == [
-        True, False, True, False]
+        True,
+        False,
+        True,
+        False,
+    ]
 
 
 @pytest.mark.parametrize("grid", [("111", "1r1", "11"), ("111", "101", "111"), ("111", "1x1", "1r1")])
@@ -114,7 +126,9 @@ def test_bottleneck_gap_by_raycast():
     right, right_geom = _ray(model, data, origin, (1.0, 0.0, 0.0))
     left, left_geom = _ray(model, data, origin, (-1.0, 0.0, 0.0))
     assert right + left == pytest.approx(1.6, abs=1e-6)
-    assert origin[0] - left == pytest.approx(15.4, abs=1e-6) and origin[0] + right == pytest.approx(17.0, abs=1e-6)
+    assert origin[0] - left == pytest.approx(15.4, abs=1e-6) and origin[0] + right == pytest.approx(
+        17.0, abs=1e-6
+    )
     # The thin walls are 2 thick (y in [7, 9]) and carry their own friction.
     down, _ = _ray(model, data, (13.5, 5.0, 1.5), (0.0, 1.0, 0.0))
     assert down == pytest.approx(2.0, abs=1e-6)
@@ -211,12 +225,26 @@ def test_test_goals_are_the_references():
     assert get_maze_spec("AntMazeSmall").test_goals == ((0.0, 8.0),)
     assert get_maze_spec("AntMaze").test_goals == ((0.0, 16.0),)
     assert get_maze_spec("AntMazeBottleneck").test_goals == ((0.0, 16.0),)
-    assert get_maze_spec("AntMazeComplex").test_goals == ((40.0, 8.0), (16.0, 48.0), (40.0, 48.0), (16.0, 32.0))
-    facts = {"PointMaze": (600, 2.5), "AntMazeSmall": (600, 2.5), "AntMaze": (600, 5.0),
-             "AntMazeBottleneck": (600, 5.0), "AntMazeComplex": (2000, 5.0)}
+    assert get_maze_spec("AntMazeComplex").test_goals == (
+        (40.0, 8.0),
+        (16.0, 48.0),
+        (40.0, 48.0),
+        (16.0, 32.0),
+    )
+    facts = {
+        "PointMaze": (600, 2.5),
+        "AntMazeSmall": (600, 2.5),
+        "AntMaze": (600, 5.0),
+        "AntMazeBottleneck": (600, 5.0),
+        "AntMazeComplex": (2000, 5.0),
+    }
     for name, (length, threshold) in facts.items():
         spec = get_maze_spec(name)
-        assert (spec.episode_length, spec.success_threshold, spec.reward_threshold) == (length, threshold, 0.5)
+        assert (spec.episode_length, spec.success_threshold, spec.reward_threshold) == (
+            length,
+            threshold,
+            0.5,
+        )
         assert spec.layout.in_free_cell(np.array(spec.test_goals)).all()
 
 
@@ -236,6 +264,8 @@ def test_samplers_are_deterministic_and_exact_count():
         assert a.shape == (37, 2)
         np.testing.assert_array_equal(a, b)
     layout = MazeLayout(COMPLEX_MAZE, scale=8.0)
-    assert FreeCellGoalSampler(layout, (-4.0, -4.0), (52.0, 52.0)).sample(np.random.default_rng(0), 0).shape == (0, 2)
+    assert FreeCellGoalSampler(layout, (-4.0, -4.0), (52.0, 52.0)).sample(
+        np.random.default_rng(0), 0
+    ).shape == (0, 2)
     with pytest.raises(ValueError):
         FixedGoalSampler(())

@@ -5,7 +5,6 @@ from __future__ import annotations
 import mujoco
 import numpy as np
 import pytest
-
 from torchrl_dhrl.envs import AntAgent, MazeSimulation, PointAgent, compile_maze_model
 
 ANT_MAZES = ["AntMazeSmall", "AntMaze", "AntMazeBottleneck", "AntMazeComplex"]
@@ -31,8 +30,9 @@ def test_ant_model_facts():
     for n in (1, 2, 3, 4):
         np.testing.assert_allclose(model.jnt_range[hinges[f"ant/hip_{n}"]], np.deg2rad([-30, 30]))
         sign = 1 if n in (1, 4) else -1
-        np.testing.assert_allclose(np.sort(model.jnt_range[hinges[f"ant/ankle_{n}"]]),
-                                   np.sort(sign * np.deg2rad([30, 70])))
+        np.testing.assert_allclose(
+            np.sort(model.jnt_range[hinges[f"ant/ankle_{n}"]]), np.sort(sign * np.deg2rad([30, 70]))
+        )
         # Ankle axis perpendicular to the leg, in the plane.
         assert abs(model.jnt_axis[hinges[f"ant/ankle_{n}"]][2]) < 1e-12
     root = model.joint("ant/root/")
@@ -53,7 +53,10 @@ def test_ant_collides_only_with_floor_and_walls():
     static = [g for g in range(model.ngeom) if model.geom(g).name.startswith(("wall_", "floor"))]
 
     def collide(a, b):
-        return bool(model.geom_contype[a] & model.geom_conaffinity[b] or model.geom_contype[b] & model.geom_conaffinity[a])
+        return bool(
+            model.geom_contype[a] & model.geom_conaffinity[b]
+            or model.geom_contype[b] & model.geom_conaffinity[a]
+        )
 
     assert all(collide(a, s) for a in ant for s in static)
     assert not any(collide(a, b) for a in ant for b in ant if a != b)
@@ -115,7 +118,8 @@ def test_point_model_facts():
 
 
 @pytest.mark.parametrize(
-    "name", ["AntMaze"] + [pytest.param(name, marks=pytest.mark.slow) for name in ANT_MAZES if name != "AntMaze"]
+    "name",
+    ["AntMaze"] + [pytest.param(name, marks=pytest.mark.slow) for name in ANT_MAZES if name != "AntMaze"],
 )
 def test_ant_random_rollout_is_stable(name):
     """600 random steps (the full episode length) on 3 envs: finite, torso height bounded, it moves."""

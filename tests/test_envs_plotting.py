@@ -14,7 +14,6 @@ import pytest  # noqa: E402
 import torch  # noqa: E402
 from matplotlib.collections import LineCollection  # noqa: E402
 from matplotlib.patches import Rectangle  # noqa: E402
-
 from torchrl_dhrl.envs import MAZE_NAMES, MazeGoalEnv, get_maze_spec, make_env, plot_maze  # noqa: E402
 from torchrl_dhrl.envs.demo import main as demo_main  # noqa: E402
 
@@ -31,10 +30,14 @@ def test_plot_walls_and_limits(name):
     ax = plot_maze(name)
     rectangles = [p for p in ax.patches if isinstance(p, Rectangle)]
     assert len(rectangles) == len(spec.layout.wall_boxes)
-    drawn = sorted((round(r.get_x(), 6), round(r.get_y(), 6), round(r.get_width(), 6), round(r.get_height(), 6))
-                   for r in rectangles)
-    expected = sorted((round(x0, 6), round(y0, 6), round(x1 - x0, 6), round(y1 - y0, 6))
-                      for x0, x1, y0, y1 in (b.xy_bounds for b in spec.layout.wall_boxes))
+    drawn = sorted(
+        (round(r.get_x(), 6), round(r.get_y(), 6), round(r.get_width(), 6), round(r.get_height(), 6))
+        for r in rectangles
+    )
+    expected = sorted(
+        (round(x0, 6), round(y0, 6), round(x1 - x0, 6), round(y1 - y0, 6))
+        for x0, x1, y0, y1 in (b.xy_bounds for b in spec.layout.wall_boxes)
+    )
     assert drawn == expected
     low, high = spec.layout.extent
     assert ax.get_xlim() == (low[0], high[0]) and ax.get_ylim() == (low[1], high[1])
@@ -46,8 +49,15 @@ def test_plot_graph_path_and_trajectories():
     edges = np.array([[0, 1], [1, 2], [2, 3]])
     trajectories = np.random.default_rng(0).normal(size=(3, 20, 29))
     fig, ax = plt.subplots()
-    returned = plot_maze("AntMazeSmall", landmarks=landmarks, edges=edges, path=landmarks[[0, 1, 2]],
-                         trajectory=trajectories, goal=[8.0, 8.0], ax=ax)
+    returned = plot_maze(
+        "AntMazeSmall",
+        landmarks=landmarks,
+        edges=edges,
+        path=landmarks[[0, 1, 2]],
+        trajectory=trajectories,
+        goal=[8.0, 8.0],
+        ax=ax,
+    )
     assert returned is ax
     collections = [c for c in ax.collections if isinstance(c, LineCollection)]
     assert len(collections) == 1
@@ -83,8 +93,10 @@ def test_demo_writes_png(tmp_path, capsys):
 _GL = os.environ.get("MUJOCO_GL", "").lower()
 
 
-@pytest.mark.skipif(_GL not in ("egl", "osmesa", "glfw"),
-                    reason="offscreen rendering needs MUJOCO_GL=egl or osmesa (an OpenGL backend)")
+@pytest.mark.skipif(
+    _GL not in ("egl", "osmesa", "glfw"),
+    reason="offscreen rendering needs MUJOCO_GL=egl or osmesa (an OpenGL backend)",
+)
 def test_offscreen_rendering():
     env = make_env("AntMazeSmall", num_envs=2, seed=0, eval=True)
     env.reset()

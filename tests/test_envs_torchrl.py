@@ -8,7 +8,6 @@ import torch
 from tensordict import TensorDict
 from torchrl.collectors import Collector
 from torchrl.envs.utils import check_env_specs, step_mdp
-
 from torchrl_dhrl.envs import MAZE_NAMES, MazeEnv, get_maze_spec, make_env, sparse_reward
 
 
@@ -20,7 +19,9 @@ def test_check_env_specs(name, num_envs):
     assert env.batch_size == torch.Size([num_envs])
     td = env.reset()
     spec = get_maze_spec(name)
-    assert td["observation"].shape == (num_envs, spec.agent.obs_dim) and td["observation"].dtype == torch.float32
+    assert (
+        td["observation"].shape == (num_envs, spec.agent.obs_dim) and td["observation"].dtype == torch.float32
+    )
     assert td["achieved_goal"].dtype == torch.float32 and td["desired_goal"].dtype == torch.float32
     assert td["is_success"].dtype == torch.bool and td["is_success"].shape == (num_envs, 1)
     assert td["step_count"].dtype == torch.int64 and (td["step_count"] == 0).all()
@@ -63,8 +64,13 @@ def test_env_streams_do_not_depend_on_batch_neighbours():
     env2 = make_env("AntMaze", num_envs=3, seed=11)
     env2.reset(TensorDict({"_reset": torch.tensor([[False], [True], [True]])}, [3]))
     # Env 0 was not reset in env2: its own stream is untouched, so its next reset draws the same goal.
-    second = env2.reset(TensorDict({"_reset": torch.tensor([[True], [False], [False]])}, [3]))["desired_goal"][0]
+    second = env2.reset(TensorDict({"_reset": torch.tensor([[True], [False], [False]])}, [3]))[
+        "desired_goal"
+    ][0]
     torch.testing.assert_close(first, second)
+    # Env i's stream depends only on (seed, i): env 0 of a 3-env batch starts like a 1-env env.
+    single = make_env("AntMaze", num_envs=1, seed=11).reset()
+    torch.testing.assert_close(single["desired_goal"][0], first)
 
 
 def test_partial_reset_leaves_other_envs_untouched():
@@ -100,8 +106,12 @@ def test_explicit_goals_through_reset_tensordict():
     np.testing.assert_array_equal(env.simulation.desired_goal, [[0.0, 8.0], [0.0, 0.0], [9.0, -1.0]])
     # Automatic resets inside a rollout draw fresh goals.
     env = make_env("AntMazeSmall", num_envs=3, seed=0, max_episode_steps=2)
-    rollout = env.rollout(4, break_when_any_done=False, tensordict=env.reset(TensorDict({"desired_goal": goals}, [3])),
-                          auto_reset=False)
+    rollout = env.rollout(
+        4,
+        break_when_any_done=False,
+        tensordict=env.reset(TensorDict({"desired_goal": goals}, [3])),
+        auto_reset=False,
+    )
     torch.testing.assert_close(rollout["desired_goal"][:, 1], goals)
     assert not torch.isclose(rollout["desired_goal"][:, 2], goals).all(-1).any()
     # Goals outside the arena or of the wrong shape are refused.
@@ -176,7 +186,9 @@ def test_collector_keeps_episodes_apart():
         assert torch.equal(traj[i, 1:] != traj[i, :-1], new_episode)
         assert torch.equal(torch.where(new_episode, 0, steps[i, :-1] + 1), steps[i, 1:])
     ids_per_env = [set(traj[i].tolist()) for i in range(3)]
-    assert not (ids_per_env[0] & ids_per_env[1] or ids_per_env[0] & ids_per_env[2] or ids_per_env[1] & ids_per_env[2])
+    assert not (
+        ids_per_env[0] & ids_per_env[1] or ids_per_env[0] & ids_per_env[2] or ids_per_env[1] & ids_per_env[2]
+    )
     # The goal is constant within an episode and changes between episodes.
     for tid in traj.unique():
         goals = batch["desired_goal"][traj == tid]
@@ -204,4 +216,6 @@ def test_cuda_device():
     cpu = make_env("AntMaze", num_envs=2, seed=0)
     torch.manual_seed(0)
     actions = cpu.action_spec.rand((3,))
-    torch.testing.assert_close(_rollout(env, actions.cuda())["observation"].cpu(), _rollout(cpu, actions)["observation"])
+    torch.testing.assert_close(
+        _rollout(env, actions.cuda())["observation"].cpu(), _rollout(cpu, actions)["observation"]
+    )

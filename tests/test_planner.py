@@ -106,6 +106,12 @@ def test_build_fills_lazy_gaps_with_true_distances():
     expected = line_of_sight_distance(graph.landmark_states.unsqueeze(1), graph.landmark_goals.unsqueeze(0))
     expected.fill_diagonal_(0.0)
     assert graph.num_landmarks == 40
+    # the coverage radius is the largest min-distance of a candidate to the landmarks
+    to_landmarks = (
+        line_of_sight_distance(graph.landmark_states.unsqueeze(1), goals.unsqueeze(0)).min(0).values
+    )
+    chosen = torch.isin(torch.arange(len(goals)), torch.cdist(graph.landmark_goals, goals).argmin(-1))
+    assert graph.coverage_radius.item() == pytest.approx(to_landmarks[~chosen].max().item(), rel=1e-5)
     torch.testing.assert_close(graph.landmark_distances, expected)
     dense = LandmarkGraph(cutoff=6.0, max_landmarks=40, early_stop=0.0, fps_strategy="dense")
     dense.build(states, goals, line_of_sight_distance)

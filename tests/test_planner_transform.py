@@ -3,7 +3,7 @@
 import pytest
 import torch
 from tensordict import TensorDict
-from tensordict.nn import TensorDictModule, TensorDictSequential
+from tensordict.nn import TensorDictModule, TensorDictModuleBase, TensorDictSequential
 from torchrl.collectors import Collector
 from torchrl.data import Composite, LazyTensorStorage, TensorDictReplayBuffer, Unbounded
 from torchrl.envs import Compose, SerialEnv, StepCounter, TransformedEnv
@@ -12,6 +12,7 @@ from torchrl.envs.utils import check_env_specs
 from torchrl.testing.mocking_classes import ContinuousActionVecMockEnv
 
 from torchrl_dhrl.planner import GraphPlanner
+from torchrl_dhrl.planner.graph_planner import STATE_ENTRIES
 
 SUBGOAL = (2.5, 2.5)
 
@@ -51,7 +52,9 @@ class GoalKeys(Transform):
     def _call(self, next_tensordict):
         obs = next_tensordict["observation"]
         next_tensordict["achieved_goal"] = obs[..., :2].clone()
-        next_tensordict["subgoal"] = torch.tensor(SUBGOAL, device=obs.device).expand(*obs.shape[:-1], 2).clone()
+        next_tensordict["subgoal"] = (
+            torch.tensor(SUBGOAL, device=obs.device).expand(*obs.shape[:-1], 2).clone()
+        )
         return next_tensordict
 
     def _reset(self, tensordict, tensordict_reset):
@@ -64,29 +67,22 @@ class GoalKeys(Transform):
         return observation_spec
 
 
-class HighLevel(TensorDictModule):
+class HighLevel(TensorDictModuleBase):
     """Test helper: issues a random subgoal every ``every`` calls (counter in ``subgoal_step``)."""
 
     def __init__(self, every=3):
-        super().__init__(self._act, in_keys=["subgoal_step"], out_keys=["subgoal", "new_subgoal", "subgoal_step"])
+        super().__init__()
         self.every = every
-
-    def _act(self, step):
-        issue = step % self.every == 0
-        subgoal = torch.rand(*step.shape[:-1], 2) * 6 - 3
-        return subgoal, issue, step + 1
+        self.in_keys = ["subgoal", "subgoal_step"]
+        self.out_keys = ["subgoal", "new_subgoal", "subgoal_step"]
 
     def forward(self, tensordict):
-        tensordict = super().forward(tensordict.clone(False)) if False else self._forward(tensordict)
-        return tensordict
-
-    def _forward(self, tensordict):
         step = tensordict.get("subgoal_step")
-        subgoal, issue, nxt = self._act(step)
-        held = tensordict.get("subgoal")
-        tensordict.set("subgoal", torch.where(issue, subgoal, held))
+        issue = step % self.every == 0
+        fresh = torch.rand(*step.shape[:-1], 2) * 6 - 3
+        tensordict.set("subgoal", torch.where(issue, fresh, tensordict.get("subgoal")))
         tensordict.set("new_subgoal", issue)
-        tensordict.set("subgoal_step", nxt)
+        tensordict.set("subgoal_step", step + 1)
         return tensordict
 
 
@@ -134,7 +130,12 @@ def test_missing_state_defaults_to_replanning_and_state_is_copied_not_aliased():
     nxt["new_subgoal"].zero_()
     planner._step(before, nxt)  # env mode: reads the root state, writes into "next"
     assert torch.equal(before["planner", "steps"], td["planner", "steps"])  # root left untouched
-    assert (nxt["planner", "steps"] == 1).all() | (nxt["planner", "index"] == 1).all()
+    moved_on = (nxt["planner", "index"] == 1) & (nxt["planner", "steps"] == 0)
+    assert ((nxt["planner", "steps"] == 1) | moved_on).all()
+    # without any tracking state (e.g. no primer), every row plans from scratch
+    fresh = planner(inputs((3,)).exclude("new_subgoal"))
+    assert fresh["planner", "has_plan"].all() and (fresh["planner", "steps"] == 0).all()
+    assert torch.equal(fresh["planner", "path"], td["planner", "path"])
 
 
 def test_inside_a_replay_buffer():
@@ -221,11 +222,20 @@ def test_policy_mode_primer_carries_state_and_resets():
     check_env_specs(env)
     policy = TensorDictSequential(HighLevel(every=3), planner, low_level)
     rollout = env.rollout(12, policy, break_when_any_done=False)
-    # the state written by the policy at t is what the policy reads at t + 1 (carried by the primer)
-    for name in ("path", "index", "steps", "path_length"):
-        assert torch.equal(rollout["next", "planner", name][:-1], rollout["planner", name][1:]) or (
-            rollout["next", "done"].any()
+    # the state written by the policy at t is what the policy reads at t + 1 (carried by the primer,
+    # zeroed across resets): without a new subgoal, the plan of t + 1 is the plan of t, one step on
+    carried = ~rollout["next", "done"][:-1].squeeze(-1) & ~rollout["new_subgoal"][1:].squeeze(-1)
+    assert carried.sum() >= 4
+    for name in ("path", "path_length", "budgets"):
+        assert torch.equal(
+            rollout["next", "planner", name][:-1][carried], rollout["planner", name][1:][carried]
         )
+    prev_steps = rollout["next", "planner", "steps"][:-1][carried]
+    prev_index = rollout["next", "planner", "index"][:-1][carried]
+    steps, index = rollout["planner", "steps"][1:][carried], rollout["planner", "index"][1:][carried]
+    assert (
+        ((steps == prev_steps + 1) & (index == prev_index)) | ((steps == 0) & (index == prev_index + 1))
+    ).all()
     # replans exactly when a new subgoal is issued (or after a reset)
     replanned = (rollout["planner", "steps"] == 0) & (rollout["planner", "index"] == 0)
     assert (replanned | ~rollout["new_subgoal"]).all()
@@ -234,6 +244,15 @@ def test_policy_mode_primer_carries_state_and_resets():
     first_after_reset = rollout["step_count"].squeeze(-1) == 0
     assert first_after_reset.sum() >= 2
     assert (rollout["planner", "index"][first_after_reset] == 0).all()
+
+
+def test_primer_is_found_in_the_policy():
+    from torchrl.modules.utils import get_primers_from_module
+
+    planner = grid_planner()
+    primer = get_primers_from_module(TensorDictSequential(HighLevel(), planner, low_level), warn=False)
+    keys = set(primer.primers.keys(True, True))
+    assert keys == {("planner", name) for name in STATE_ENTRIES}
 
 
 def test_policy_mode_with_collector():
@@ -247,5 +266,11 @@ def test_policy_mode_with_collector():
     for batch in batches:
         assert batch["waypoint"].shape == (6, 2) and batch["planner", "has_plan"].all()
         assert torch.isfinite(batch["waypoint"]).all()
-    # the tracking counter keeps counting across the collector's batches (state carried over)
-    assert batches[1]["planner", "steps"].max() >= 0
+    # the tracking state continues across the collector's batches (t = 5 -> 6, same episode, no new subgoal)
+    last, first = batches[0][-1], batches[1][0]
+    assert not last["next", "done"].any() and not first["new_subgoal"].any()
+    for name in ("path", "path_length", "budgets"):
+        assert torch.equal(last["next", "planner", name], first["planner", name])
+    steps, index = first["planner", "steps"].item(), first["planner", "index"].item()
+    prev_steps, prev_index = last["next", "planner", "steps"].item(), last["next", "planner", "index"].item()
+    assert (steps, index) in ((prev_steps + 1, prev_index), (0, prev_index + 1))

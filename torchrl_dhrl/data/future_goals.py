@@ -80,7 +80,9 @@ class FutureGoalRelabel(Transform):
     record ``t + j`` is accepted only if every available marker agrees: same trajectory id
     (``traj_key``, e.g. the collector's ``("collector", "traj_ids")``), consecutive step counter
     (``step_count[t + j] == step_count[t] + j``), no done flag at ``t .. t + j - 1`` (``done_key``), and
-    ``t + j`` not past the newest written record (the write seam of a full circular buffer). The first
+    ``t + j`` not past the newest written record (the write seam of a full circular buffer, located from
+    the storage's last write, or from the writer's cursor when a buffer is given and its checkpoint was
+    just loaded). The first
     rejected record ends the window. Markers that are ``None`` or absent from the storage are skipped; at
     least one of the three must be present. Storing ``[num_envs, T]`` batches in a 1-D storage with
     ``rb.extend(batch.reshape(-1))`` interleaves partial episodes of different envs: with trajectory ids
@@ -108,7 +110,7 @@ class FutureGoalRelabel(Transform):
         out_keys (sequence of NestedKey, optional): where each output's goal is written, one per ratio.
             Passing ``[goal_key]`` relabels in place. Defaults to ``("goal", "graph_goal")``.
         reward_keys (sequence of NestedKey, optional): where each output's reward is written, one per
-            ratio, or ``None`` to write no reward. Defaults to
+            ratio, or ``None`` to write no reward. Defaults to ``"default"``, meaning
             ``(("next", "reward"), ("next", "graph_reward"))`` for two outputs and
             ``[("next", "reward")]`` for one.
         index_key (NestedKey, optional): the storage coordinates of each sample, as written by
@@ -187,7 +189,8 @@ class FutureGoalRelabel(Transform):
         out_keys = [_unravel_key(k) for k in ([out_keys] if isinstance(out_keys, str) else out_keys)]
         if len(out_keys) != len(her_ratio):
             raise ValueError(
-                f"Expected one out_key per her_ratio, got {len(out_keys)} out_keys for {len(her_ratio)} ratios."
+                f"Expected one out_key per her_ratio, got {len(out_keys)} out_keys for "
+                f"{len(her_ratio)} ratios."
             )
         if isinstance(reward_keys, str) and reward_keys == "default":
             if len(her_ratio) > 2:
@@ -266,9 +269,14 @@ class FutureGoalRelabel(Transform):
         return None
 
     @staticmethod
-    def _marker(field: torch.Tensor, storage_ndim: int) -> torch.Tensor:
-        # markers are stored as [T, *lanes] or [T, *lanes, 1]: keep one scalar per record
-        return field.reshape(*field.shape[:storage_ndim], -1)[..., 0]
+    def _marker(field: torch.Tensor, storage_ndim: int, flat: torch.Tensor) -> torch.Tensor:
+        """Gathers one scalar marker per record (stored as ``[T, *lanes]`` or ``[T, *lanes, 1]``)."""
+        records = field.shape[:storage_ndim].numel()
+        if field.numel() != records:
+            raise ValueError(
+                f"Episode markers must hold one value per record, got shape {tuple(field.shape)}."
+            )
+        return field.reshape(records)[flat]
 
     def _coordinates(self, index: torch.Tensor, batch_size: torch.Size, ndim: int) -> torch.Tensor:
         if not isinstance(index, torch.Tensor):
@@ -284,9 +292,9 @@ class FutureGoalRelabel(Transform):
         raise ValueError(
             f"{self.index_key!r} has shape {tuple(index.shape)}; expected {expected} storage coordinates for "
             f"a batch of shape {tuple(batch_size)} sampled from a {ndim}-dimensional storage. Apply "
-            "FutureGoalRelabel to the output of TensorDictReplayBuffer.sample() on the same storage (inside the "
-            "buffer, e.g. with rb.append_transform, 'index' is the writer's stored time index, not the sample's "
-            "storage coordinates)."
+            "FutureGoalRelabel to the output of TensorDictReplayBuffer.sample() on the same storage "
+            "(inside the buffer, e.g. with rb.append_transform, 'index' is the writer's stored time "
+            "index, not the sample's storage coordinates)."
         )
 
     # ------------------------------------------------------------------ relabelling
@@ -308,10 +316,12 @@ class FutureGoalRelabel(Transform):
         device = achieved.device
         coords = coords.to(device)
         time = coords[:, 0]
-        lanes = tuple(coords[:, d : d + 1] for d in range(1, ndim))
         steps = torch.arange(self.window, device=device)
-        positions = (time.unsqueeze(1) + steps) % length  # [B, W]
-        where = (positions, *lanes)
+        positions = torch.remainder(time.unsqueeze(1) + steps, length)  # [B, W] on the circular time line
+        # one flat index into the [T, *lanes] record grid, shared by all markers
+        flat = positions
+        for d, size in enumerate(achieved.shape[1:ndim], start=1):
+            flat = flat * size + coords[:, d : d + 1]
 
         newest = self._newest_time_index(length)
         if newest is None:
@@ -324,21 +334,20 @@ class FutureGoalRelabel(Transform):
                 self._warned_seam = True
             valid = torch.ones(positions.shape, dtype=torch.bool, device=device)
         else:
-            valid = steps <= ((newest - time) % length).unsqueeze(1)
+            valid = steps <= torch.remainder(newest - time, length).unsqueeze(1)
 
         found = False
         if self.traj_key is not None and (traj := self._field(self.traj_key)) is not None:
-            traj = self._marker(traj, ndim)[where]
+            traj = self._marker(traj, ndim, flat)
             valid &= traj == traj[:, :1]
             found = True
         if self.step_count_key is not None and (count := self._field(self.step_count_key)) is not None:
-            count = self._marker(count, ndim)[where]
-            valid &= count == count[:, :1] + steps
+            count = self._marker(count, ndim, flat)
+            valid &= (count - count[:, :1]) == steps
             found = True
         if self.done_key is not None and (done := self._field(self.done_key)) is not None:
-            done = self._marker(done, ndim)[where].bool()
-            done_before = (done.long().cumsum(1) - done.long()) > 0
-            valid &= ~done_before
+            done = self._marker(done, ndim, flat).bool()
+            valid[:, 1:] &= ~done[:, :-1]  # record t + j needs no episode end at t + j - 1
             found = True
         if not found:
             raise KeyError(
@@ -346,7 +355,10 @@ class FutureGoalRelabel(Transform):
                 f"{[k for k in (self.traj_key, self.step_count_key, self.done_key) if k is not None]} is in "
                 "the storage, so episode boundaries cannot be told apart."
             )
-        return valid.long().cumprod(1).sum(1).clamp_min(1)
+        # the window ends at the first rejected record (record t itself is always accepted)
+        valid[:, 0] = True
+        first_rejected = (~valid).byte().argmax(1)
+        return torch.where(valid.all(1), self.window, first_rejected)
 
     def forward(self, tensordict: TensorDictBase) -> TensorDictBase:
         if not is_tensor_collection(tensordict):
@@ -358,8 +370,8 @@ class FutureGoalRelabel(Transform):
         if index is None:
             raise KeyError(
                 f"FutureGoalRelabel needs the storage coordinates of each sample under {self.index_key!r}. "
-                "Apply it to the output of TensorDictReplayBuffer.sample() (which writes them), not inside the "
-                "buffer with append_transform: buffer transforms run before the index is known."
+                "Apply it to the output of TensorDictReplayBuffer.sample() (which writes them), not "
+                "inside the buffer with append_transform: buffer transforms run before the index is known."
             )
         goal = tensordict.get(self.goal_key, None)
         achieved_next = tensordict.get(self.achieved_goal_key, None)
@@ -379,8 +391,9 @@ class FutureGoalRelabel(Transform):
         achieved_store = self._field(self.achieved_goal_key, required=True)
         if achieved_store.shape[storage.ndim :] != goal_shape:
             raise ValueError(
-                f"Stored {self.achieved_goal_key!r} has goal shape {tuple(achieved_store.shape[storage.ndim :])}, "
-                f"the sampled {self.goal_key!r} has {tuple(goal_shape)}."
+                f"Stored {self.achieved_goal_key!r} has goal shape "
+                f"{tuple(achieved_store.shape[storage.ndim :])}, the sampled {self.goal_key!r} has "
+                f"{tuple(goal_shape)}."
             )
         n_valid = self.window_lengths(coords)
         store_device = achieved_store.device
@@ -410,8 +423,8 @@ class FutureGoalRelabel(Transform):
                     reward = reward.unsqueeze(-1)
                 if reward.shape != (numel, 1):
                     raise ValueError(
-                        f"reward_fn must return a tensor of shape [B, 1] or [B], got {tuple(reward.shape)} for "
-                        f"B={numel}."
+                        "reward_fn must return a tensor of shape [B, 1] or [B], got "
+                        f"{tuple(reward.shape)} for B={numel}."
                     )
                 tensordict.set(self.reward_keys[i], reward.reshape(*batch_size, 1))
         return tensordict

@@ -54,7 +54,7 @@ class HighLevelTransitionBuilder(Transform):
     segment's last step. Each record also carries its ``episode_id`` (unique, assigned by the builder),
     ``segment_index`` (0, 1, ... within the episode) and ``segment_length`` ``c`` (int64, shape ``[1]``),
     which :class:`~torchrl_dhrl.data.FutureGoalRelabel` uses as episode markers for hindsight goals within
-    the high-level window, and ``step_count`` at the flagged step when the input has it. The segment's
+    the high-level window (pass ``traj_key="episode_id", step_count_key="segment_index"``). The segment's
     final achieved goal ``("next", "achieved_goal")`` is what HAC hindsight action relabelling
     (:class:`~torchrl_dhrl.data.HindsightSubgoalRelabel`) substitutes for the subgoal.
 
@@ -96,9 +96,9 @@ class HighLevelTransitionBuilder(Transform):
         done_keys (sequence of NestedKey, optional): end-of-episode flags read under ``"next"``; the first
             is required and ends episodes, the others are copied when present. Defaults to
             ``("done", "terminated", "truncated")``.
-        step_count_key (NestedKey, optional): per-episode step counter (``0`` at reset), used to detect
-            resets and copied from the flagged step when present; ``None`` to ignore. Defaults to
-            ``"step_count"``.
+        step_count_key (NestedKey, optional): per-episode low-level step counter (``0`` at reset), used
+            to detect resets when present (it is not copied: the high-level counter is
+            ``segment_index``); ``None`` to ignore. Defaults to ``"step_count"``.
         reward_fn (callable, optional): ``reward_fn(achieved_goal, goal) -> [M, 1]``. Defaults to
             :class:`~torchrl_dhrl.data.SparseGoalReward` with threshold ``0.5``.
         reward_key (NestedKey, optional): where the reward is written. Defaults to ``("next", "reward")``.
@@ -227,11 +227,6 @@ class HighLevelTransitionBuilder(Transform):
         self._next_episode_id = int(state["next_episode_id"])
 
     # ------------------------------------------------------------------ building
-    def _start_keys(self, td: TensorDictBase) -> list[NestedKey]:
-        keys = [*self.observation_keys, self.goal_key, self.action_key]
-        if self.step_count_key is not None and self.step_count_key in td.keys(True, True):
-            keys.append(self.step_count_key)
-        return keys
 
     def _rows(self, td: TensorDictBase) -> tuple[TensorDictBase, list[NestedKey], list[NestedKey]]:
         """The per-step entries a record is made of: start fields and end (``"next"``) fields."""
@@ -261,7 +256,7 @@ class HighLevelTransitionBuilder(Transform):
         for key in self.done_keys:
             if _next(key) in present:
                 rows.set(_next(key), _flag(td, _next(key), td.batch_size).bool().unsqueeze(-1))
-        start_keys = self._start_keys(td)
+        start_keys = [*self.observation_keys, self.goal_key, self.action_key]
         end_keys = [_next(k) for k in self.observation_keys] + [
             _next(k) for k in self.done_keys if _next(k) in present
         ]

@@ -8,7 +8,7 @@ __all__ = ["SparseGoalReward"]
 
 
 class SparseGoalReward:
-    """Sparse goal-reaching reward: ``success_reward`` within ``distance_threshold`` of the goal, else ``failure_reward``.
+    """Sparse goal-reaching reward: ``0`` within ``distance_threshold`` of the goal, ``-1`` otherwise.
 
     This is the reward both DHRL levels train on (the learner recomputes it from goals; the environment's
     own reward is never used): ``0`` when ``||achieved_goal - goal||_2 <= distance_threshold`` and ``-1``

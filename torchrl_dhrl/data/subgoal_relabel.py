@@ -133,7 +133,8 @@ class HindsightSubgoalRelabel(Transform):
             raise ValueError(f"subgoal_test_threshold must be >= 0, got {subgoal_test_threshold}.")
         if not subgoal_miss_penalty >= 0:
             raise ValueError(
-                f"subgoal_miss_penalty is a penalty (reward -p1) and must be >= 0, got {subgoal_miss_penalty}."
+                "subgoal_miss_penalty is a penalty (reward -p1) and must be >= 0, got "
+                f"{subgoal_miss_penalty}."
             )
         if gradual_penalty is not None and not gradual_penalty >= 0:
             raise ValueError(
@@ -215,8 +216,8 @@ class HindsightSubgoalRelabel(Transform):
         achieved = values[self.achieved_goal_key].reshape(numel, -1)
         if not subgoal.shape[-1] == goal.shape[-1] == achieved.shape[-1]:
             raise ValueError(
-                f"{self.action_key!r}, {self.goal_key!r} and {self.achieved_goal_key!r} must all be goals of the "
-                f"same dimension, got {subgoal.shape[-1]}, {goal.shape[-1]} and {achieved.shape[-1]}."
+                f"{self.action_key!r}, {self.goal_key!r} and {self.achieved_goal_key!r} must all be goals "
+                f"of the same dimension, got {subgoal.shape[-1]}, {goal.shape[-1]} and {achieved.shape[-1]}."
             )
         device = subgoal.device
         tested = torch.rand(numel, device=device) < self.subgoal_test_ratio

@@ -76,7 +76,9 @@ class LandmarkGraph(nn.Module):
     Everything that describes the graph lives in registered buffers, so ``state_dict()`` /
     ``load_state_dict()`` round-trip it; the buffers are resized on load because the number of
     landmarks varies from build to build. ``version`` increases at every rebuild, which lets
-    trackers holding landmark indices detect stale plans.
+    trackers holding landmark indices detect stale plans; ``coverage_radius`` is the FPS radius
+    of the last :meth:`build` (the largest min-distance left uncovered, a resolution diagnostic
+    worth logging; ``NaN`` for graphs set from given landmarks).
 
     The distance is passed to each method rather than stored, so that one graph serves a learned
     distance (whose parameters belong to the learner, not to this module) or an oracle.
@@ -148,6 +150,7 @@ class LandmarkGraph(nn.Module):
         self.register_buffer("next_hop", torch.zeros(0, 0, dtype=torch.int64))
         self.register_buffer("hop_counts", torch.zeros(0, 0, dtype=torch.int64))
         self.register_buffer("version", torch.zeros((), dtype=torch.int64))
+        self.register_buffer("coverage_radius", torch.full((), math.nan))
 
     # ------------------------------------------------------------------ properties
     @property
@@ -225,7 +228,9 @@ class LandmarkGraph(nn.Module):
             matrix[rows, cols] = paired_distances(distance, states[rows], goals[cols], self.chunk_size).to(
                 matrix.dtype
             )
-        return self.set_distance_matrix(states, goals, matrix)
+        self.set_distance_matrix(states, goals, matrix)
+        self.coverage_radius = result.radius.to(self.landmark_states)
+        return self
 
     @torch.no_grad()
     def set_landmarks(self, states: Tensor, goals: Tensor, distance: DistanceFn) -> LandmarkGraph:
@@ -272,6 +277,7 @@ class LandmarkGraph(nn.Module):
         self.next_hop = paths.next_hop
         self.hop_counts = paths.hop_counts
         self.version = self.version.to(states.device) + 1
+        self.coverage_radius = torch.full((), math.nan, dtype=states.dtype, device=states.device)
         return self
 
     @staticmethod
@@ -323,22 +329,33 @@ class LandmarkGraph(nn.Module):
         connected = torch.where(within.any(dim=-1, keepdim=True), within, fallback)
         return torch.where(connected, to_landmarks, inf)
 
+    @staticmethod
+    def _padded(costs: Tensor) -> tuple[Tensor, Tensor]:
+        """Column indices and costs of the finite entries of each row, left-aligned and padded.
+
+        Returns ``[B, W]`` indices (``0`` in the padding) and costs (``inf`` in the padding), with
+        ``W`` the largest number of finite entries in a row.
+        """
+        finite = torch.isfinite(costs)
+        counts = finite.sum(dim=-1)
+        width = int(counts.max()) if costs.shape[0] else 0
+        rows, cols = finite.nonzero(as_tuple=True)
+        offsets = torch.cumsum(counts, 0) - counts
+        slots = torch.arange(rows.numel(), device=costs.device) - offsets[rows]
+        index = torch.zeros(costs.shape[0], width, dtype=torch.int64, device=costs.device)
+        index[rows, slots] = cols
+        padded = torch.full((costs.shape[0], width), math.inf, dtype=costs.dtype, device=costs.device)
+        padded[rows, slots] = costs[rows, cols]
+        return index, padded
+
     def _reach(self, start_cost: Tensor) -> tuple[Tensor, Tensor]:
         """Graph distance start -> every landmark and the entry landmark achieving it: ``[B, K]`` each."""
-        num_rows, num = start_cost.shape
-        connected = torch.isfinite(start_cost)
-        width = int(connected.sum(dim=-1).max()) if num_rows else 0
-        if width == 0:
-            return (
-                torch.full_like(start_cost, math.inf),
-                torch.zeros(num_rows, num, dtype=torch.int64, device=start_cost.device),
-            )
-        # entry landmarks of each row, padded (padding has an infinite entry cost)
-        order = torch.sort(connected.to(torch.uint8), dim=-1, descending=True, stable=True).indices[:, :width]
-        entry_cost = start_cost.gather(1, order)  # [B, E]
-        through = entry_cost.unsqueeze(-1) + self.shortest_distances[order]  # [B, E, K]
+        entries, entry_cost = self._padded(start_cost)  # [B, E]
+        if entries.shape[1] == 0:
+            return torch.full_like(start_cost, math.inf), torch.zeros_like(start_cost, dtype=torch.int64)
+        through = entry_cost.unsqueeze(-1) + self.shortest_distances[entries]  # [B, E, K]
         cost, arg = through.min(dim=1)
-        return cost, order.gather(1, arg)
+        return cost, entries.gather(1, arg)
 
     @torch.no_grad()
     def reach_costs(self, states: Tensor, distance: DistanceFn) -> Tensor:
@@ -424,20 +441,38 @@ class LandmarkGraph(nn.Module):
         inf = torch.full((), math.inf, dtype=to_landmarks.dtype, device=device)
 
         start_cost = self._connect_start(to_landmarks)
-        reach, entry = self._reach(start_cost)  # [B, K]
         exit_cost = torch.where(from_landmarks < self.cutoff, from_landmarks, inf)
-        via_cost, via_exit = (reach + exit_cost).min(dim=-1)
+        rows = torch.arange(num_rows, device=device)
+        # best route through the graph: min over (entry i, exit j) of d(s, i) + D*[i, j] + d(j, sg),
+        # over the few landmarks connected to the state and to the subgoal only
+        entry_ids, entry_cost = self._padded(start_cost)  # [B, E]
+        exit_ids, exit_padded = self._padded(exit_cost)  # [B, X]
+        via_cost = torch.full((num_rows,), math.inf, dtype=to_landmarks.dtype, device=device)
+        via_entry = torch.zeros(num_rows, dtype=torch.int64, device=device)
+        via_exit = torch.zeros(num_rows, dtype=torch.int64, device=device)
+        if entry_ids.shape[1] and exit_ids.shape[1]:
+            block = self.shortest_distances[entry_ids.unsqueeze(2), exit_ids.unsqueeze(1)]  # [B, E, X]
+            total = entry_cost.unsqueeze(2) + block + exit_padded.unsqueeze(1)
+            via_cost, flat = total.flatten(1).min(dim=1)
+            via_entry = entry_ids[rows, flat // exit_ids.shape[1]]
+            via_exit = exit_ids[rows, flat % exit_ids.shape[1]]
         direct_cost = torch.where(straight < self.cutoff, straight, inf)
         use_direct = torch.isfinite(direct_cost) & (direct_cost <= via_cost)
         use_graph = torch.isfinite(via_cost) & ~use_direct
-        # fallback: the reachable landmark nearest to the subgoal (when that distance is finite)
-        near = torch.where(torch.isfinite(reach), from_landmarks, inf)
-        near_cost, near_exit = near.min(dim=-1)
-        use_fallback = ~use_direct & ~use_graph & torch.isfinite(near_cost)
-        exits = torch.where(use_graph, via_exit, near_exit)
+        # fallback (subgoal unreachable): the reachable landmark nearest to the subgoal, when that
+        # distance is finite; the full reachable set is only computed for these rows
+        stuck = ~use_direct & ~use_graph
+        use_fallback = torch.zeros_like(stuck)
+        exits, entries = via_exit.clone(), via_entry.clone()
+        if bool(stuck.any()):
+            idx = stuck.nonzero().squeeze(-1)
+            reach, entry = self._reach(start_cost[idx])
+            near = torch.where(torch.isfinite(reach), from_landmarks[idx], inf)
+            near_cost, near_exit = near.min(dim=-1)
+            use_fallback[idx] = torch.isfinite(near_cost)
+            exits[idx] = near_exit
+            entries[idx] = entry.gather(1, near_exit.unsqueeze(1)).squeeze(1)
         has_path = use_graph | use_fallback
-        rows = torch.arange(num_rows, device=device)
-        entries = entry[rows, exits]
         sources = torch.where(has_path, entries, exits)
         paths, lengths = reconstruct_paths(self.next_hop, self.hop_counts, sources, exits, max_path_length)
         full_lengths = torch.where(has_path, self.hop_counts[sources, exits] + 1, 0)

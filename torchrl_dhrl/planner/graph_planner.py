@@ -296,11 +296,13 @@ class GraphPlanner(Transform):
         spec[self.state_key] = Composite(entries, shape=shape, device=device)
         return spec
 
-    def make_primer(self) -> TensorDictPrimer:
+    def make_tensordict_primer(self) -> TensorDictPrimer:
         """A :class:`~torchrl.envs.TensorDictPrimer` for policy mode: zeros (``has_plan=False``) at reset.
 
         Append it to the env when the planner runs inside the policy, so that the tracking state
-        is reset with the env, carried across ``step_mdp`` and declared in the env specs.
+        is reset with the env, carried across ``step_mdp`` and declared in the env specs. The name
+        follows TorchRL's recurrent modules, so
+        :func:`~torchrl.modules.utils.get_primers_from_module` finds it in a policy.
 
         Examples:
             >>> from torchrl.envs import TransformedEnv
@@ -311,6 +313,9 @@ class GraphPlanner(Transform):
             tensor([False])
         """
         return TensorDictPrimer(self.state_spec(), default_value=0.0, expand_specs=True)
+
+    #: Alias of :meth:`make_tensordict_primer`.
+    make_primer = make_tensordict_primer
 
     def transform_observation_spec(self, observation_spec: Composite) -> Composite:
         shape, device = observation_spec.shape, observation_spec.device

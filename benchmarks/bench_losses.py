@@ -1,0 +1,173 @@
+"""Cost of one DHRL low-level (SQGC) update against a plain TD3 update of the same networks.
+
+One update = forward + backward + optimiser steps: SQGC trains four critics (policy and graph
+twins) every call and the actor every second call; TD3 trains one twin and the actor every
+second call. Networks are 3 x 256 ReLU MLPs on AntMaze shapes (obs 29, goal 2, action 8).
+
+Compared, per batch size:
+
+* ``sqgc (fused)``  -- :class:`~torchrl_dhrl.objectives.SQGCLoss`, the four critics as one
+  stacked ensemble (one batched matmul per layer);
+* ``sqgc (separate)`` -- the same loss evaluating each twin on its own (``fuse_critics=False``);
+* ``td3 (ours)`` -- a plain twin-critic TD3 update with the same networks
+  (:class:`~torchrl_dhrl.objectives.HighLevelLoss` on the low-level networks is exactly that);
+* ``td3 (torchrl)`` -- :class:`torchrl.objectives.TD3Loss` (vmap over two ``nn.Linear`` MLPs).
+
+Run::
+
+    OMP_NUM_THREADS=2 python benchmarks/bench_losses.py            # batch 1024 and 256
+    python benchmarks/bench_losses.py --batch-sizes 1024 --iters 50 --threads 1
+"""
+
+from __future__ import annotations
+
+import argparse
+import statistics
+import time
+import warnings
+
+import torch
+from tensordict import TensorDict
+from torch import nn
+from torchrl.data import Bounded
+from torchrl.modules import MLP, Actor, ValueOperator
+from torchrl.objectives import SoftUpdate, TD3Loss
+
+from torchrl_dhrl.modules import GoalConditionedCritic, LowLevelActor
+from torchrl_dhrl.objectives import HighLevelLoss, SQGCLoss, make_optimizers
+
+OBS, GOAL, ACT, AMAX, GAMMA = 29, 2, 8, 30.0, 0.99
+CELLS = (256, 256, 256)
+
+
+def _batch(n: int) -> TensorDict:
+    return TensorDict(
+        {
+            "observation": torch.randn(n, OBS),
+            "action": (torch.rand(n, ACT) * 2 - 1) * AMAX,
+            "goal": torch.randn(n, GOAL),
+            "graph_goal": torch.randn(n, GOAL),
+            ("next", "observation"): torch.randn(n, OBS),
+            ("next", "reward"): -torch.ones(n, 1),
+            ("next", "graph_reward"): -torch.ones(n, 1),
+            ("next", "done"): torch.zeros(n, 1, dtype=torch.bool),
+            ("next", "terminated"): torch.zeros(n, 1, dtype=torch.bool),
+        },
+        [n],
+    )
+
+
+def _ours(kind: str):
+    actor = LowLevelActor(OBS, GOAL, action_max=AMAX, action_dim=ACT, goal_key="goal", num_cells=CELLS)
+
+    def critic():
+        return GoalConditionedCritic(OBS, GOAL, action_max=AMAX, action_dim=ACT, num_cells=CELLS, gamma=GAMMA)
+
+    if kind == "td3":
+        loss = HighLevelLoss(actor, critic())
+        loss.set_keys(goal="goal", action="action")
+    else:
+        loss = SQGCLoss(actor, critic(), critic(), fuse_critics=(kind == "fused"))
+    optims = make_optimizers(loss)
+    SoftUpdate(loss, eps=0.995)
+
+    def update(data):
+        out = loss(data)
+        total = sum(v for k, v in out.items() if k.startswith("loss_"))
+        for opt in optims.values():
+            opt.zero_grad(set_to_none=True)
+        total.backward()
+        for opt in optims.values():
+            opt.step()
+
+    return update
+
+
+class _ConcatMLP(nn.Module):
+    """``MLP(cat(inputs))``, optionally squashed to ``[-bound, bound]`` with tanh (the actor)."""
+
+    def __init__(self, mlp: nn.Module, bound: float | None = None) -> None:
+        super().__init__()
+        self.mlp = mlp
+        self.bound = bound
+
+    def forward(self, *inputs: torch.Tensor) -> torch.Tensor:
+        out = self.mlp(torch.cat(inputs, -1))
+        return out if self.bound is None else self.bound * torch.tanh(out)
+
+
+def _torchrl_td3():
+    spec = Bounded(-AMAX, AMAX, (ACT,))
+    actor = Actor(
+        _ConcatMLP(MLP(OBS + GOAL, ACT, num_cells=list(CELLS), activation_class=nn.ReLU), AMAX),
+        in_keys=["observation", "goal"],
+        spec=spec,
+    )
+    qvalue = ValueOperator(
+        _ConcatMLP(MLP(OBS + GOAL + ACT, 1, num_cells=list(CELLS), activation_class=nn.ReLU)),
+        in_keys=["observation", "goal", "action"],
+    )
+    loss = TD3Loss(actor, qvalue, action_spec=spec, policy_noise=0.05, noise_clip=1e9, loss_function="l2")
+    loss.make_value_estimator(gamma=GAMMA)
+    SoftUpdate(loss, eps=0.995)
+    actor_opt = torch.optim.Adam(loss.actor_network_params.values(True, True), lr=1e-4)
+    critic_opt = torch.optim.Adam(loss.qvalue_network_params.values(True, True), lr=1e-3)
+    step = [0]
+
+    def update(data):
+        step[0] += 1
+        q_loss, _ = loss.value_loss(data)
+        critic_opt.zero_grad(set_to_none=True)
+        q_loss.backward()
+        critic_opt.step()
+        if step[0] % 2 == 0:
+            a_loss, _ = loss.actor_loss(data)
+            actor_opt.zero_grad(set_to_none=True)
+            a_loss.backward()
+            actor_opt.step()
+
+    return update
+
+
+def _time(update, data, iters: int, repeats: int) -> float:
+    for _ in range(4):
+        update(data)
+    per_iter = []
+    for _ in range(repeats):
+        start = time.perf_counter()
+        for _ in range(iters):
+            update(data)
+        per_iter.append((time.perf_counter() - start) / iters)
+    return statistics.median(per_iter) * 1e3
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser.add_argument("--batch-sizes", type=int, nargs="+", default=[1024, 256])
+    parser.add_argument("--iters", type=int, default=20, help="updates per timed repeat (even: actor every 2nd)")
+    parser.add_argument("--repeats", type=int, default=5)
+    parser.add_argument("--threads", type=int, default=None, help="torch.set_num_threads (default: torch's)")
+    args = parser.parse_args()
+    if args.threads:
+        torch.set_num_threads(args.threads)
+    warnings.filterwarnings("ignore")
+    torch.manual_seed(0)
+    variants = {
+        "sqgc (fused)": lambda: _ours("fused"),
+        "sqgc (separate)": lambda: _ours("separate"),
+        "td3 (ours)": lambda: _ours("td3"),
+        "td3 (torchrl)": _torchrl_td3,
+    }
+    print(f"torch {torch.__version__}, threads {torch.get_num_threads()}, MLPs {CELLS}, obs {OBS} goal {GOAL} act {ACT}")
+    print(f"{'batch':>6} " + " ".join(f"{name:>16}" for name in variants) + f" {'fused/td3(ours)':>16} {'fused/td3(trl)':>15}")
+    for batch_size in args.batch_sizes:
+        data = _batch(batch_size)
+        ms = {name: _time(make(), data, args.iters, args.repeats) for name, make in variants.items()}
+        row = " ".join(f"{ms[name]:>13.2f} ms" for name in variants)
+        r_ours = ms["sqgc (fused)"] / ms["td3 (ours)"]
+        r_trl = ms["sqgc (fused)"] / ms["td3 (torchrl)"]
+        print(f"{batch_size:>6} {row} {r_ours:>16.2f} {r_trl:>15.2f}")
+
+
+if __name__ == "__main__":
+    main()
