@@ -150,7 +150,8 @@ def bench_query(args, gen):
     print(f"{'ours: planner(td), tracking only':40s}{track_step * 1e3:10.3f}ms{track_step / ours:10.1f}x")
     print(f"{'reference style: one query':40s}{single * 1e3:10.3f}ms{single / ours:10.1f}x")
     print(
-        f"{'reference style: batch of ' + str(args.envs):40s}{batch_ref * 1e3:10.3f}ms{batch_ref / ours:10.1f}x"
+        f"{'reference style: batch of ' + str(args.envs):40s}"
+        f"{batch_ref * 1e3:10.3f}ms{batch_ref / ours:10.1f}x"
     )
 
 

@@ -95,7 +95,9 @@ def test_high_level_actor_box_and_relative_option():
     sg = actor(td)["subgoal"]
     assert (sg[:, 0] >= -4).all() and (sg[:, 0] <= 20).all() and (sg[:, 1] <= 52).all()
     x = torch.cat([td["observation"], td["desired_goal"] - td["observation"][:, :2]], -1)
-    expected = torch.tensor([8.0, 24.0]) + torch.tensor([12.0, 28.0]) * torch.tanh(_manual_mlp(actor.module.mlp, x))
+    expected = torch.tensor([8.0, 24.0]) + torch.tensor([12.0, 28.0]) * torch.tanh(
+        _manual_mlp(actor.module.mlp, x)
+    )
     torch.testing.assert_close(sg, expected)
 
 
@@ -108,7 +110,9 @@ def test_actor_input_errors():
         LowLevelActor(OBS, GOAL, action_max=1.0, action_dim=2, goal_indices=(0, OBS))
     with pytest.raises(ValueError, match="high > low"):
         HighLevelActor(OBS, GOAL, [1.0, 1.0], [0.0, 2.0])
-    net = GoalConditionedActorNet(OBS, GOAL, -torch.ones(2), torch.ones(2), goal_indices=(0, 1), num_cells=(8,))
+    net = GoalConditionedActorNet(
+        OBS, GOAL, -torch.ones(2), torch.ones(2), goal_indices=(0, 1), num_cells=(8,)
+    )
     with pytest.raises(ValueError, match="last dimension 2"):
         net(torch.randn(3, OBS), torch.randn(3, 3))
 
@@ -202,7 +206,9 @@ def test_exploration_clips_to_box_and_relative_sigma():
 
 
 def test_exploration_absolute_sigma_and_errors():
-    noise = GaussianUniformExplorationModule(low=[-4.0, -4.0], high=[20.0, 52.0], sigma=2.0, relative_sigma=False)
+    noise = GaussianUniformExplorationModule(
+        low=[-4.0, -4.0], high=[20.0, 52.0], sigma=2.0, relative_sigma=False
+    )
     torch.testing.assert_close(noise.sigma, torch.tensor([2.0, 2.0]))
     with pytest.raises(ValueError, match="uniform_prob"):
         GaussianUniformExplorationModule(low=-1.0, high=1.0, uniform_prob=1.5)
@@ -214,7 +220,11 @@ def test_exploration_absolute_sigma_and_errors():
 
 def test_exploration_in_sequential_with_nested_key():
     torch.manual_seed(11)
-    actor = LowLevelActor(OBS, GOAL, action_max=1.0, action_dim=2, action_key=("agent", "action"), num_cells=(8,))
-    policy = TensorDictSequential(actor, GaussianUniformExplorationModule(actor.spec, action_key=("agent", "action")))
+    actor = LowLevelActor(
+        OBS, GOAL, action_max=1.0, action_dim=2, action_key=("agent", "action"), num_cells=(8,)
+    )
+    policy = TensorDictSequential(
+        actor, GaussianUniformExplorationModule(actor.spec, action_key=("agent", "action"))
+    )
     out = policy(_td((3, 2)))
     assert out["agent", "action"].shape == (3, 2, 2)

@@ -133,7 +133,9 @@ def test_goal_distance_broadcasts_n_by_m_and_chunking_is_identical():
     chunked = GoalDistance(actor, critic, chunk_size=7)(states[:, None], goals[None])
     torch.testing.assert_close(chunked, full, rtol=1e-6, atol=1e-6)
     # Leading batch dims of any rank, and a single pair.
-    batched = GoalDistance(actor, critic, chunk_size=5)(states[:12].reshape(3, 4, OBS)[:, :, None], goals[None, None])
+    batched = GoalDistance(actor, critic, chunk_size=5)(
+        states[:12].reshape(3, 4, OBS)[:, :, None], goals[None, None]
+    )
     assert batched.shape == (3, 4, 11)
     torch.testing.assert_close(batched.reshape(12, 11), full[:12], rtol=1e-6, atol=1e-6)
     assert GoalDistance(actor, critic)(states[0], goals[0]).shape == ()
@@ -151,7 +153,9 @@ def test_goal_distance_input_errors():
     with pytest.raises(ValueError, match="chunk_size"):
         GoalDistance(actor, critic, chunk_size=0)
     with pytest.raises(ValueError, match="exactly 2 keys"):
-        GoalDistance(TensorDictModule(torch.nn.Identity(), in_keys=["observation"], out_keys=["action"]), critic)
+        GoalDistance(
+            TensorDictModule(torch.nn.Identity(), in_keys=["observation"], out_keys=["action"]), critic
+        )
 
 
 def test_goal_distance_ignores_exploration_mode():
@@ -166,3 +170,16 @@ def test_goal_distance_ignores_exploration_mode():
         b = GoalDistance(make_low_level_policy(actor), critic)(states, goals)
     torch.testing.assert_close(a, distance(states, goals))
     torch.testing.assert_close(b, a)
+
+
+def test_goal_distance_follows_parameter_dtype_and_returns_on_input_device():
+    actor, critic = _actor(), _critic()
+    states, goals = torch.randn(5, OBS), torch.randn(5, GOAL)
+    ref = GoalDistance(actor, critic)(states, goals)
+    # float64 inputs are cast to the parameters' dtype.
+    torch.testing.assert_close(GoalDistance(actor, critic)(states.double(), goals.double()), ref)
+    actor.double()
+    critic.double()
+    out = GoalDistance(actor, critic)(states, goals)
+    assert out.dtype == torch.float64 and out.device == states.device
+    torch.testing.assert_close(out.float(), ref, rtol=1e-4, atol=1e-4)

@@ -32,7 +32,8 @@ class _GoalMockEnv(EnvBase):
         self.action_spec = Bounded(-1.0, 1.0, (n, 2))
         self.reward_spec = Unbounded((n, 1))
         self.done_spec = Composite(
-            {k: Categorical(2, (n, 1), dtype=torch.bool) for k in ("done", "terminated", "truncated")}, shape=(n,)
+            {k: Categorical(2, (n, 1), dtype=torch.bool) for k in ("done", "terminated", "truncated")},
+            shape=(n,),
         )
         self.t = torch.zeros(n, dtype=torch.long)
         self.obs = torch.zeros(n, OBS)
@@ -99,7 +100,9 @@ def test_cadence_with_collector_per_env_and_at_reset(with_step_counter, primer_b
     """c_h cadence per env in a Collector; the primer is appended by hand or found by the Collector."""
     torch.manual_seed(0)
     interval, lengths = 3, [7, 11, 4]
-    env, policy, full_policy = _make(lengths, interval, with_step_counter, append_primer=not primer_by_collector)
+    env, policy, full_policy = _make(
+        lengths, interval, with_step_counter, append_primer=not primer_by_collector
+    )
     if not primer_by_collector:
         check_env_specs(env)
     collector = Collector(

@@ -60,7 +60,11 @@ def test_value_loss_matches_manual_with_clamp():
     loss = HighLevelLoss(actor, critic, target_noise_std=0.0)
     out = loss(data)
     with torch.no_grad():
-        nxt = actor(TensorDict({"observation": data["next", "observation"], "desired_goal": data["desired_goal"]}, [48]))
+        nxt = actor(
+            TensorDict(
+                {"observation": data["next", "observation"], "desired_goal": data["desired_goal"]}, [48]
+            )
+        )
         nxt["subgoal"] = nxt["subgoal_proposal"]
         bootstrap = critic(nxt)["state_action_value"].min(-1).values
         y = (reward.squeeze(-1) + GAMMA * bootstrap).clamp(-80.0, 0.0)
@@ -123,7 +127,13 @@ def test_gradient_isolation_soft_update_and_state_dict():
 def test_high_level_keys_and_errors():
     actor, critic = _nets()
     loss = HighLevelLoss(actor, critic)
-    assert set(loss.in_keys) == {"observation", "desired_goal", "subgoal", ("next", "observation"), ("next", "reward")}
+    assert set(loss.in_keys) == {
+        "observation",
+        "desired_goal",
+        "subgoal",
+        ("next", "observation"),
+        ("next", "reward"),
+    }
     with pytest.raises(KeyError, match="subgoal"):
         loss(_batch().exclude("subgoal"))
     with pytest.raises(ValueError, match="clip_return"):

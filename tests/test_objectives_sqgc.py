@@ -61,7 +61,7 @@ def _manual_pair_loss(actor, critic, data, goal_key, reward_key, lo, hi, not_ter
     return ((q - y[:, None]) ** 2).mean(0).sum(), y
 
 
-@pytest.mark.parametrize("fuse", [True, False])
+@pytest.mark.parametrize("fuse", [True, False, None])
 def test_losses_match_manual_td3_with_clamps(fuse):
     actor, pc, gc = _nets()
     n = 64
@@ -69,7 +69,7 @@ def test_losses_match_manual_td3_with_clamps(fuse):
     reward = torch.cat([torch.full((16, 1), 5.0), torch.full((16, 1), -150.0), -torch.ones(32, 1)])
     data = _batch(n, reward=reward, graph_reward=reward.flip(0))
     loss = SQGCLoss(actor, pc, gc, target_noise_std=0.0, fuse_critics=fuse)
-    assert loss.fuse_critics is fuse
+    assert loss.fusing is bool(fuse)  # auto (None) does not fuse on CPU
     out = loss(data)
     ref_p, y_p = _manual_pair_loss(actor, pc, data, "goal", "reward", -80.0, 0.0)
     ref_g, y_g = _manual_pair_loss(actor, gc, data, "graph_goal", "graph_reward", None, 0.0)
@@ -105,11 +105,14 @@ def _grad_norms(loss):
     return norms
 
 
-@pytest.mark.parametrize("entry,receives", [
-    ("loss_policy_qvalue", {"policy"}),
-    ("loss_graph_qvalue", {"graph"}),
-    ("loss_actor", {"actor"}),
-])
+@pytest.mark.parametrize(
+    "entry,receives",
+    [
+        ("loss_policy_qvalue", {"policy"}),
+        ("loss_graph_qvalue", {"graph"}),
+        ("loss_actor", {"actor"}),
+    ],
+)
 def test_gradients_reach_only_their_parameters(entry, receives):
     actor, pc, gc = _nets()
     loss = SQGCLoss(actor, pc, gc, actor_update_interval=1)
@@ -147,7 +150,10 @@ def test_soft_update_moves_targets_and_targets_start_as_copies():
         src, tgt = getattr(loss, f"{name}_params"), getattr(loss, f"target_{name}_params")
         for key in src.keys(True, True):
             torch.testing.assert_close(src.get(key).data, tgt.get(key).data)
-    before = {n: getattr(loss, f"target_{n}_params").clone() for n in ("actor_network", "policy_critic", "graph_critic")}
+    before = {
+        n: getattr(loss, f"target_{n}_params").clone()
+        for n in ("actor_network", "policy_critic", "graph_critic")
+    }
     optims = make_optimizers(loss)
     out = loss(_batch())
     (out["loss_policy_qvalue"] + out["loss_graph_qvalue"]).backward()
@@ -192,15 +198,17 @@ def test_state_dict_round_trip_resumes_exactly():
     for key in out1.keys():
         torch.testing.assert_close(out1[key], out2[key], msg=key)
     # One more identical step keeps them identical (optimiser states resumed too).
-    for lo, opts, out in ((loss, optims, out1), (loss2, optims2, out2)):
+    for opts, out in ((optims, out1), (optims2, out2)):
         sum(v for k, v in out.items() if k.startswith("loss_")).backward()
         for opt in opts.values():
             opt.step()
-    for (k1, p1), (k2, p2) in zip(loss.named_parameters(), loss2.named_parameters()):
+    for (k1, p1), (k2, p2) in zip(loss.named_parameters(), loss2.named_parameters(), strict=True):
         assert k1 == k2
         torch.testing.assert_close(p1, p2)
     # The acting modules share the loss parameters.
-    torch.testing.assert_close(actor2.module.mlp[0].weight, loss2.actor_network_params["module", "mlp", "0", "weight"])
+    torch.testing.assert_close(
+        actor2.module.mlp[0].weight, loss2.actor_network_params["module", "mlp", "0", "weight"]
+    )
 
 
 def test_without_sqgc_graph_critics_train_on_policy_batch():
@@ -238,7 +246,9 @@ def test_leading_batch_dims_and_custom_keys():
     nested = SQGCLoss(actor, pc, gc, target_noise_std=0.0)(data.reshape(4, 6))
     for key in ("loss_policy_qvalue", "loss_graph_qvalue", "policy_q", "graph_distance"):
         torch.testing.assert_close(flat[key], nested[key])
-    renamed = data.rename_key_("goal", ("her", "goal")).rename_key_(("next", "graph_reward"), ("next", "r_graph"))
+    renamed = data.rename_key_("goal", ("her", "goal")).rename_key_(
+        ("next", "graph_reward"), ("next", "r_graph")
+    )
     loss = SQGCLoss(actor, pc, gc, target_noise_std=0.0)
     loss.set_keys(goal=("her", "goal"), graph_reward="r_graph")
     out = loss(renamed)
@@ -287,7 +297,7 @@ def test_mismatched_critic_architectures_fall_back_to_separate_evaluation():
     torch.manual_seed(3)
     gc = GoalConditionedCritic(OBS, GOAL, action_max=AMAX, action_dim=ACT, num_cells=(16,), gamma=GAMMA)
     loss = SQGCLoss(actor, pc, gc, target_noise_std=0.0)
-    assert not loss.fuse_critics
+    assert not SQGCLoss(actor, pc, gc, fuse_critics=True).fusing
     data = _batch()
     ref_g, _ = _manual_pair_loss(actor, gc, data, "graph_goal", "graph_reward", None, 0.0)
     torch.testing.assert_close(loss(data)["loss_graph_qvalue"], ref_g)
@@ -320,3 +330,25 @@ def test_make_optimizers_partitions_parameters():
     assert ids["actor"] | ids["critic"] == {id(p) for p in loss.parameters()}
     assert {id(p) for p in actor.parameters()} == ids["actor"]
     assert optims["actor"].param_groups[0]["lr"] == 1e-4 and optims["critic"].param_groups[0]["lr"] == 1e-3
+
+
+def test_loss_follows_dtype_conversion_like_a_device_move():
+    # ``loss.to(...)`` converts the loss's parameters and the buffers swapped into the networks
+    # (goal indices, action boxes): float64 stands in for a device move on a CPU-only machine.
+    actor, pc, gc = _nets()
+    loss = SQGCLoss(actor, pc, gc, actor_update_interval=1).double()
+    out = loss(_batch().double())
+    assert out["loss_policy_qvalue"].dtype == torch.float64
+    assert out["loss_actor"].dtype == torch.float64
+    d = GoalDistance.from_loss(loss)(torch.randn(4, OBS, dtype=torch.float64), torch.randn(4, GOAL).double())
+    assert d.dtype == torch.float64
+
+
+def test_actor_with_exploration_is_evaluated_noise_free():
+    from torchrl_dhrl.modules import make_low_level_policy
+
+    actor, pc, gc = _nets()
+    data = _batch()
+    plain = SQGCLoss(actor, pc, gc, actor_update_interval=1)
+    wrapped = SQGCLoss(make_low_level_policy(actor), pc, gc, actor_update_interval=1)
+    torch.testing.assert_close(plain.actor_loss(data)[0], wrapped.actor_loss(data)[0])

@@ -84,6 +84,7 @@ def test_edges_follow_cutoff_and_nearest_neighbour_rule():
     gen = torch.Generator().manual_seed(0)
     num = 60
     matrix = torch.rand(num, num, generator=gen) * 20
+    matrix[:15] += 4.0  # landmarks with no neighbour within the cutoff: only the 1.2 x NN rule connects them
     graph = LandmarkGraph(cutoff=3.0, nn_factor=1.2)
     pts = torch.rand(num, 2, generator=gen)
     graph.set_distance_matrix(pts, pts.clone(), matrix)
@@ -93,6 +94,7 @@ def test_edges_follow_cutoff_and_nearest_neighbour_rule():
     expected = (d < 3.0) | (d < 1.2 * nearest)
     np.fill_diagonal(expected, False)
     assert np.array_equal(graph.edge_mask.numpy(), expected)
+    assert (expected & ~(d < 3.0)).sum() >= 15  # the nearest-neighbour rule added edges
     assert graph.edge_mask.any(dim=1).all()  # every node has an outgoing edge
     edges = graph.edges
     torch.testing.assert_close(graph.edge_costs, matrix[edges[:, 0], edges[:, 1]])

@@ -192,6 +192,24 @@ def test_env_mode_check_env_specs_and_rollout(batched):
     assert torch.equal(wp[~on_path.squeeze(-1)], torch.tensor(SUBGOAL).expand_as(wp)[~on_path.squeeze(-1)])
 
 
+def test_env_mode_on_the_outer_parallel_env():
+    from torchrl.envs import ParallelEnv
+
+    planner = grid_planner()
+    env = TransformedEnv(
+        ParallelEnv(
+            2, lambda: TransformedEnv(ContinuousActionVecMockEnv(), GoalKeys()), mp_start_method="fork"
+        ),
+        Compose(StepCounter(max_steps=4), planner),
+    )
+    try:
+        check_env_specs(env)
+        rollout = env.rollout(6, break_when_any_done=False)
+        assert rollout["next", "planner", "has_plan"].all() and rollout["next", "waypoint"].shape == (2, 6, 2)
+    finally:
+        env.close()
+
+
 def test_env_mode_partial_reset_only_replans_reset_rows():
     planner = grid_planner()
     env = make_env_mode_env(planner, batched=True)

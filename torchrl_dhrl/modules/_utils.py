@@ -103,9 +103,7 @@ def check_last_dim(name: str, tensor: torch.Tensor, expected: int) -> None:
     if not isinstance(tensor, torch.Tensor):
         raise TypeError(f"`{name}` must be a tensor, got {type(tensor).__name__}.")
     if tensor.ndim == 0 or tensor.shape[-1] != expected:
-        raise ValueError(
-            f"`{name}` must have last dimension {expected}, got shape {tuple(tensor.shape)}."
-        )
+        raise ValueError(f"`{name}` must have last dimension {expected}, got shape {tuple(tensor.shape)}.")
     if not tensor.is_floating_point():
         raise TypeError(f"`{name}` must be a floating tensor, got {tensor.dtype}.")
 
@@ -146,5 +144,5 @@ def check_positional_keys(module: TensorDictModuleBase, n_in: int, role: str) ->
 def run_positional(module: TensorDictModuleBase, *inputs: torch.Tensor) -> torch.Tensor:
     """Runs a TensorDictModule on tensors given in the order of its in_keys; returns its first output."""
     batch = inputs[0].shape[:-1]
-    td = TensorDict(dict(zip(module.in_keys, inputs)), batch_size=batch)
+    td = TensorDict(dict(zip(module.in_keys, inputs, strict=True)), batch_size=batch)
     return module(td).get(module.out_keys[0])

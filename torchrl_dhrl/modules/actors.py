@@ -65,7 +65,9 @@ class GoalConditionedActorNet(nn.Module):
         if relative_goal:
             idx = as_goal_indices(goal_indices, goal_dim)
             if int(idx.max()) >= observation_dim:
-                raise ValueError(f"`goal_indices` {idx.tolist()} exceed the observation size {observation_dim}.")
+                raise ValueError(
+                    f"`goal_indices` {idx.tolist()} exceed the observation size {observation_dim}."
+                )
             self.register_buffer("goal_indices", idx)
         else:
             self.goal_indices = None

@@ -119,7 +119,9 @@ class GoalConditionedCriticNet(nn.Module):
     ) -> None:
         super().__init__()
         if parameterization not in PARAMETERIZATIONS:
-            raise ValueError(f"`parameterization` must be one of {PARAMETERIZATIONS}, got {parameterization!r}.")
+            raise ValueError(
+                f"`parameterization` must be one of {PARAMETERIZATIONS}, got {parameterization!r}."
+            )
         if num_nets < 1:
             raise ValueError(f"`num_nets` must be >= 1, got {num_nets}.")
         self.observation_dim = observation_dim
@@ -131,7 +133,9 @@ class GoalConditionedCriticNet(nn.Module):
         if relative_goal:
             idx = as_goal_indices(goal_indices, goal_dim)
             if int(idx.max()) >= observation_dim:
-                raise ValueError(f"`goal_indices` {idx.tolist()} exceed the observation size {observation_dim}.")
+                raise ValueError(
+                    f"`goal_indices` {idx.tolist()} exceed the observation size {observation_dim}."
+                )
             self.register_buffer("goal_indices", idx)
         else:
             self.goal_indices = None
@@ -243,7 +247,12 @@ class GoalConditionedCritic(TensorDictModule):
         out_key: NestedKey = "state_action_value",
     ) -> None:
         low, high = resolve_box(
-            spec=action_spec, low=action_low, high=action_high, max_abs=action_max, dim=action_dim, key=action_key
+            spec=action_spec,
+            low=action_low,
+            high=action_high,
+            max_abs=action_max,
+            dim=action_dim,
+            key=action_key,
         )
         net = GoalConditionedCriticNet(
             observation_dim,

@@ -31,7 +31,8 @@ class GoalDistance:
     ``distance(states[:, None], goals[None])``. Pairs are evaluated in chunks of
     ``chunk_size`` (gathered lazily from the broadcast view, so memory stays
     ``O(chunk_size)``), under ``torch.no_grad`` and ``ExplorationType.DETERMINISTIC``,
-    on the parameters' device; the result is returned on the device of ``states``.
+    on the parameters' device and in their dtype; the result is returned on the device of
+    ``states``.
     Non-finite values are impossible: see :func:`~torchrl_dhrl.modules.q_to_distance`.
 
     Args:
@@ -111,12 +112,13 @@ class GoalDistance:
     def goal_dim(self) -> int:
         return self.critic.module.goal_dim
 
-    def _device(self) -> torch.device:
-        params = self.critic_params if self.critic_params is not None else None
-        if params is not None:
-            for value in params.values(True, True):
-                return value.device
-        return next(self.critic.parameters()).device
+    def _device_dtype(self) -> tuple[torch.device, torch.dtype]:
+        """Where (and in which dtype) the critic's weights live: the computation follows them."""
+        if self.critic_params is not None:
+            weight = self.critic_params.get(("module", "ensemble", "layers", "0", "weight"))
+        else:
+            weight = self.critic.module.ensemble.layers[0].weight
+        return weight.device, weight.dtype
 
     def _evaluate(self, states: torch.Tensor, goals: torch.Tensor) -> torch.Tensor:
         """Distances of aligned pairs ``[n, obs_dim]``, ``[n, goal_dim]`` -> ``[n]``."""
@@ -135,15 +137,17 @@ class GoalDistance:
                 f"{tuple(goals.shape[:-1])} do not broadcast."
             ) from err
         out_device = states.device
-        device = self._device()
-        states_b = states.to(device).expand(*shape, states.shape[-1])
-        goals_b = goals.to(device).expand(*shape, goals.shape[-1])
+        device, dtype = self._device_dtype()
+        states_b = states.to(device=device, dtype=dtype).expand(*shape, states.shape[-1])
+        goals_b = goals.to(device=device, dtype=dtype).expand(*shape, goals.shape[-1])
         n_pairs = math.prod(shape)
         swap_actor = (
             contextlib.nullcontext() if self.actor_params is None else self.actor_params.to_module(self.actor)
         )
         swap_critic = (
-            contextlib.nullcontext() if self.critic_params is None else self.critic_params.to_module(self.critic)
+            contextlib.nullcontext()
+            if self.critic_params is None
+            else self.critic_params.to_module(self.critic)
         )
         with swap_actor, swap_critic, torch.no_grad(), set_exploration_type(ExplorationType.DETERMINISTIC):
             if n_pairs <= self.chunk_size:

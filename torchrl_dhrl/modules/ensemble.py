@@ -74,11 +74,8 @@ class EnsembleLinear(nn.Module):
         """Maps ``[N, in]`` (shared by all members) or ``[E, N, in]`` (one per member) to ``[E, N, out]``."""
         weight, bias = self.weight, self.bias
         if x.ndim == 2:
-            # One GEMM for all members: [N, in] @ [in, E * out] -> [N, E, out] -> [E, N, out].
-            n_members = weight.shape[0]
-            flat = weight.permute(1, 0, 2).reshape(self.in_features, n_members * self.out_features)
-            out = (x @ flat).view(x.shape[0], n_members, self.out_features).transpose(0, 1)
-            return out + bias
+            # A stride-0 view: no copy of the shared input.
+            x = x.expand(weight.shape[0], *x.shape)
         if x.ndim == 3:
             return torch.baddbmm(bias, x, weight)
         raise ValueError(f"EnsembleLinear expects [N, in] or [E, N, in] inputs, got shape {tuple(x.shape)}.")
@@ -123,7 +120,7 @@ class EnsembleMLP(nn.Module):
         widths = [in_features, *num_cells, out_features]
         self.layers = nn.ModuleList(
             EnsembleLinear(w_in, w_out, ensemble_size, device=device)
-            for w_in, w_out in zip(widths[:-1], widths[1:])
+            for w_in, w_out in zip(widths[:-1], widths[1:], strict=True)
         )
         self.activation = activation_class()
         self.in_features = in_features

@@ -80,7 +80,9 @@ class GaussianUniformExplorationModule(TensorDictModuleBase):
         _, half_width = box_loc_scale(low_t, high_t)
         self.register_buffer("low", low_t)
         self.register_buffer("high", high_t)
-        self.register_buffer("sigma", (sigma_t * half_width) if relative_sigma else sigma_t.expand_as(low_t).clone())
+        self.register_buffer(
+            "sigma", (sigma_t * half_width) if relative_sigma else sigma_t.expand_as(low_t).clone()
+        )
         self.uniform_prob = float(uniform_prob)
         self.action_key = action_key
         self.in_keys = [action_key]
@@ -114,4 +116,6 @@ class GaussianUniformExplorationModule(TensorDictModuleBase):
         return tensordict
 
     def extra_repr(self) -> str:
-        return f"action_key={self.action_key!r}, uniform_prob={self.uniform_prob}, sigma={self.sigma.tolist()}"
+        return (
+            f"action_key={self.action_key!r}, uniform_prob={self.uniform_prob}, sigma={self.sigma.tolist()}"
+        )

@@ -99,7 +99,9 @@ class SubgoalScheduler(TensorDictModuleBase):
         if counter is None:
             counter = torch.full(flag_shape, NO_SUBGOAL, dtype=torch.long, device=proposal.device)
         elif counter.shape != flag_shape:
-            raise ValueError(f"{self.counter_key!r} must have shape {flag_shape}, got {tuple(counter.shape)}.")
+            raise ValueError(
+                f"{self.counter_key!r} must have shape {flag_shape}, got {tuple(counter.shape)}."
+            )
         issue = (counter < 0) | (counter + 1 >= self.interval)
         if self.step_count_key is not None:
             step_count = tensordict.get(self.step_count_key, None)
@@ -112,7 +114,9 @@ class SubgoalScheduler(TensorDictModuleBase):
         tensordict.set(self.counter_key, torch.where(issue, torch.zeros_like(counter), counter + 1))
         return tensordict
 
-    def make_primer(self, goal_dim: int | None = None, *, dtype: torch.dtype = torch.float32) -> TensorDictPrimer:
+    def make_primer(
+        self, goal_dim: int | None = None, *, dtype: torch.dtype = torch.float32
+    ) -> TensorDictPrimer:
         """Returns the :class:`~torchrl.envs.TensorDictPrimer` that carries the held subgoal across steps.
 
         It primes ``subgoal`` (zeros, ``[goal_dim]``), ``new_subgoal`` (``False``) and the
@@ -132,7 +136,11 @@ class SubgoalScheduler(TensorDictModuleBase):
         primers[self.subgoal_key] = Unbounded((goal_dim,), dtype=dtype)
         primers[self.new_subgoal_key] = Categorical(2, (1,), dtype=torch.bool)
         primers[self.counter_key] = Unbounded((1,), dtype=torch.long)
-        default_value = {self.subgoal_key: 0.0, self.new_subgoal_key: 0.0, self.counter_key: float(NO_SUBGOAL)}
+        default_value = {
+            self.subgoal_key: 0.0,
+            self.new_subgoal_key: 0.0,
+            self.counter_key: float(NO_SUBGOAL),
+        }
         return TensorDictPrimer(primers, default_value=default_value, expand_specs=True)
 
     def make_tensordict_primer(self) -> TensorDictPrimer:

@@ -359,7 +359,10 @@ class LandmarkGraph(nn.Module):
 
     @torch.no_grad()
     def reach_costs(self, states: Tensor, distance: DistanceFn) -> Tensor:
-        """``[..., K]`` estimated steps from each state to each landmark through the graph (``inf``: unreachable)."""
+        """``[..., K]`` estimated steps from each state to each landmark through the graph.
+
+        ``inf`` marks landmarks the graph cannot reach from the state.
+        """
         self._check_query(states)
         batch = states.shape[:-1]
         flat = states.reshape(-1, states.shape[-1])
@@ -370,7 +373,10 @@ class LandmarkGraph(nn.Module):
 
     @torch.no_grad()
     def distance_from_graph(self, goals: Tensor, distance: DistanceFn) -> Tensor:
-        """``min_k d(landmark_state_k -> goal)`` for goals ``[..., goal_dim]`` -> ``[...]`` (``inf`` without graph)."""
+        """``min_k d(landmark_state_k -> goal)`` for goals ``[..., goal_dim]`` -> ``[...]``.
+
+        ``inf`` everywhere when there is no graph.
+        """
         batch = goals.shape[:-1]
         if not self.has_graph:
             return torch.full(batch, math.inf, dtype=goals.dtype, device=goals.device)

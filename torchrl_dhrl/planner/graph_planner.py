@@ -51,8 +51,9 @@ class GraphPlanner(Transform):
 
     1. *In the acting policy* (recommended when the high-level actor is part of the policy):
        ``TensorDictSequential(high_actor, planner, low_actor)`` calls :meth:`forward`, so the
-       waypoint of step ``t`` uses the subgoal issued at step ``t``. Append :meth:`make_primer` to
-       the env: a :class:`~torchrl.envs.TensorDictPrimer` resets the tracking state at reset and
+       waypoint of step ``t`` uses the subgoal issued at step ``t``. Append
+       :meth:`make_tensordict_primer` to the env: a :class:`~torchrl.envs.TensorDictPrimer` resets
+       the tracking state at reset and
        carries it from ``t`` to ``t + 1`` (its ``_step`` copies the root entries into ``"next"``,
        then ``step_mdp`` moves them back to the root; verified with ``env.rollout`` and
        :class:`~torchrl.collectors.Collector` in torchrl 0.14.1).
@@ -265,7 +266,9 @@ class GraphPlanner(Transform):
         return self
 
     def distance_from_graph(self, goals: Tensor) -> Tensor:
-        """``min_k d(landmark_state_k -> goal)`` for ``goals[..., goal_dim]`` -> ``[...]``; ``inf`` without a graph.
+        """``min_k d(landmark_state_k -> goal)`` for ``goals[..., goal_dim]`` -> ``[...]``.
+
+        ``inf`` everywhere when there is no graph.
 
         Used by the gradual penalty (Algorithm 4) and by frontier-based goal shifting.
         """
@@ -279,7 +282,12 @@ class GraphPlanner(Transform):
     def state_spec(
         self, shape: torch.Size | tuple = (), device: torch.device | str | None = None
     ) -> Composite:
-        """The :class:`~torchrl.data.Composite` of the tracking state (under ``state_key``) for a batch ``shape``."""
+        """The :class:`~torchrl.data.Composite` of the tracking state (under ``state_key``).
+
+        Args:
+            shape: the batch shape of the specs. Defaults to ``()``.
+            device: the device of the specs. Defaults to ``None``.
+        """
         shape = torch.Size(shape)
         length = self.max_path_length
         entries = {
@@ -308,7 +316,7 @@ class GraphPlanner(Transform):
             >>> from torchrl.envs import TransformedEnv
             >>> from torchrl.testing.mocking_classes import ContinuousActionVecMockEnv
             >>> planner = GraphPlanner(lambda s, g: (g - s[..., :2]).norm(dim=-1), goal_dim=2)
-            >>> env = TransformedEnv(ContinuousActionVecMockEnv(), planner.make_primer())
+            >>> env = TransformedEnv(ContinuousActionVecMockEnv(), planner.make_tensordict_primer())
             >>> env.reset()["planner", "has_plan"]
             tensor([False])
         """

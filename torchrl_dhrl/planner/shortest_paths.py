@@ -134,7 +134,8 @@ def reconstruct_paths(
         >>> inf = float("inf")
         >>> w = torch.tensor([[0.0, 1.0, inf], [inf, 0.0, 1.0], [inf, inf, 0.0]])
         >>> sp = floyd_warshall(w)
-        >>> paths, lengths = reconstruct_paths(sp.next_hop, sp.hop_counts, torch.tensor([0, 2]), torch.tensor([2, 0]))
+        >>> sources, targets = torch.tensor([0, 2]), torch.tensor([2, 0])
+        >>> paths, lengths = reconstruct_paths(sp.next_hop, sp.hop_counts, sources, targets)
         >>> paths.tolist(), lengths.tolist()
         ([[0, 1, 2], [-1, -1, -1]], [3, 0])
     """
