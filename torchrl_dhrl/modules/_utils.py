@@ -98,6 +98,24 @@ def as_goal_indices(goal_indices: Sequence[int] | torch.Tensor | None, goal_dim:
     return idx
 
 
+def register_goal_indices(
+    module: torch.nn.Module,
+    relative_goal: bool,
+    goal_indices: Sequence[int] | torch.Tensor | None,
+    goal_dim: int,
+    observation_dim: int,
+) -> None:
+    """Sets ``module.relative_goal`` and registers the validated ``goal_indices`` buffer (``None`` if absolute)."""
+    module.relative_goal = relative_goal
+    if not relative_goal:
+        module.goal_indices = None
+        return
+    idx = as_goal_indices(goal_indices, goal_dim)
+    if int(idx.max()) >= observation_dim:
+        raise ValueError(f"`goal_indices` {idx.tolist()} exceed the observation size {observation_dim}.")
+    module.register_buffer("goal_indices", idx)
+
+
 def check_last_dim(name: str, tensor: torch.Tensor, expected: int) -> None:
     """Raises a ValueError when ``tensor`` is not a floating tensor of last dimension ``expected``."""
     if not isinstance(tensor, torch.Tensor):

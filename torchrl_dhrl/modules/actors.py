@@ -10,7 +10,7 @@ from torch import nn
 from torchrl.data import Bounded, Composite, TensorSpec
 from torchrl.modules import MLP, Actor
 
-from ._utils import as_goal_indices, box_loc_scale, check_last_dim, goal_input, resolve_box
+from ._utils import box_loc_scale, check_last_dim, goal_input, register_goal_indices, resolve_box
 
 #: Hidden widths of every DHRL network (reference: 3 x 256 ReLU).
 DEFAULT_NUM_CELLS = (256, 256, 256)
@@ -61,16 +61,7 @@ class GoalConditionedActorNet(nn.Module):
         self.observation_dim = observation_dim
         self.goal_dim = goal_dim
         self.out_dim = int(low.shape[-1])
-        self.relative_goal = relative_goal
-        if relative_goal:
-            idx = as_goal_indices(goal_indices, goal_dim)
-            if int(idx.max()) >= observation_dim:
-                raise ValueError(
-                    f"`goal_indices` {idx.tolist()} exceed the observation size {observation_dim}."
-                )
-            self.register_buffer("goal_indices", idx)
-        else:
-            self.goal_indices = None
+        register_goal_indices(self, relative_goal, goal_indices, goal_dim, observation_dim)
         loc, scale = box_loc_scale(low, high)
         self.register_buffer("loc", loc)
         self.register_buffer("scale", scale)

@@ -12,7 +12,7 @@ from torch import nn
 from torch.nn import functional as F
 from torchrl.data import TensorSpec
 
-from ._utils import as_goal_indices, box_loc_scale, check_last_dim, goal_input, resolve_box
+from ._utils import box_loc_scale, check_last_dim, goal_input, register_goal_indices, resolve_box
 from .actors import DEFAULT_NUM_CELLS
 from .ensemble import EnsembleMLP
 
@@ -129,16 +129,7 @@ class GoalConditionedCriticNet(nn.Module):
         self.action_dim = int(action_low.shape[-1])
         self.parameterization = parameterization
         self.gamma = _check_gamma(gamma)
-        self.relative_goal = relative_goal
-        if relative_goal:
-            idx = as_goal_indices(goal_indices, goal_dim)
-            if int(idx.max()) >= observation_dim:
-                raise ValueError(
-                    f"`goal_indices` {idx.tolist()} exceed the observation size {observation_dim}."
-                )
-            self.register_buffer("goal_indices", idx)
-        else:
-            self.goal_indices = None
+        register_goal_indices(self, relative_goal, goal_indices, goal_dim, observation_dim)
         loc, scale = box_loc_scale(action_low, action_high)
         self.register_buffer("action_loc", loc)
         self.register_buffer("action_scale", scale)
