@@ -91,7 +91,46 @@ class GoalConditionedActorNet(nn.Module):
         return torch.addcmul(self.loc, self.scale, torch.tanh(self.mlp(x)))
 
 
-class LowLevelActor(Actor):
+class _BoxedGoalActor(Actor):
+    """Shared construction of the two DHRL actors: a :class:`GoalConditionedActorNet` bounded to a box."""
+
+    def _init_net(
+        self,
+        observation_dim,
+        goal_dim,
+        low,
+        high,
+        goal_indices,
+        relative_goal,
+        num_cells,
+        activation_class,
+        observation_key,
+        goal_key,
+        out_key,
+    ) -> None:
+        net = GoalConditionedActorNet(
+            observation_dim,
+            goal_dim,
+            low,
+            high,
+            goal_indices=goal_indices if relative_goal else None,
+            relative_goal=relative_goal,
+            num_cells=num_cells,
+            activation_class=activation_class,
+        )
+        spec = Composite({out_key: Bounded(low, high, shape=low.shape)})
+        Actor.__init__(self, net, in_keys=[observation_key, goal_key], out_keys=[out_key], spec=spec)
+
+    @property
+    def low(self) -> torch.Tensor:
+        return self.module.low
+
+    @property
+    def high(self) -> torch.Tensor:
+        return self.module.high
+
+
+class LowLevelActor(_BoxedGoalActor):
     """The deterministic low-level policy ``pi_lo(a | s, wp)`` as a TorchRL :class:`~torchrl.modules.Actor`.
 
     Reads ``observation`` and a goal entry (``"waypoint"`` by default; the no-graph phase
@@ -146,29 +185,22 @@ class LowLevelActor(Actor):
         action_key: NestedKey = "action",
     ) -> None:
         low, high = resolve_box(spec=action_spec, max_abs=action_max, dim=action_dim, key=action_key)
-        net = GoalConditionedActorNet(
+        self._init_net(
             observation_dim,
             goal_dim,
             low,
             high,
-            goal_indices=goal_indices if relative_goal else None,
-            relative_goal=relative_goal,
-            num_cells=num_cells,
-            activation_class=activation_class,
+            goal_indices,
+            relative_goal,
+            num_cells,
+            activation_class,
+            observation_key,
+            goal_key,
+            action_key,
         )
-        spec = Composite({action_key: Bounded(low, high, shape=low.shape)})
-        super().__init__(net, in_keys=[observation_key, goal_key], out_keys=[action_key], spec=spec)
-
-    @property
-    def low(self) -> torch.Tensor:
-        return self.module.low
-
-    @property
-    def high(self) -> torch.Tensor:
-        return self.module.high
 
 
-class HighLevelActor(Actor):
+class HighLevelActor(_BoxedGoalActor):
     """The deterministic high-level policy ``pi_hi(sg | s, g)`` as a TorchRL :class:`~torchrl.modules.Actor`.
 
     Reads ``observation`` and ``desired_goal`` and writes a subgoal tanh-scaled to the
@@ -220,23 +252,16 @@ class HighLevelActor(Actor):
         subgoal_key: NestedKey = "subgoal",
     ) -> None:
         low, high = resolve_box(low=subgoal_low, high=subgoal_high, dim=goal_dim, name="subgoal")
-        net = GoalConditionedActorNet(
+        self._init_net(
             observation_dim,
             goal_dim,
             low,
             high,
-            goal_indices=goal_indices if relative_goal else None,
-            relative_goal=relative_goal,
-            num_cells=num_cells,
-            activation_class=activation_class,
+            goal_indices,
+            relative_goal,
+            num_cells,
+            activation_class,
+            observation_key,
+            goal_key,
+            subgoal_key,
         )
-        spec = Composite({subgoal_key: Bounded(low, high, shape=low.shape)})
-        super().__init__(net, in_keys=[observation_key, goal_key], out_keys=[subgoal_key], spec=spec)
-
-    @property
-    def low(self) -> torch.Tensor:
-        return self.module.low
-
-    @property
-    def high(self) -> torch.Tensor:
-        return self.module.high
