@@ -32,7 +32,7 @@ def test_full_dhrl_pipeline_on_pointmaze():
         # subgoals are held between issues, waypoints are always set
         assert batch["new_subgoal"].any() and not batch["new_subgoal"].all()
         assert torch.isfinite(batch["waypoint"]).all()
-        rb.extend(batch.exclude("planner", ("next", "planner")).transpose(0, 1))
+        rb.extend(batch.exclude("planner", ("next", "planner")))  # [num_envs, T]: time-major storage
         if i == 0:
             # rebuild the graph from buffer states with the learned distance
             data = rb[:].reshape(-1)

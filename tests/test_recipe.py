@@ -1,0 +1,162 @@
+"""Smoke tests of ``recipes/dhrl_antmaze.py``: every phase on every maze with a tiny config, exact resume,
+ablation switches and the command line."""
+
+import csv
+import subprocess
+import sys
+
+import pytest
+import torch
+from _recipe import RECIPES, load_recipe, recipe_config
+
+from torchrl_dhrl.envs import MAZE_NAMES
+from torchrl_dhrl.training import ConfigError, load_checkpoint
+
+recipe = load_recipe()
+
+SMOKE = ("preset=smoke", "logger.backend=csv")
+
+
+def _metrics(run_dir):
+    with (run_dir / "metrics.csv").open() as file:
+        return list(csv.DictReader(file))
+
+
+@pytest.mark.parametrize("env", MAZE_NAMES)
+def test_smoke_every_phase(env, tmp_path):
+    """Warm-up (2 episodes), vanilla HRL (1 epoch), graph rebuilds, evaluations, checkpoints and pictures."""
+    torch.manual_seed(0)
+    cfg = recipe_config(f"env={env}", *SMOKE)
+    summary = recipe.train(cfg, run_dir=tmp_path)
+    rows = _metrics(tmp_path)
+    # 480 steps of 2 envs x 40-step episodes = 6 batches, 2 episodes per epoch -> 6 epochs
+    assert [int(r["env_steps"]) for r in rows] == [80 * k for k in range(1, 7)]
+    landmarks = [int(r["graph/landmarks"]) for r in rows]
+    assert landmarks[0] == 0  # warm-up epoch: no graph
+    assert all(2 <= n <= 12 for n in landmarks[1:])  # graph from epoch 2 on, rebuilt every epoch
+    assert all(r["graph/build_s"] for r in rows[1:])
+    for r in rows:
+        assert 0.0 <= float(r["eval/success"]) <= float(r["eval/any_success"]) <= 1.0
+        for key in ("low/loss_policy_qvalue", "low/loss_graph_qvalue", "high/loss_qvalue"):
+            assert torch.isfinite(torch.tensor(float(r[key])))
+    assert summary["eval/success"] == float(rows[-1]["eval/success"])
+    assert len(list((tmp_path / "episodes").glob("epoch_*.png"))) == 6
+    assert (tmp_path / "success_curve.png").stat().st_size > 1000
+    assert (tmp_path / "logs" / f"dhrl_{env}_seed0" / "scalars" / "eval" / "success.csv").exists()
+    state = load_checkpoint(tmp_path / "checkpoint.pt")
+    assert state["counters"]["env_steps"] == 480 and state["counters"]["graph_builds"] == 5
+    assert len(state["low_rb"]["_storage"]["_storage"]["observation"]) > 0
+
+
+def _flat(state, prefix=""):
+    out = {}
+    for key, value in state.items():
+        if isinstance(value, dict):
+            out.update(_flat(value, f"{prefix}{key}."))
+        elif isinstance(value, torch.Tensor):
+            out[f"{prefix}{key}"] = value
+    return out
+
+
+def test_resume_continues_exactly(tmp_path):
+    """K steps, checkpoint, resume, K more == 2K straight (CPU, fixed seed)."""
+    overrides = ("env=PointMaze", *SMOKE, "plots.every_epochs=0")
+    straight = tmp_path / "straight"
+    recipe.train(recipe_config(*overrides, "total_steps=480"), run_dir=straight)
+    halves = tmp_path / "halves"
+    recipe.train(recipe_config(*overrides, "total_steps=240"), run_dir=halves)
+    recipe.train(recipe_config(*overrides, "total_steps=480", f"resume={halves}"), run_dir=halves)
+    a, b = load_checkpoint(straight / "checkpoint.pt"), load_checkpoint(halves / "checkpoint.pt")
+    assert a["counters"] == b["counters"]
+    flat_a, flat_b = _flat(a["agent"]), _flat(b["agent"])
+    assert flat_a.keys() == flat_b.keys()
+    for key in flat_a:
+        torch.testing.assert_close(flat_a[key], flat_b[key], rtol=0, atol=0, msg=key)
+    assert _metrics(straight) == _metrics(halves) or [
+        {k: v for k, v in r.items() if not k.startswith("time/") and k != "env_steps_per_s"} for r in _metrics(straight)
+    ] == [{k: v for k, v in r.items() if not k.startswith("time/") and k != "env_steps_per_s"} for r in _metrics(halves)]
+
+
+@pytest.mark.parametrize(
+    "override",
+    ["low.sqgc=false", "high.gradual_penalty=null", "planner.enabled=false", "planner.distance=oracle", "fgs.enabled=true", "high.c_h=5"],
+)
+def test_ablation_switches_run(override, tmp_path):
+    cfg = recipe_config("env=PointMaze", *SMOKE, "total_steps=240", "plots.every_epochs=0", override)
+    recipe.train(cfg, run_dir=tmp_path)
+    rows = _metrics(tmp_path)
+    landmarks = [int(r["graph/landmarks"]) for r in rows]
+    if override == "planner.enabled=false":
+        assert landmarks == [0, 0, 0]
+    else:
+        assert landmarks[-1] >= 2
+
+
+def test_bad_config_fails_before_anything_is_written(tmp_path):
+    cfg = recipe_config("env=PointMaze", *SMOKE, "planner.cutoff=-1")
+    with pytest.raises(ConfigError, match="planner.cutoff"):
+        recipe.train(cfg, run_dir=tmp_path / "run")
+    assert not (tmp_path / "run").exists()
+
+
+@pytest.mark.slow
+def test_command_line(tmp_path):
+    """The script itself, through Hydra's command line (as in the README)."""
+    result = subprocess.run(
+        [sys.executable, str(RECIPES / "dhrl_antmaze.py"), "env=PointMaze", "preset=smoke", "total_steps=160",
+         f"run_dir={tmp_path}", f"hydra.run.dir={tmp_path / 'hydra'}"],
+        capture_output=True, text=True, timeout=300,
+    )
+    assert result.returncode == 0, result.stderr[-2000:]
+    assert "Done: 160 env steps" in result.stdout
+    assert (tmp_path / "success_curve.png").exists()
+    bad = subprocess.run(
+        [sys.executable, str(RECIPES / "dhrl_antmaze.py"), "env=PointMaze", "high.c_h=0",
+         f"hydra.run.dir={tmp_path / 'bad'}"],
+        capture_output=True, text=True, timeout=300,
+    )
+    assert bad.returncode != 0 and "high.c_h" in bad.stderr
+
+
+def test_ctrl_c_saves_a_checkpoint_that_resumes(tmp_path, monkeypatch):
+    from torchrl_dhrl.training import LossUpdater
+
+    calls = {"n": 0}
+    real_run = LossUpdater.run
+
+    def interrupt_on_third_batch(self, num_updates):
+        calls["n"] += 1
+        if calls["n"] == 5:  # low and high updates of batches 1-2, then the low updates of batch 3
+            raise KeyboardInterrupt
+        return real_run(self, num_updates)
+
+    monkeypatch.setattr(LossUpdater, "run", interrupt_on_third_batch)
+    cfg = recipe_config("env=PointMaze", *SMOKE, "plots.every_epochs=0")
+    with pytest.raises(KeyboardInterrupt):
+        recipe.train(cfg, run_dir=tmp_path)
+    state = load_checkpoint(tmp_path / "checkpoint.pt")
+    assert state["counters"]["env_steps"] == 240  # batch 3 was collected and stored before the interrupt
+    monkeypatch.setattr(LossUpdater, "run", real_run)
+    summary = recipe.train(recipe_config("env=PointMaze", *SMOKE, "plots.every_epochs=0", f"resume={tmp_path}"),
+                           run_dir=tmp_path)
+    assert summary["env_steps"] == 480
+
+
+def test_nan_stops_with_a_message_and_keeps_the_last_good_checkpoint(tmp_path, monkeypatch):
+    from torchrl_dhrl.training import LossUpdater, NonFiniteLossError
+
+    real_step = LossUpdater.step
+    count = {"n": 0}
+
+    def nan_later(self):
+        count["n"] += 1
+        if count["n"] > 200:  # past the 2nd epoch (80 low updates per batch)
+            raise NonFiniteLossError("SQGCLoss produced a non-finite loss")
+        return real_step(self)
+
+    monkeypatch.setattr(LossUpdater, "step", nan_later)
+    cfg = recipe_config("env=PointMaze", *SMOKE, "plots.every_epochs=0")
+    with pytest.raises(SystemExit, match="non-finite loss.*last good checkpoint"):
+        recipe.train(cfg, run_dir=tmp_path)
+    state = load_checkpoint(tmp_path / "checkpoint.pt")
+    assert state["counters"]["env_steps"] == 160

@@ -1,0 +1,53 @@
+"""The training machinery the recipes share: config checks, factories, updaters, evaluation,
+checkpoints and pictures."""
+
+from .builders import (
+    LOW_LEVEL_KEYS,
+    DHRLAgent,
+    make_agent,
+    make_collector,
+    make_environment,
+    make_graph_distance,
+    make_logger,
+    make_replay_buffers,
+    make_updaters,
+)
+from .checkpoint import get_rng_state, load_checkpoint, save_checkpoint, set_rng_state
+from .config import DISTANCES, LOGGER_BACKENDS, ConfigError, resolve_device, validate_config
+from .evaluation import EvaluationResult, ModuleTimer, evaluate, record_video
+from .goal_shift import GoalShiftOnReset
+from .oracle import LineOfSightDistance
+from .plots import graph_path_to_goal, plot_episode, plot_success_curve
+from .updates import LossUpdater, NonFiniteLossError
+
+__all__ = [
+    "ConfigError",
+    "DHRLAgent",
+    "DISTANCES",
+    "EvaluationResult",
+    "GoalShiftOnReset",
+    "LOGGER_BACKENDS",
+    "LOW_LEVEL_KEYS",
+    "LineOfSightDistance",
+    "LossUpdater",
+    "ModuleTimer",
+    "NonFiniteLossError",
+    "evaluate",
+    "get_rng_state",
+    "graph_path_to_goal",
+    "load_checkpoint",
+    "make_agent",
+    "make_collector",
+    "make_environment",
+    "make_graph_distance",
+    "make_logger",
+    "make_replay_buffers",
+    "make_updaters",
+    "plot_episode",
+    "plot_success_curve",
+    "record_video",
+    "resolve_device",
+    "save_checkpoint",
+    "set_rng_state",
+    "validate_config",
+]

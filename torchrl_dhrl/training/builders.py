@@ -1,0 +1,344 @@
+"""Factories that turn a DHRL configuration into TorchRL objects: env, agent, buffers, collector, logger.
+
+The recipes (``recipes/dhrl_antmaze.py``) are short loops over what these return; every knob
+comes from the configuration validated by :func:`~torchrl_dhrl.training.validate_config` (see
+``recipes/config/`` for the keys and the reference values).
+"""
+
+from __future__ import annotations
+
+from collections.abc import Mapping
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import torch
+from tensordict.nn import TensorDictSequential
+from torchrl.collectors import Collector
+from torchrl.data import LazyTensorStorage, TensorDictReplayBuffer
+from torchrl.envs import Compose, EnvBase, TransformedEnv
+
+from torchrl_dhrl.data import FutureGoalRelabel, HighLevelTransitionBuilder, HindsightSubgoalRelabel, SparseGoalReward
+from torchrl_dhrl.envs import make_env
+from torchrl_dhrl.modules import (
+    GaussianUniformExplorationModule,
+    GoalConditionedCritic,
+    GoalDistance,
+    HighLevelPolicy,
+    LowLevelActor,
+)
+from torchrl_dhrl.objectives import HighLevelLoss, SQGCLoss, make_optimizers
+from torchrl_dhrl.planner import FrontierGoalShifting, GraphPlanner
+
+from .config import ConfigError
+from .goal_shift import GoalShiftOnReset
+from .oracle import LineOfSightDistance
+from .updates import LossUpdater
+
+__all__ = [
+    "DHRLAgent",
+    "LOW_LEVEL_KEYS",
+    "make_agent",
+    "make_collector",
+    "make_environment",
+    "make_graph_distance",
+    "make_logger",
+    "make_replay_buffers",
+    "make_updaters",
+]
+
+#: Entries of a collector batch the low-level buffer keeps (relabelling, losses, graph candidates).
+LOW_LEVEL_KEYS = (
+    "observation",
+    "achieved_goal",
+    "waypoint",
+    "action",
+    "step_count",
+    ("collector", "traj_ids"),
+    ("next", "observation"),
+    ("next", "achieved_goal"),
+    ("next", "done"),
+)
+
+
+@dataclass
+class DHRLAgent:
+    """The modules of one DHRL agent, as built by :func:`make_agent`.
+
+    The acting policy is ``TensorDictSequential(high_policy, planner, low_policy)``: the high
+    level issues a subgoal every ``c_h`` steps, the planner turns it into the current waypoint and
+    the low level acts towards it. All trainable parameters (with target copies) live in the two
+    losses; the graph lives in the planner. :meth:`state_dict` gathers them for checkpoints.
+    """
+
+    high_policy: HighLevelPolicy
+    low_actor: LowLevelActor
+    exploration: GaussianUniformExplorationModule
+    sqgc_loss: SQGCLoss
+    high_loss: HighLevelLoss
+    planner: GraphPlanner
+    policy: TensorDictSequential
+
+    def state_dict(self) -> dict[str, Any]:
+        return {
+            "sqgc_loss": self.sqgc_loss.state_dict(),
+            "high_loss": self.high_loss.state_dict(),
+            "planner": self.planner.state_dict(),
+        }
+
+    def load_state_dict(self, state_dict: Mapping[str, Any]) -> None:
+        self.sqgc_loss.load_state_dict(state_dict["sqgc_loss"])
+        self.high_loss.load_state_dict(state_dict["high_loss"])
+        self.planner.load_state_dict(state_dict["planner"])
+
+
+def _goal_indices(cfg: Mapping) -> tuple[int, ...] | None:
+    indices = cfg["goal_indices"]
+    return None if indices is None else tuple(int(i) for i in indices)
+
+
+def make_graph_distance(cfg: Mapping, sqgc_loss: SQGCLoss):
+    """The planner's distance: the learned graph critics (Eq. 1) or the line-of-sight oracle."""
+    if cfg["planner"]["distance"] == "learned":
+        return GoalDistance.from_loss(sqgc_loss)
+    indices = _goal_indices(cfg)
+    if indices is None:
+        raise ConfigError(
+            f"planner.distance=oracle needs the achieved goal inside the observation (goal_indices), "
+            f"which {cfg['env_name']} does not provide."
+        )
+    boxes = None
+    walls = _obstacle_boxes(cfg["env_name"])
+    if walls is not None:
+        boxes = walls
+    return LineOfSightDistance(
+        cfg["planner"]["oracle_speed"], boxes=boxes, margin=cfg["planner"]["oracle_margin"], goal_indices=indices
+    )
+
+
+def _obstacle_boxes(name: str) -> torch.Tensor | None:
+    """``[W, 2, 2]`` wall footprints of a maze (``None`` for environments without a maze layout)."""
+    from torchrl_dhrl.envs import MAZE_NAMES, get_maze_spec
+
+    if name not in MAZE_NAMES:
+        return None
+    boxes = [wall.xy_bounds for wall in get_maze_spec(name).layout.wall_boxes]
+    return torch.tensor([[[x0, y0], [x1, y1]] for x0, x1, y0, y1 in boxes], dtype=torch.float32)
+
+
+def make_agent(cfg: Mapping, env: EnvBase, device: torch.device) -> DHRLAgent:
+    """Builds actors, critics, both losses, the graph planner and the acting policy on ``device``."""
+    obs_dim = env.observation_spec["observation"].shape[-1]
+    goal_dim = env.observation_spec["achieved_goal"].shape[-1]
+    if len(cfg["high"]["subgoal_low"]) != goal_dim:
+        raise ConfigError(f"high.subgoal_low has {len(cfg['high']['subgoal_low'])} entries; the goal space has {goal_dim}.")
+    action_spec = env.action_spec_unbatched.to(device)
+    indices = _goal_indices(cfg)
+    low, high = cfg["low"], cfg["high"]
+    relative = bool(low["relative_goal"])
+    if relative and indices is None:
+        raise ConfigError(f"low.relative_goal=true needs goal_indices, which {cfg['env_name']} does not provide.")
+    common = {"goal_indices": indices, "num_cells": tuple(low["hidden"])}
+    actor = LowLevelActor(obs_dim, goal_dim, action_spec, relative_goal=relative, **common).to(device)
+    exploration = GaussianUniformExplorationModule(
+        action_spec, sigma=low["action_noise"], uniform_prob=low["uniform_prob"]
+    ).to(device)
+
+    def critic() -> GoalConditionedCritic:
+        return GoalConditionedCritic(
+            obs_dim, goal_dim, action_spec, relative_goal=relative, gamma=low["gamma"], goal_key="goal", **common
+        ).to(device)
+
+    sqgc_loss = SQGCLoss(
+        actor,
+        critic(),
+        critic(),
+        clip_return=low["clip_return"],
+        action_l2=low["action_l2"],
+        target_noise_std=low["target_noise"],
+        actor_update_interval=low["actor_update_interval"],
+        sqgc=low["sqgc"],
+    )
+    high_policy = HighLevelPolicy(
+        obs_dim,
+        goal_dim,
+        high["subgoal_low"],
+        high["subgoal_high"],
+        interval=high["c_h"],
+        noise_sigma=high["subgoal_noise"],
+        goal_indices=indices,
+        num_cells=tuple(high["hidden"]),
+    ).to(device)
+    high_critic = GoalConditionedCritic(
+        obs_dim,
+        goal_dim,
+        action_low=high["subgoal_low"],
+        action_high=high["subgoal_high"],
+        goal_indices=indices,
+        relative_goal=False,
+        gamma=high["gamma"],
+        num_cells=tuple(high["hidden"]),
+        goal_key="desired_goal",
+        action_key="subgoal",
+    ).to(device)
+    high_loss = HighLevelLoss(
+        high_policy.actor,
+        high_critic,
+        clip_return=high["clip_return"],
+        action_l2=high["action_l2"],
+        target_noise_std=high["target_noise"],
+        actor_update_interval=high["actor_update_interval"],
+    )
+    planner_cfg = cfg["planner"]
+    planner = GraphPlanner(
+        make_graph_distance(cfg, sqgc_loss),
+        goal_dim,
+        cutoff=planner_cfg["cutoff"],
+        max_landmarks=planner_cfg["max_landmarks"],
+        early_stop=planner_cfg["early_stop"],
+    ).to(device)
+    policy = TensorDictSequential(high_policy, planner, TensorDictSequential(actor, exploration))
+    return DHRLAgent(high_policy, actor, exploration, sqgc_loss, high_loss, planner, policy)
+
+
+def make_environment(
+    cfg: Mapping, device: torch.device, *, eval: bool = False, agent: DHRLAgent | None = None  # noqa: A002
+) -> EnvBase:
+    """The batched env (``eval``: ``eval_episodes`` envs on the test goals), with the agent's primers.
+
+    Without ``agent`` the bare env is returned (used to read the specs before the agent exists).
+    Training envs get frontier-based goal shifting when ``fgs.enabled``.
+    """
+    num_envs = cfg["schedule"]["eval_episodes"] if eval else cfg["num_envs"]
+    seed = cfg["seed"] + (10_000 if eval else 0)
+    env = make_env(
+        cfg["env_name"],
+        num_envs=num_envs,
+        seed=seed,
+        device=device,
+        eval=eval,
+        max_episode_steps=cfg["episode_length"],
+    )
+    if agent is None:
+        return env
+    transforms = [agent.high_policy.make_primer(), agent.planner.make_primer()]
+    if cfg["fgs"]["enabled"] and not eval:
+        fgs = FrontierGoalShifting(
+            agent.planner, noise=cfg["fgs"]["noise"], weighting=cfg["fgs"]["weighting"]
+        )
+        transforms.append(GoalShiftOnReset(fgs))
+    return TransformedEnv(env, Compose(*transforms))
+
+
+def make_collector(env: EnvBase, agent: DHRLAgent, episode_length: int) -> Collector:
+    """A :class:`~torchrl.collectors.Collector` yielding one whole episode per env and batch.
+
+    Episodes only truncate, so every env ends its episode at the last step of a batch and the
+    collector's automatic reset starts the next one: batches are ``[num_envs, episode_length]``.
+    """
+    num_envs = env.batch_size.numel()
+    # The planner and the subgoal scheduler carry their state with TensorDictPrimers (already on the env);
+    # they do not need the InitTracker the collector would add for recurrent-looking modules.
+    return Collector(
+        env,
+        agent.policy,
+        frames_per_batch=num_envs * episode_length,
+        total_frames=-1,
+        auto_register_policy_transforms=False,
+    )
+
+
+def make_replay_buffers(cfg: Mapping, agent: DHRLAgent, num_envs: int, device: torch.device):
+    """The low-level buffer (time-major ``[T, num_envs]`` storage, extended with ``[num_envs, T]`` batches), the high-level one (a transition builder
+    turns low-level batches into one transition per subgoal) and their relabelling steps.
+
+    Returns:
+        ``(low_rb, low_relabel, high_rb, high_relabel)``.
+    """
+    low, high = cfg["low"], cfg["high"]
+    reward = SparseGoalReward(low["reward_threshold"])
+    capacity = max(low["buffer_size"] // num_envs, 1)
+    low_rb = TensorDictReplayBuffer(
+        storage=LazyTensorStorage(capacity, ndim=2, device=device), batch_size=low["batch_size"]
+    )
+    low_relabel = FutureGoalRelabel(
+        low_rb, reward, her_ratio=(low["her_ratio"], 1.0), window=low["her_window"], goal_key="waypoint"
+    )
+    high_rb = TensorDictReplayBuffer(
+        storage=LazyTensorStorage(high["buffer_size"], device=device),
+        transform=HighLevelTransitionBuilder(reward_fn=reward),
+        batch_size=high["batch_size"],
+    )
+    distance_from_graph = (
+        agent.planner.distance_from_graph
+        if high["gradual_penalty"] is not None and cfg["planner"]["enabled"]
+        else None
+    )
+    high_relabel = Compose(
+        FutureGoalRelabel(
+            high_rb,
+            reward,
+            her_ratio=high["her_ratio"],
+            window=high["her_window"],
+            out_keys=["desired_goal"],
+            reward_keys=None,
+            traj_key="episode_id",
+            step_count_key="segment_index",
+        ),
+        HindsightSubgoalRelabel(
+            distance_from_graph,
+            reward,
+            subgoal_test_ratio=high["subgoal_test_ratio"],
+            subgoal_test_threshold=high["subgoal_test_threshold"],
+            subgoal_miss_penalty=high["subgoal_miss_penalty"],
+            gradual_penalty=high["gradual_penalty"],
+            far_from_graph_threshold=high["far_from_graph_factor"] * cfg["planner"]["cutoff"],
+        ),
+    )
+    return low_rb, low_relabel, high_rb, high_relabel
+
+
+def make_updaters(cfg: Mapping, agent: DHRLAgent, buffers) -> tuple[LossUpdater, LossUpdater]:
+    """The low-level (SQGC) and high-level updaters with their Adam optimisers."""
+    low_rb, low_relabel, high_rb, high_relabel = buffers
+    updaters = []
+    for level, loss, rb, relabel in (
+        ("low", agent.sqgc_loss, low_rb, low_relabel),
+        ("high", agent.high_loss, high_rb, high_relabel),
+    ):
+        c = cfg[level]
+        optimizers = make_optimizers(loss, actor_lr=c["actor_lr"], critic_lr=c["critic_lr"])
+        updaters.append(
+            LossUpdater(
+                loss,
+                rb,
+                optimizers,
+                relabel=relabel,
+                polyak=c["polyak"],
+                target_update_interval=c["target_update_interval"],
+            )
+        )
+    return updaters[0], updaters[1]
+
+
+def make_logger(cfg: Mapping, run_dir: Path):
+    """A TorchRL logger: CSV (default, files under ``run_dir/logs``), W&B (offline unless
+    ``logger.wandb_mode=online``) or TensorBoard; ``None`` for ``logger.backend=none``."""
+    from torchrl.record.loggers import CSVLogger, TensorboardLogger, WandbLogger
+
+    log_cfg = cfg["logger"]
+    backend = log_cfg["backend"]
+    exp_name = log_cfg["exp_name"] or f"dhrl_{cfg['env_name']}_seed{cfg['seed']}"
+    log_dir = str(run_dir / "logs")
+    if backend == "csv":
+        return CSVLogger(exp_name, log_dir=log_dir)
+    if backend == "tensorboard":
+        return TensorboardLogger(exp_name, log_dir=log_dir)
+    if backend == "wandb":
+        return WandbLogger(
+            exp_name,
+            offline=log_cfg["wandb_mode"] != "online",
+            save_dir=log_dir,
+            project=log_cfg["project"],
+        )
+    return None

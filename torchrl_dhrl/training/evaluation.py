@@ -1,0 +1,119 @@
+"""Deterministic evaluation episodes on the fixed test goals, with what the pictures need."""
+
+from __future__ import annotations
+
+from typing import NamedTuple
+
+import time
+from pathlib import Path
+
+import torch
+from tensordict import TensorDictBase
+from tensordict.nn import TensorDictModuleBase
+from torchrl.envs import EnvBase
+from torchrl.envs.utils import ExplorationType, set_exploration_type
+
+__all__ = ["EvaluationResult", "ModuleTimer", "evaluate", "record_video"]
+
+
+class EvaluationResult(NamedTuple):
+    """Outcome of :func:`evaluate`.
+
+    Attributes:
+        success (float): fraction of episodes whose FINAL state is within the env's success
+            threshold (the paper's and the reference's measure).
+        any_success (float): fraction of episodes within the threshold at any step.
+        final_distance (float): mean final distance between the achieved and the desired goal.
+        rollout (TensorDictBase): the ``[num_envs, T]`` rollout (achieved goals, subgoals, waypoints).
+    """
+
+    success: float
+    any_success: float
+    final_distance: float
+    rollout: TensorDictBase
+
+
+@torch.no_grad()
+def evaluate(env: EnvBase, policy: TensorDictModuleBase, max_steps: int) -> EvaluationResult:
+    """Runs one episode in each of ``env``'s envs with exploration off and measures success.
+
+    The env should be built with its test goals (``make_env(..., eval=True)``) and the policy's
+    primers; every env runs exactly ``max_steps`` steps (episodes only truncate).
+
+    Examples:
+        >>> import torch
+        >>> from torchrl_dhrl.envs import make_env
+        >>> env = make_env("PointMaze", num_envs=2, seed=0, eval=True, max_episode_steps=5)
+        >>> still = lambda td: td.set("action", torch.zeros(*td.batch_size, 2))
+        >>> result = evaluate(env, still, max_steps=5)
+        >>> result.success, result.rollout.shape
+        (0.0, torch.Size([2, 5]))
+    """
+    with set_exploration_type(ExplorationType.DETERMINISTIC):
+        rollout = env.rollout(max_steps, policy, break_when_any_done=False)
+    success = rollout["next", "is_success"].reshape(*rollout.shape, -1).any(-1)
+    final = rollout[..., -1]
+    distance = (final["next", "achieved_goal"] - final["next", "desired_goal"]).norm(dim=-1)
+    return EvaluationResult(
+        success=success[..., -1].float().mean().item(),
+        any_success=success.any(-1).float().mean().item(),
+        final_distance=distance.mean().item(),
+        rollout=rollout,
+    )
+
+
+class ModuleTimer:
+    """Accumulates the wall-clock time spent in a module's forward calls (e.g. the planner's share of acting).
+
+    Installs forward pre/post hooks; :meth:`pop` returns the seconds and calls since the last pop.
+
+    Examples:
+        >>> import torch
+        >>> timer = ModuleTimer(torch.nn.Linear(2, 2))
+        >>> _ = timer.module(torch.zeros(1, 2))
+        >>> seconds, calls = timer.pop()
+        >>> calls, seconds >= 0
+        (1, True)
+    """
+
+    def __init__(self, module: torch.nn.Module) -> None:
+        self.module = module
+        self.seconds, self.calls, self._start = 0.0, 0, 0.0
+        module.register_forward_pre_hook(self._before)
+        module.register_forward_hook(self._after)
+
+    def _before(self, module, args) -> None:
+        self._start = time.perf_counter()
+
+    def _after(self, module, args, output) -> None:
+        self.seconds += time.perf_counter() - self._start
+        self.calls += 1
+
+    def pop(self) -> tuple[float, int]:
+        out = (self.seconds, self.calls)
+        self.seconds, self.calls = 0.0, 0
+        return out
+
+
+@torch.no_grad()
+def record_video(env: EnvBase, policy: TensorDictModuleBase, max_steps: int, path: str | Path, *, every: int = 4,
+                 size: int = 320) -> Path:
+    """Renders the first env of a deterministic episode with MuJoCo (every ``every``-th step) to a GIF.
+
+    Needs an OpenGL back end for MuJoCo (e.g. ``MUJOCO_GL=egl``); raises the renderer's error otherwise.
+    """
+    from PIL import Image
+
+    frames, steps = [], [0]
+
+    def grab(env_, td) -> None:
+        if steps[0] % every == 0:
+            frames.append(Image.fromarray(env.base_env.render(0, width=size, height=size).numpy()))
+        steps[0] += 1
+
+    with set_exploration_type(ExplorationType.DETERMINISTIC):
+        env.rollout(max_steps, policy, break_when_any_done=False, callback=grab)
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    frames[0].save(path, save_all=True, append_images=frames[1:], duration=40 * every, loop=0)
+    return path

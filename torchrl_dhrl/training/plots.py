@@ -1,0 +1,87 @@
+"""Pictures of a training run: the graph with a test episode, and the success curve."""
+
+from __future__ import annotations
+
+from collections.abc import Mapping, Sequence
+from pathlib import Path
+
+import matplotlib
+
+matplotlib.use("Agg")
+import matplotlib.pyplot as plt  # noqa: E402
+import numpy as np  # noqa: E402
+import torch  # noqa: E402
+from tensordict import TensorDictBase  # noqa: E402
+
+from torchrl_dhrl.envs import plot_maze  # noqa: E402
+from torchrl_dhrl.planner import GraphPlanner  # noqa: E402
+
+__all__ = ["graph_path_to_goal", "plot_episode", "plot_success_curve"]
+
+
+def graph_path_to_goal(planner: GraphPlanner, state: torch.Tensor, goal: torch.Tensor) -> np.ndarray:
+    """The planner's route ``[K, goal_dim]`` from ``state`` (``[obs_dim]``) to ``goal``: landmarks, then goal."""
+    if not planner.has_graph:
+        return goal.reshape(1, -1).cpu().numpy()
+    plan = planner.plan(state.reshape(1, -1), goal.reshape(1, -1).to(state))
+    length = int(plan.length[0])
+    landmarks = planner.landmark_goals[plan.path[0, :length]].to(goal)
+    return torch.cat([landmarks, goal.reshape(1, -1)]).cpu().numpy()
+
+
+def plot_episode(
+    env_name: str, planner: GraphPlanner, rollout: TensorDictBase, path: str | Path, *, title: str | None = None
+) -> Path:
+    """Saves a top view with the graph (landmarks, edges), the route the graph plans from the start
+    to the test goal and the executed trajectory of the first episode of ``rollout`` (``[B, T]``)."""
+    episode = rollout[0]
+    start, goal = episode[0]["observation"], episode[0]["desired_goal"]
+    trajectory = torch.cat([episode[0]["achieved_goal"].reshape(1, -1), episode["next", "achieved_goal"]])
+    route = np.concatenate([episode[0]["achieved_goal"].reshape(1, -1).cpu().numpy(),
+                            graph_path_to_goal(planner, start, goal)])
+    has_graph = planner.has_graph
+    fig, ax = plt.subplots(figsize=(5, 5))
+    plot_maze(
+        env_name,
+        trajectory=trajectory.cpu().numpy(),
+        landmarks=planner.landmark_goals.cpu().numpy() if has_graph else None,
+        edges=planner.edges.cpu().numpy() if has_graph else None,
+        path=route,
+        goal=goal.cpu().numpy(),
+        ax=ax,
+        title=title,
+    )
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    fig.savefig(path, dpi=100, bbox_inches="tight")
+    plt.close(fig)
+    return path
+
+
+def plot_success_curve(
+    history: Sequence[Mapping[str, float]],
+    path: str | Path,
+    *,
+    title: str | None = None,
+    reference: Mapping[float, float] | None = None,
+) -> Path:
+    """Saves success rate (final state and any time) against env steps; ``reference`` maps steps to
+    the paper's success rates, drawn as crosses."""
+    steps = [h["env_steps"] for h in history]
+    fig, ax = plt.subplots(figsize=(6, 4))
+    ax.plot(steps, [h["eval/success"] for h in history], marker="o", label="final-state success")
+    ax.plot(steps, [h["eval/any_success"] for h in history], ls="--", alpha=0.7, label="any-time success")
+    if reference:
+        ax.scatter(list(reference), list(reference.values()), marker="x", color="k", zorder=3, label="paper")
+    ax.set_xlabel("env steps (warm-up included)")
+    ax.set_ylabel("success rate")
+    ax.set_ylim(-0.02, 1.02)
+    ax.grid(alpha=0.3)
+    ax.legend(loc="lower right")
+    if title:
+        ax.set_title(title)
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    fig.savefig(path, dpi=100, bbox_inches="tight")
+    plt.close(fig)
+    return path

@@ -1,0 +1,130 @@
+"""One optimisation step of a DHRL loss: sample, relabel, loss, Adam steps, delayed Polyak averaging."""
+
+from __future__ import annotations
+
+from collections.abc import Callable, Mapping
+
+import torch
+from tensordict import TensorDict, TensorDictBase
+from torchrl.data import ReplayBuffer
+from torchrl.objectives import LossModule, SoftUpdate
+
+__all__ = ["LossUpdater", "NonFiniteLossError"]
+
+
+class NonFiniteLossError(RuntimeError):
+    """A loss became NaN or infinite; training must stop (the last good checkpoint is kept)."""
+
+
+class LossUpdater:
+    """Runs optimisation steps of a DHRL loss (:class:`SQGCLoss` or :class:`HighLevelLoss`) from a buffer.
+
+    Each :meth:`step` samples a batch, applies ``relabel`` (hindsight goals and rewards, which
+    need the sample's storage indices and therefore run after ``rb.sample()``), evaluates the
+    loss, back-propagates the sum of its ``loss_*`` entries, steps the critic optimiser, steps
+    the actor optimiser only when the loss reports ``actor_updated`` (TD3's delayed actor: an
+    Adam step on a zero gradient would still move the weights through its momentum), and
+    applies Polyak averaging ``target <- polyak * target + (1 - polyak) * online`` every
+    ``target_update_interval`` steps (reference: 0.995 every 10 steps). A non-finite loss raises
+    :class:`NonFiniteLossError` before any parameter changes.
+
+    The number of steps taken is the updater's only state (``state_dict``); the optimisers and the
+    loss (with its target parameters) are checkpointed by their owners.
+
+    Args:
+        loss (LossModule): the loss, returning ``loss_*`` entries and a bool ``actor_updated``.
+        replay_buffer (ReplayBuffer): the buffer to sample from (its ``batch_size`` is used).
+        optimizers (dict): ``{"actor": ..., "critic": ...}`` as made by
+            :func:`~torchrl_dhrl.objectives.make_optimizers`.
+
+    Keyword Args:
+        relabel (callable, optional): ``relabel(sample) -> sample``. Defaults to ``None``.
+        polyak (float): Polyak coefficient of the target networks. Defaults to ``0.995``.
+        target_update_interval (int): steps between target updates. Defaults to ``10``.
+
+    Examples:
+        >>> import torch
+        >>> from tensordict import TensorDict
+        >>> from torchrl.data import LazyTensorStorage, TensorDictReplayBuffer
+        >>> from torchrl_dhrl.modules import GoalConditionedCritic, HighLevelActor
+        >>> from torchrl_dhrl.objectives import HighLevelLoss, make_optimizers
+        >>> low, high = [-4.0, -4.0], [20.0, 20.0]
+        >>> actor = HighLevelActor(6, 2, low, high, num_cells=(16,))
+        >>> critic = GoalConditionedCritic(6, 2, action_low=low, action_high=high, goal_key="desired_goal",
+        ...     action_key="subgoal", relative_goal=False, num_cells=(16,))
+        >>> loss = HighLevelLoss(actor, critic)
+        >>> rb = TensorDictReplayBuffer(storage=LazyTensorStorage(100), batch_size=8)
+        >>> _ = rb.extend(TensorDict({"observation": torch.randn(20, 6), "desired_goal": torch.randn(20, 2),
+        ...     "subgoal": torch.rand(20, 2) * 24 - 4, ("next", "observation"): torch.randn(20, 6),
+        ...     ("next", "reward"): -torch.ones(20, 1)}, [20]))
+        >>> updater = LossUpdater(loss, rb, make_optimizers(loss))
+        >>> metrics = updater.step()
+        >>> updater.num_updates, bool(torch.isfinite(metrics["loss_qvalue"]))
+        (1, True)
+    """
+
+    def __init__(
+        self,
+        loss: LossModule,
+        replay_buffer: ReplayBuffer,
+        optimizers: Mapping[str, torch.optim.Optimizer],
+        *,
+        relabel: Callable[[TensorDictBase], TensorDictBase] | None = None,
+        polyak: float = 0.995,
+        target_update_interval: int = 10,
+    ) -> None:
+        if set(optimizers) != {"actor", "critic"}:
+            raise ValueError(f"`optimizers` must have keys 'actor' and 'critic', got {sorted(optimizers)}.")
+        if not 0.0 <= polyak <= 1.0:
+            raise ValueError(f"`polyak` must be in [0, 1], got {polyak}.")
+        if target_update_interval < 1:
+            raise ValueError(f"`target_update_interval` must be >= 1, got {target_update_interval}.")
+        self.loss = loss
+        self.replay_buffer = replay_buffer
+        self.optimizers = dict(optimizers)
+        self.relabel = relabel
+        self.target_update_interval = int(target_update_interval)
+        self.target_updater = SoftUpdate(loss, eps=polyak)
+        self.num_updates = 0
+
+    def step(self) -> TensorDictBase:
+        """One update; returns the loss's output (detached) as a TensorDict of scalars."""
+        sample = self.replay_buffer.sample()
+        if self.relabel is not None:
+            sample = self.relabel(sample)
+        out = self.loss(sample)
+        losses = [value for key, value in out.items() if key.startswith("loss_")]
+        total = torch.stack(losses).sum()
+        if not torch.isfinite(total):
+            raise NonFiniteLossError(
+                f"{type(self.loss).__name__} produced a non-finite loss at update {self.num_updates}: "
+                + ", ".join(f"{k}={v.item():.4g}" for k, v in out.items() if k.startswith("loss_"))
+            )
+        for optimizer in self.optimizers.values():
+            optimizer.zero_grad(set_to_none=True)
+        total.backward()
+        self.optimizers["critic"].step()
+        if bool(out.get("actor_updated", True)):
+            self.optimizers["actor"].step()
+        self.num_updates += 1
+        if self.num_updates % self.target_update_interval == 0:
+            self.target_updater.step()
+        return out.detach()
+
+    def run(self, num_updates: int) -> TensorDictBase | None:
+        """Runs ``num_updates`` steps; returns the mean of each output entry (``None`` when 0)."""
+        if num_updates <= 0:
+            return None
+        outputs = [self.step() for _ in range(num_updates)]
+        stacked = torch.stack([o.select(*(k for k, v in o.items() if v.numel() == 1)) for o in outputs])
+        return TensorDict(
+            {key: value.float().mean() for key, value in stacked.items()}, batch_size=[]
+        )
+
+    def state_dict(self) -> dict:
+        return {"num_updates": self.num_updates, "optimizers": {k: o.state_dict() for k, o in self.optimizers.items()}}
+
+    def load_state_dict(self, state_dict: dict) -> None:
+        self.num_updates = int(state_dict["num_updates"])
+        for key, optimizer in self.optimizers.items():
+            optimizer.load_state_dict(state_dict["optimizers"][key])
