@@ -1,10 +1,10 @@
-"""Env-step throughput of the DHRL mazes: TorchRL API against raw MuJoCo.
+"""Env-step throughput of the DHRL environments (mazes and arms): TorchRL API against raw MuJoCo.
 
-For each maze, prints env steps per second (summed over the batch) of
+For each environment, prints env steps per second (summed over the batch) of
 
 * ``raw``: ``mujoco.mj_step(model, data, nstep=frame_skip)`` on one MjData of the same model with random
   controls written straight into ``MjData`` (the physics floor);
-* ``torchrl N=1`` and ``torchrl N=16``: :class:`~torchrl_dhrl.envs.MazeEnv` with ``num_envs`` 1 and 16,
+* ``torchrl N=1`` and ``torchrl N=16``: :class:`~torchrl_dhrl.envs.GoalEnv` with ``num_envs`` 1 and 16,
   random actions, ``env.step`` + ``step_mdp`` with automatic resets (``step_and_maybe_reset``);
 
 and the cost per env step relative to raw physics (``ratio`` = TorchRL time / raw time per env step).
@@ -12,7 +12,7 @@ The target is a ratio of at most 2 at ``num_envs=16`` for the ant mazes.
 
 Usage::
 
-    OMP_NUM_THREADS=1 python benchmarks/bench_envs.py [--steps 2000] [--mazes AntMaze PointMaze]
+    OMP_NUM_THREADS=1 python benchmarks/bench_envs.py [--steps 2000] [--envs AntMaze Reacher3D UR3Obstacle]
 """
 
 from __future__ import annotations
@@ -23,14 +23,14 @@ import time
 import mujoco
 import numpy as np
 import torch
-from torchrl_dhrl.envs import MAZE_NAMES, compile_maze_model, get_maze_spec, make_env
+from torchrl_dhrl.envs import ENV_NAMES, get_env_spec, make_env
 
 
 def raw_steps_per_second(name: str, steps: int, seed: int = 0) -> float:
     """Env steps/s of bare ``mj_step(nstep=frame_skip)`` with random controls on one MjData."""
-    spec = get_maze_spec(name)
+    spec = get_env_spec(name)
     agent = spec.agent
-    model = compile_maze_model(spec)
+    model = spec.compile_model()
     data = mujoco.MjData(model)
     data.qpos[:] = agent.init_qpos
     rng = np.random.default_rng(seed)
@@ -45,7 +45,7 @@ def raw_steps_per_second(name: str, steps: int, seed: int = 0) -> float:
 
 
 def torchrl_steps_per_second(name: str, num_envs: int, steps: int, seed: int = 0) -> float:
-    """Env steps/s (summed over the batch) of ``MazeEnv`` stepped with ``step_and_maybe_reset``."""
+    """Env steps/s (summed over the batch) of ``GoalEnv`` stepped with ``step_and_maybe_reset``."""
     env = make_env(name, num_envs=num_envs, seed=seed)
     torch.manual_seed(seed)
     batched_steps = max(1, steps // num_envs)
@@ -68,14 +68,16 @@ def main(argv: list[str] | None = None) -> None:
         description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter
     )
     parser.add_argument("--steps", type=int, default=2000, help="env steps per measurement")
-    parser.add_argument("--mazes", nargs="+", default=list(MAZE_NAMES), choices=list(MAZE_NAMES))
+    parser.add_argument(
+        "--envs", "--mazes", dest="envs", nargs="+", default=list(ENV_NAMES), choices=list(ENV_NAMES)
+    )
     args = parser.parse_args(argv)
     torch.set_num_threads(1)
 
-    header = f"{'maze':<18} {'raw':>9} {'N=1':>9} {'ratio':>6} {'N=16':>9} {'ratio':>6}   (env steps/s)"
+    header = f"{'env':<18} {'raw':>9} {'N=1':>9} {'ratio':>6} {'N=16':>9} {'ratio':>6}   (env steps/s)"
     print(header)
     print("-" * len(header))
-    for name in args.mazes:
+    for name in args.envs:
         raw = raw_steps_per_second(name, args.steps)
         single = torchrl_steps_per_second(name, 1, args.steps // 2)
         batched = torchrl_steps_per_second(name, 16, args.steps)

@@ -1,39 +1,65 @@
-"""The DHRL paper's MuJoCo mazes (installed as ``torchrl_dhrl.envs``).
+"""The DHRL paper's MuJoCo environments (installed as ``torchrl_dhrl.envs``).
 
-Five environments, each fully described by a :class:`MazeSpec` in :data:`MAZES`: ``PointMaze``,
-``AntMazeSmall``, ``AntMaze``, ``AntMazeBottleneck`` and ``AntMazeComplex``. The arenas are built
-programmatically from their grids with :mod:`dm_control.mjcf`; one batched simulation core
-(:class:`MazeSimulation`) serves two front ends:
+Seven environments, each fully described by a task spec (:class:`TaskSpec`) in :data:`ENVS`:
 
-* TorchRL: :func:`make_env` / :class:`MazeEnv`, a native batched ``EnvBase`` (float32 tensors);
-* Gymnasium: ids ``dhrl/<name>-v0`` (registered on import) / :class:`MazeGoalEnv`, goal-env convention
+* five mazes (:class:`MazeSpec` in :data:`MAZES`): ``PointMaze``, ``AntMazeSmall``, ``AntMaze``,
+  ``AntMazeBottleneck`` and ``AntMazeComplex``, whose arenas are built from their grids;
+* two robot-arm tasks (:class:`ArmSpec` in :data:`ARMS`): ``Reacher3D`` (a 7-DoF PR2-like arm) and
+  ``UR3Obstacle`` (a UR3 reaching behind thin boards), with 3-D end-effector goals.
+
+All models are built programmatically with :mod:`dm_control.mjcf`. One batched simulation core
+(:class:`GoalSimulation`) serves two front ends:
+
+* TorchRL: :func:`make_env` / :class:`GoalEnv`, a native batched ``EnvBase`` (float32 tensors);
+* Gymnasium: ids ``dhrl/<name>-v0`` (registered on import) / :class:`GymGoalEnv`, goal-env convention
   (float64 ``Dict`` observations, vectorised ``compute_reward``, ``info["is_success"]``).
 
-:func:`plot_maze` draws a maze from above with matplotlib (walls, start, test goals, trajectories,
-landmarks, edges and paths).
+:func:`plot_env` draws any environment with matplotlib (:func:`plot_maze` from above with walls, start
+and test goals; :func:`plot_arm` as a top, front or side projection with the arm, the boards and the goal
+region), with trajectories, landmarks, edges and paths in goal space. The ``Maze*`` names of the core
+classes (:class:`MazeSimulation`, :class:`MazeEnv`, :class:`MazeGoalEnv`) remain as aliases.
 """
 
-from .agents import AntAgent, PointAgent
+from .agents import AntAgent, MotorControl, PointAgent
 from .arena import build_maze_mjcf, compile_maze_model
-from .goals import BoxGoalSampler, FixedGoalSampler, FreeCellGoalSampler, GoalSampler
-from .gym_env import MazeGoalEnv, register_gym_envs
+from .arms import ARM_NAMES, ARMS, ArmSpec, build_arm_mjcf, get_arm_spec, ur3_boards
+from .goals import BoxGoalSampler, FixedGoalSampler, FreeCellGoalSampler, GaussianGoalSampler, GoalSampler
+from .gym_env import GymGoalEnv, MazeGoalEnv, register_gym_envs
 from .layouts import COMPLEX_MAZE, U_MAZE, MazeLayout, WallBox, bottleneck_walls
 from .mazes import MAZE_NAMES, MAZES, MazeSpec, get_maze_spec
-from .plotting import plot_maze
-from .simulation import MazeSimulation, sparse_reward
-from .torchrl_env import MazeEnv, make_env
+from .plotting import plot_arm, plot_env, plot_maze
+from .registry import ENV_NAMES, ENVS, get_env_spec
+from .robots import UR3_DH, PR2Arm, UR3Arm
+from .simulation import GoalSimulation, MazeSimulation, sparse_reward
+from .task import TaskSpec, lookup_spec
+from .torchrl_env import GoalEnv, MazeEnv, make_env
 
-#: The registered Gymnasium ids, ``dhrl/<name>-v0``.
-GYM_IDS: tuple[str, ...] = tuple(register_gym_envs())
+#: Every registered Gymnasium id, ``dhrl/<name>-v0``, mazes first.
+ALL_GYM_IDS: tuple[str, ...] = tuple(register_gym_envs())
+#: The mazes' Gymnasium ids.
+GYM_IDS: tuple[str, ...] = tuple(MAZES[name].gym_id for name in MAZE_NAMES)
+#: The arm tasks' Gymnasium ids.
+ARM_GYM_IDS: tuple[str, ...] = tuple(ARMS[name].gym_id for name in ARM_NAMES)
 
 __all__ = [
+    "ALL_GYM_IDS",
+    "ARMS",
+    "ARM_GYM_IDS",
+    "ARM_NAMES",
     "AntAgent",
+    "ArmSpec",
     "BoxGoalSampler",
     "COMPLEX_MAZE",
+    "ENVS",
+    "ENV_NAMES",
     "FixedGoalSampler",
     "FreeCellGoalSampler",
     "GYM_IDS",
+    "GaussianGoalSampler",
+    "GoalEnv",
     "GoalSampler",
+    "GoalSimulation",
+    "GymGoalEnv",
     "MAZES",
     "MAZE_NAMES",
     "MazeEnv",
@@ -41,15 +67,27 @@ __all__ = [
     "MazeLayout",
     "MazeSimulation",
     "MazeSpec",
+    "MotorControl",
+    "PR2Arm",
     "PointAgent",
+    "TaskSpec",
     "U_MAZE",
+    "UR3Arm",
+    "UR3_DH",
     "WallBox",
     "bottleneck_walls",
+    "build_arm_mjcf",
     "build_maze_mjcf",
     "compile_maze_model",
+    "get_arm_spec",
+    "get_env_spec",
     "get_maze_spec",
+    "lookup_spec",
     "make_env",
+    "plot_arm",
+    "plot_env",
     "plot_maze",
     "register_gym_envs",
     "sparse_reward",
+    "ur3_boards",
 ]

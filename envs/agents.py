@@ -22,7 +22,7 @@ with warnings.catch_warnings():
     warnings.filterwarnings("ignore", message=".*DISPLAY.*")
     from dm_control import mjcf
 
-__all__ = ["AntAgent", "PointAgent", "MazeAgent"]
+__all__ = ["AntAgent", "PointAgent", "MazeAgent", "MotorControl"]
 
 # Collision bits. Agent geoms carry ``contype=AGENT_CONTYPE, conaffinity=0`` so that two agent geoms never
 # collide (``(c1.contype & c2.conaffinity) | (c2.contype & c1.conaffinity) == 0``), while walls (and the
@@ -30,8 +30,41 @@ __all__ = ["AntAgent", "PointAgent", "MazeAgent"]
 AGENT_CONTYPE = 1
 
 
+class MotorControl:
+    """Mixin of agents driven by motors: an action is a vector of torques, clipped and written to ``ctrl``.
+
+    The agent provides ``ctrl_limit`` (the symmetric control range) and ``action_dim``.
+
+    Examples:
+        >>> import numpy as np
+        >>> from torchrl_dhrl.envs import AntAgent
+        >>> AntAgent().command(np.array([[40.0, -5.0, 0, 0, 0, 0, 0, -31.0]]), None).tolist()
+        [[30.0, -5.0, 0.0, 0.0, 0.0, 0.0, 0.0, -30.0]]
+    """
+
+    #: The MjData field :meth:`command` writes: motor torques.
+    control_field = "ctrl"
+
+    @property
+    def action_low(self) -> np.ndarray:
+        """Lower bound of the action box."""
+        return np.full(self.action_dim, -self.ctrl_limit)
+
+    @property
+    def action_high(self) -> np.ndarray:
+        """Upper bound of the action box."""
+        return np.full(self.action_dim, self.ctrl_limit)
+
+    def command(self, actions: np.ndarray, qpos: np.ndarray) -> np.ndarray:
+        """Motor torques for a batch of actions ``[N, action_dim]`` (clipped to the control range)."""
+        return np.clip(actions, -self.ctrl_limit, self.ctrl_limit)
+
+    def normalize_qpos(self, qpos: np.ndarray) -> None:
+        """Nothing to renormalise (no quaternion in ``qpos``)."""
+
+
 @dataclass(frozen=True)
-class AntAgent:
+class AntAgent(MotorControl):
     """The 8-motor quadruped of the HIRO-lineage ant mazes.
 
     A torso sphere with four legs; each leg is a fixed segment from the torso, a hip body (z-axis hinge) and
@@ -101,8 +134,6 @@ class AntAgent:
     frame_skip: int = 5
     integrator: str = "RK4"
 
-    #: The MjData field :meth:`command` writes: motor torques.
-    control_field = "ctrl"
     #: Legs in reference order 1-4: (name, in-plane direction, sign of the ankle range).
     legs = (
         ("front_left", (1.0, 1.0), 1.0),
@@ -122,16 +153,6 @@ class AntAgent:
     def action_dim(self) -> int:
         """Number of motors."""
         return 8
-
-    @property
-    def action_low(self) -> np.ndarray:
-        """Lower bound of the action box."""
-        return np.full(self.action_dim, -self.ctrl_limit)
-
-    @property
-    def action_high(self) -> np.ndarray:
-        """Upper bound of the action box."""
-        return np.full(self.action_dim, self.ctrl_limit)
 
     @property
     def touches_floor(self) -> bool:
@@ -214,10 +235,6 @@ class AntAgent:
         frame.pos = (0.0, 0.0, self.torso_height)
         frame.add("freejoint", name="root")
         return frame
-
-    def command(self, actions: np.ndarray, qpos: np.ndarray) -> np.ndarray:
-        """Motor torques for a batch of actions ``[N, 8]`` (clipped to the control range)."""
-        return np.clip(actions, -self.ctrl_limit, self.ctrl_limit)
 
     def normalize_qpos(self, qpos: np.ndarray) -> None:
         """Renormalises the torso quaternion ``qpos[..., 3:7]`` in place (after additive reset noise)."""

@@ -1,22 +1,28 @@
-"""Builds the MuJoCo model of a maze: floor, walls from the grid, goal marker, cameras, and the agent."""
+"""Builds MuJoCo scenes: shared pieces (floor, static boxes, goal marker, cameras) and the maze arenas."""
 
 from __future__ import annotations
-
-import functools
 
 import mujoco
 import numpy as np
 from dm_control import mjcf
 
 from .agents import AGENT_CONTYPE
+from .layouts import WallBox
 from .mazes import MazeSpec, get_maze_spec
+from .task import GOAL_BODY, OVERVIEW_CAMERA
 
-__all__ = ["build_maze_mjcf", "compile_maze_model", "OVERVIEW_CAMERA", "GOAL_BODY"]
+__all__ = [
+    "build_maze_mjcf",
+    "compile_maze_model",
+    "OVERVIEW_CAMERA",
+    "GOAL_BODY",
+    "new_scene",
+    "add_floor",
+    "add_boxes",
+    "add_goal_marker",
+    "add_camera",
+]
 
-#: Name of the fixed top-down camera that sees the whole maze.
-OVERVIEW_CAMERA = "overview"
-#: Name of the mocap body that marks the desired goal (visual only).
-GOAL_BODY = "goal_marker"
 # Offscreen framebuffer size (the largest render the model allows).
 _OFFSCREEN_SIZE = 1024
 _WALL_RGBA = (0.2, 0.2, 0.3, 1.0)
@@ -25,27 +31,9 @@ _GOAL_RGBA = (0.9, 0.1, 0.1, 0.6)
 _OVERVIEW_FOVY = 45.0
 
 
-def build_maze_mjcf(maze: str | MazeSpec) -> mjcf.RootElement:
-    """Builds the MJCF model of a maze programmatically from its grid.
-
-    The arena holds a floor plane, one box per wall cell (and the extra walls), a visual-only mocap goal
-    marker and a top-down camera; the agent is attached at the origin (the start cell's centre).
-
-    Args:
-        maze (str or MazeSpec): a maze name or spec.
-
-    Returns:
-        the :class:`dm_control.mjcf.RootElement` of the whole scene.
-
-    Examples:
-        >>> from torchrl_dhrl.envs import build_maze_mjcf
-        >>> root = build_maze_mjcf("AntMazeSmall")
-        >>> len([g for g in root.worldbody.find_all("geom") if g.name and g.name.startswith("wall")])
-        18
-    """
-    spec = get_maze_spec(maze)
-    agent = spec.agent
-    root = mjcf.RootElement(model=spec.name)
+def new_scene(name: str, agent) -> mjcf.RootElement:
+    """An empty scene with the agent's timestep and integrator, a headlight and a large offscreen buffer."""
+    root = mjcf.RootElement(model=name)
     root.compiler.angle = "radian"
     root.option.timestep = agent.timestep
     root.option.integrator = agent.integrator
@@ -55,10 +43,16 @@ def build_maze_mjcf(maze: str | MazeSpec) -> mjcf.RootElement:
     root.visual.headlight.ambient = (0.3, 0.3, 0.3)
     root.visual.headlight.diffuse = (0.3, 0.3, 0.3)
     root.visual.headlight.specular = (0.0, 0.0, 0.0)
+    return root
 
-    low, high = spec.layout.extent
-    center = (low + high) / 2
-    half_extent = float(np.max(high - low)) / 2
+
+def add_floor(
+    root: mjcf.RootElement, center, half_extent: float, *, height: float = 0.0, collides: bool
+) -> mjcf.Element:
+    """A checkered floor plane (square, ``half_extent`` wide) under a directional light.
+
+    ``collides`` makes agent geoms collide with it (``conaffinity``).
+    """
     root.asset.add(
         "texture",
         name="grid",
@@ -81,57 +75,104 @@ def build_maze_mjcf(maze: str | MazeSpec) -> mjcf.RootElement:
         diffuse=(0.6, 0.6, 0.6),
         castshadow=False,
     )
-    root.worldbody.add(
+    return root.worldbody.add(
         "geom",
         name="floor",
         type="plane",
         material="floor",
-        pos=(float(center[0]), float(center[1]), 0.0),
+        pos=(float(center[0]), float(center[1]), height),
         size=(half_extent, half_extent, 1.0),
         contype=0,
-        conaffinity=AGENT_CONTYPE if agent.touches_floor else 0,
+        conaffinity=AGENT_CONTYPE if collides else 0,
         condim=3,
     )
-    for k, box in enumerate(spec.layout.wall_boxes):
+
+
+def add_boxes(
+    root: mjcf.RootElement, boxes: tuple[WallBox, ...], *, prefix: str, rgba=_WALL_RGBA
+) -> list[mjcf.Element]:
+    """Static box geoms ``<prefix>_<k>`` that agents collide with (walls, boards)."""
+    geoms = []
+    for k, box in enumerate(boxes):
         extra = {} if box.friction is None else {"friction": box.friction}
-        root.worldbody.add(
-            "geom",
-            name=f"wall_{k}",
-            type="box",
-            pos=box.center,
-            size=box.half_size,
-            rgba=_WALL_RGBA,
-            contype=0,
-            conaffinity=AGENT_CONTYPE,
-            condim=3,
-            **extra,
+        geoms.append(
+            root.worldbody.add(
+                "geom",
+                name=f"{prefix}_{k}",
+                type="box",
+                pos=box.center,
+                size=box.half_size,
+                rgba=rgba,
+                contype=0,
+                conaffinity=AGENT_CONTYPE,
+                condim=3,
+                **extra,
+            )
         )
+    return geoms
+
+
+def add_goal_marker(root: mjcf.RootElement, radius: float) -> mjcf.Element:
+    """The visual-only mocap sphere :data:`GOAL_BODY` that the simulation moves to the desired goal."""
     marker = root.worldbody.add("body", name=GOAL_BODY, mocap=True, pos=(0.0, 0.0, 0.0))
     marker.add(
         "geom",
         name="goal_geom",
         type="sphere",
-        size=[spec.reward_threshold],
+        size=[radius],
         rgba=_GOAL_RGBA,
         contype=0,
         conaffinity=0,
         group=1,
     )
+    return marker
+
+
+def add_camera(root: mjcf.RootElement, name: str, pos, target=None, fovy: float = _OVERVIEW_FOVY):
+    """A fixed camera at ``pos`` looking at ``target`` (``None``: straight down, +y up in the image)."""
+    extra = {}
+    if target is not None:
+        forward = np.asarray(target, dtype=np.float64) - np.asarray(pos, dtype=np.float64)
+        forward /= np.linalg.norm(forward)
+        right = np.cross(forward, (0.0, 0.0, 1.0))
+        right /= np.linalg.norm(right)
+        up = np.cross(right, forward)
+        extra["xyaxes"] = tuple(float(v) for v in (*right, *up))
+    return root.worldbody.add("camera", name=name, pos=tuple(float(v) for v in pos), fovy=fovy, **extra)
+
+
+def build_maze_mjcf(maze: str | MazeSpec) -> mjcf.RootElement:
+    """Builds the MJCF model of a maze programmatically from its grid.
+
+    The arena holds a floor plane, one box per wall cell (and the extra walls), a visual-only mocap goal
+    marker and a top-down camera; the agent is attached at the origin (the start cell's centre).
+
+    Args:
+        maze (str or MazeSpec): a maze name or spec.
+
+    Returns:
+        the :class:`dm_control.mjcf.RootElement` of the whole scene.
+
+    Examples:
+        >>> from torchrl_dhrl.envs import build_maze_mjcf
+        >>> root = build_maze_mjcf("AntMazeSmall")
+        >>> len([g for g in root.worldbody.find_all("geom") if g.name and g.name.startswith("wall")])
+        18
+    """
+    spec = get_maze_spec(maze)
+    agent = spec.agent
+    root = new_scene(spec.name, agent)
+    low, high = spec.layout.extent
+    center = (low + high) / 2
+    half_extent = float(np.max(high - low)) / 2
+    add_floor(root, center, half_extent, collides=agent.touches_floor)
+    add_boxes(root, spec.layout.wall_boxes, prefix="wall")
+    add_goal_marker(root, spec.reward_threshold)
     # A camera looking straight down (-z) with +y up; high enough to see the whole grid.
     height = half_extent / np.tan(np.deg2rad(_OVERVIEW_FOVY) / 2) * 1.05
-    root.worldbody.add(
-        "camera",
-        name=OVERVIEW_CAMERA,
-        pos=(float(center[0]), float(center[1]), float(height)),
-        fovy=_OVERVIEW_FOVY,
-    )
+    add_camera(root, OVERVIEW_CAMERA, (center[0], center[1], height))
     agent.attach_to(root)
     return root
-
-
-@functools.cache
-def _maze_xml(maze: MazeSpec) -> str:
-    return build_maze_mjcf(maze).to_xml_string()
 
 
 def compile_maze_model(maze: str | MazeSpec) -> mujoco.MjModel:
@@ -143,5 +184,4 @@ def compile_maze_model(maze: str | MazeSpec) -> mujoco.MjModel:
         >>> model.nq, model.nv, model.nu, model.opt.timestep
         (15, 14, 8, 0.02)
     """
-    spec = get_maze_spec(maze)
-    return mujoco.MjModel.from_xml_string(_maze_xml(spec))
+    return get_maze_spec(maze).compile_model()

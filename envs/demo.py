@@ -1,11 +1,12 @@
-"""Demo: roll a random policy through every maze (TorchRL API) and draw the five maps in one PNG.
+"""Demo: roll a random policy through every environment (TorchRL API) and draw them.
 
 Usage::
 
     python -m torchrl_dhrl.envs.demo [--out DIR] [--num-envs N] [--steps T] [--seed S]
 
-The picture (``DIR/mazes.png``, ``DIR`` defaulting to ``outputs/mazes/``) shows each maze's walls, start,
-test goal(s) with their success radius, and the random trajectories.
+Two pictures in ``DIR`` (default ``outputs/mazes/``): ``mazes.png`` shows each maze's walls, start, test
+goal(s) with their success radius, and the random trajectories; ``arms.png`` shows Reacher3D and
+UR3Obstacle from above and from the front (arm, boards, test goal region, random end-effector paths).
 """
 
 from __future__ import annotations
@@ -16,13 +17,14 @@ from pathlib import Path
 
 import torch
 
+from .arms import ARM_NAMES
 from .mazes import MAZE_NAMES
-from .plotting import plot_maze
+from .plotting import plot_env, plot_maze
 from .torchrl_env import make_env
 
 
 def random_trajectories(name: str, *, num_envs: int, steps: int | None, seed: int) -> torch.Tensor:
-    """Agent (x, y) positions ``[num_envs, T + 1, 2]`` of one random-policy episode per env."""
+    """Achieved goals ``[num_envs, T + 1, goal_dim]`` of one random-policy episode per env."""
     env = make_env(name, num_envs=num_envs, seed=seed)
     torch.manual_seed(seed)
     steps = env.max_episode_steps if steps is None else steps
@@ -32,6 +34,7 @@ def random_trajectories(name: str, *, num_envs: int, steps: int | None, seed: in
 
 
 def main(argv: list[str] | None = None) -> Path:
+    """Writes ``mazes.png`` and ``arms.png`` and returns the path of ``mazes.png``."""
     parser = argparse.ArgumentParser(
         description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter
     )
@@ -57,7 +60,18 @@ def main(argv: list[str] | None = None) -> Path:
     path = args.out / "mazes.png"
     fig.savefig(path, dpi=110)
     plt.close(fig)
-    print(f"Wrote {path} ({time.perf_counter() - start:.1f} s)")
+
+    fig, axes = plt.subplots(len(ARM_NAMES), 2, figsize=(8, 4.4 * len(ARM_NAMES)))
+    for row, name in zip(axes, ARM_NAMES, strict=True):
+        xyz = random_trajectories(name, num_envs=args.num_envs, steps=args.steps, seed=args.seed)
+        for ax, view in zip(row, ("top", "front"), strict=True):
+            plot_env(name, trajectory=xyz, ax=ax, view=view)
+    axes[0, 0].legend(loc="lower left", fontsize=7)
+    fig.tight_layout()
+    arms_path = args.out / "arms.png"
+    fig.savefig(arms_path, dpi=110)
+    plt.close(fig)
+    print(f"Wrote {path} and {arms_path} ({time.perf_counter() - start:.1f} s)")
     return path
 
 

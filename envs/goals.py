@@ -1,13 +1,15 @@
-"""Goal distributions of the mazes: vectorised rejection samplers and fixed test goals.
+"""Goal distributions: vectorised rejection samplers and fixed test goals, in any goal dimension.
 
 Every sampler draws ``n`` goals at once from a :class:`numpy.random.Generator` (``sample(rng, n)``, a float64
-``[n, 2]`` array) and can say whether a point lies in its support (``contains(xy)``). Rejection samplers draw
-candidates in numpy batches sized from their acceptance rate, so one call costs a handful of vectorised
-draws, not one Python iteration per goal.
+``[n, goal_dim]`` array) and can say whether a point lies in its support (``contains(points)``). Rejection
+samplers draw candidates in numpy batches sized from their acceptance rate, so one call costs a handful of
+vectorised draws, not one Python iteration per goal.
 """
 
 from __future__ import annotations
 
+import math
+from collections.abc import Callable
 from dataclasses import dataclass
 from functools import cached_property
 
@@ -15,7 +17,7 @@ import numpy as np
 
 from .layouts import MazeLayout
 
-__all__ = ["GoalSampler", "BoxGoalSampler", "FreeCellGoalSampler", "FixedGoalSampler"]
+__all__ = ["GoalSampler", "BoxGoalSampler", "FreeCellGoalSampler", "FixedGoalSampler", "GaussianGoalSampler"]
 
 # Safety factor on the number of candidates drawn per rejection round (given the acceptance rate).
 _OVERSAMPLING = 1.25
@@ -23,18 +25,23 @@ _OVERSAMPLING = 1.25
 _MAX_ROUNDS = 1000
 
 
-def _rejection_sample(rng: np.random.Generator, n: int, low, high, accept, acceptance: float) -> np.ndarray:
-    """Draws ``n`` points uniformly in the box ``[low, high]`` kept by ``accept`` (vectorised rounds)."""
-    low, high = np.asarray(low, dtype=np.float64), np.asarray(high, dtype=np.float64)
-    out = np.empty((n, low.shape[0]), dtype=np.float64)
+def _rejection_sample(
+    rng: np.random.Generator,
+    n: int,
+    draw: Callable[[np.random.Generator, int], np.ndarray],
+    accept: Callable[[np.ndarray], np.ndarray],
+    acceptance: float,
+) -> np.ndarray:
+    """Draws ``n`` points from ``draw(rng, m) -> [m, D]`` kept by ``accept`` (vectorised rounds)."""
+    out = None
     filled = 0
     for _ in range(_MAX_ROUNDS):
-        if filled == n:
+        if out is not None and filled == n:
             return out
         remaining = n - filled
-        candidates = rng.uniform(
-            low, high, size=(int(np.ceil(remaining / acceptance * _OVERSAMPLING)) + 4, 2)
-        )
+        candidates = draw(rng, int(np.ceil(remaining / acceptance * _OVERSAMPLING)) + 4)
+        if out is None:
+            out = np.empty((n, candidates.shape[-1]), dtype=np.float64)
         kept = candidates[accept(candidates)][:remaining]
         out[filled : filled + len(kept)] = kept
         filled += len(kept)
@@ -43,25 +50,37 @@ def _rejection_sample(rng: np.random.Generator, n: int, low, high, accept, accep
     return out
 
 
+def _in_box(points: np.ndarray, low, high) -> np.ndarray:
+    """Whether each point of ``points [..., D]`` lies in the closed box ``[low, high]``."""
+    return ((points >= np.asarray(low)) & (points <= np.asarray(high))).all(axis=-1)
+
+
+def _uniform(low, high) -> Callable[[np.random.Generator, int], np.ndarray]:
+    low, high = np.asarray(low, dtype=np.float64), np.asarray(high, dtype=np.float64)
+    return lambda rng, m: rng.uniform(low, high, size=(m, low.shape[0]))
+
+
 class GoalSampler:
-    """Base class of goal samplers: ``sample(rng, n) -> [n, 2]`` and ``contains(xy) -> bool [...]``."""
+    """Base class of goal samplers: ``sample(rng, n) -> [n, D]`` and ``contains(points) -> bool [...]``."""
 
     def sample(self, rng: np.random.Generator, n: int) -> np.ndarray:
         raise NotImplementedError
 
-    def contains(self, xy) -> np.ndarray:
+    def contains(self, points) -> np.ndarray:
         raise NotImplementedError
 
 
 @dataclass(frozen=True)
 class BoxGoalSampler(GoalSampler):
-    """Uniform goals in a box, minus open rectangles.
+    """Uniform goals in a box, minus open boxes.
 
     Args:
-        low (tuple of float): ``(x_min, y_min)`` of the box.
-        high (tuple of float): ``(x_max, y_max)`` of the box.
-        excluded (tuple of tuples): open rectangles ``(x_min, x_max, y_min, y_max)`` to reject; use
-            ``-inf`` / ``inf`` for unbounded sides. Defaults to none.
+        low (tuple of float): lower corner of the box, ``(x_min, y_min[, z_min])`` (any dimension).
+        high (tuple of float): upper corner of the box.
+        excluded (tuple of tuples): open boxes to reject, ``(x_min, x_max, y_min, y_max[, z_min, z_max])``
+            (bounds interleaved per axis; a box with fewer axes than the goal space leaves the remaining
+            axes unbounded); use ``-inf`` / ``inf`` for unbounded sides. All have the same number of axes.
+            Defaults to none.
 
     Examples:
         >>> import numpy as np
@@ -72,42 +91,42 @@ class BoxGoalSampler(GoalSampler):
         ((1000, 2), True)
         >>> bool(((goals[:, 0] < 6) & (goals[:, 1] > 2) & (goals[:, 1] < 6)).any())
         False
+        >>> BoxGoalSampler((0.0, 0.0, 0.0), (1.0, 1.0, 1.0)).sample(np.random.default_rng(0), 4).shape
+        (4, 3)
     """
 
-    low: tuple[float, float]
-    high: tuple[float, float]
-    excluded: tuple[tuple[float, float, float, float], ...] = ()
+    low: tuple[float, ...]
+    high: tuple[float, ...]
+    excluded: tuple[tuple[float, ...], ...] = ()
 
-    def _in_excluded(self, xy: np.ndarray) -> np.ndarray:
+    def _in_excluded(self, points: np.ndarray) -> np.ndarray:
         if not self.excluded:
-            return np.zeros(xy.shape[:-1], dtype=bool)
-        rect = np.asarray(self.excluded, dtype=np.float64)  # [R, 4]
-        x, y = xy[..., 0, None], xy[..., 1, None]
-        inside = (x > rect[:, 0]) & (x < rect[:, 1]) & (y > rect[:, 2]) & (y < rect[:, 3])
-        return inside.any(axis=-1)
+            return np.zeros(points.shape[:-1], dtype=bool)
+        boxes = np.asarray(self.excluded, dtype=np.float64)  # [R, 2 * k]
+        k = boxes.shape[1] // 2
+        p = points[..., None, :k]
+        inside = (p > boxes[:, 0::2]) & (p < boxes[:, 1::2])
+        return inside.all(axis=-1).any(axis=-1)
 
     @cached_property
     def acceptance(self) -> float:
-        """Fraction of the box kept (rectangles assumed disjoint)."""
+        """Fraction of the box kept (excluded boxes assumed disjoint)."""
         low, high = np.asarray(self.low), np.asarray(self.high)
-        area = np.prod(high - low)
         removed = 0.0
-        for x0, x1, y0, y1 in self.excluded:
-            w = max(0.0, min(x1, high[0]) - max(x0, low[0]))
-            h = max(0.0, min(y1, high[1]) - max(y0, low[1]))
-            removed += w * h
-        return float(max(1.0 - removed / area, 1e-3))
+        for box in self.excluded:
+            k = len(box) // 2
+            overlap = np.minimum(box[1::2], high[:k]) - np.maximum(box[0::2], low[:k])
+            removed += float(np.prod(np.maximum(overlap, 0.0)) / np.prod(high[:k] - low[:k]))
+        return float(max(1.0 - removed, 1e-3))
 
     def sample(self, rng: np.random.Generator, n: int) -> np.ndarray:
         return _rejection_sample(
-            rng, n, self.low, self.high, lambda xy: ~self._in_excluded(xy), self.acceptance
+            rng, n, _uniform(self.low, self.high), lambda p: ~self._in_excluded(p), self.acceptance
         )
 
-    def contains(self, xy) -> np.ndarray:
-        xy = np.asarray(xy, dtype=np.float64)
-        low, high = np.asarray(self.low), np.asarray(self.high)
-        in_box = ((xy >= low) & (xy <= high)).all(axis=-1)
-        return in_box & ~self._in_excluded(xy)
+    def contains(self, points) -> np.ndarray:
+        points = np.asarray(points, dtype=np.float64)
+        return _in_box(points, self.low, self.high) & ~self._in_excluded(points)
 
 
 @dataclass(frozen=True)
@@ -141,12 +160,13 @@ class FreeCellGoalSampler(GoalSampler):
         return float(max(self.layout.in_free_cell(lattice).mean(), 1e-3))
 
     def sample(self, rng: np.random.Generator, n: int) -> np.ndarray:
-        return _rejection_sample(rng, n, self.low, self.high, self.layout.in_free_cell, self.acceptance)
+        return _rejection_sample(
+            rng, n, _uniform(self.low, self.high), self.layout.in_free_cell, self.acceptance
+        )
 
     def contains(self, xy) -> np.ndarray:
         xy = np.asarray(xy, dtype=np.float64)
-        in_box = ((xy >= np.asarray(self.low)) & (xy <= np.asarray(self.high))).all(axis=-1)
-        return in_box & self.layout.in_free_cell(xy)
+        return _in_box(xy, self.low, self.high) & self.layout.in_free_cell(xy)
 
 
 @dataclass(frozen=True)
@@ -154,7 +174,7 @@ class FixedGoalSampler(GoalSampler):
     """One of a fixed set of goals per draw, uniformly (a single goal is always returned as is).
 
     Args:
-        goals (tuple of (x, y)): the goals.
+        goals (tuple of tuples): the goals, ``(x, y)`` or ``(x, y, z)`` each.
 
     Examples:
         >>> import numpy as np
@@ -179,3 +199,59 @@ class FixedGoalSampler(GoalSampler):
         xy = np.asarray(xy, dtype=np.float64)
         goals = np.asarray(self.goals, dtype=np.float64)
         return (np.abs(xy[..., None, :] - goals).max(axis=-1) < 1e-9).any(axis=-1)
+
+
+@dataclass(frozen=True)
+class GaussianGoalSampler(GoalSampler):
+    """Independent Gaussian goals per axis, ``mean + N(0, std)``, truncated to a box by rejection.
+
+    The box keeps every goal inside the goal space (explicit goals are checked against the same bounds);
+    with the box several standard deviations wide the truncation is immaterial.
+
+    Args:
+        mean (tuple of float): per-axis mean.
+        std (tuple of float): per-axis standard deviation (positive).
+        low (tuple of float): lower corner of the truncation box.
+        high (tuple of float): upper corner of the truncation box.
+
+    Examples:
+        >>> import numpy as np
+        >>> from torchrl_dhrl.envs import GaussianGoalSampler
+        >>> sampler = GaussianGoalSampler((0.0, 0.25, 0.0), (0.1, 0.1, 0.1), (-1.0,) * 3, (1.0,) * 3)
+        >>> goals = sampler.sample(np.random.default_rng(0), 20000)
+        >>> np.abs(goals.mean(0) - (0.0, 0.25, 0.0)).max() < 0.005, goals.std(0).round(2).tolist()
+        (np.True_, [0.1, 0.1, 0.1])
+    """
+
+    mean: tuple[float, ...]
+    std: tuple[float, ...]
+    low: tuple[float, ...]
+    high: tuple[float, ...]
+
+    def __post_init__(self) -> None:
+        if not (len(self.mean) == len(self.std) == len(self.low) == len(self.high)):
+            raise ValueError("mean, std, low and high must have the same length.")
+        if min(self.std) <= 0:
+            raise ValueError(f"std must be positive, got {self.std}.")
+
+    @cached_property
+    def acceptance(self) -> float:
+        """Probability mass of the truncation box."""
+        mass = 1.0
+        for mu, sigma, lo, hi in zip(self.mean, self.std, self.low, self.high, strict=True):
+            cdf = [0.5 * (1.0 + math.erf((bound - mu) / (sigma * math.sqrt(2.0)))) for bound in (lo, hi)]
+            mass *= cdf[1] - cdf[0]
+        return float(max(mass, 1e-3))
+
+    def sample(self, rng: np.random.Generator, n: int) -> np.ndarray:
+        mean, std = np.asarray(self.mean, dtype=np.float64), np.asarray(self.std, dtype=np.float64)
+        return _rejection_sample(
+            rng,
+            n,
+            lambda r, m: mean + std * r.standard_normal((m, mean.shape[0])),
+            self.contains,
+            self.acceptance,
+        )
+
+    def contains(self, points) -> np.ndarray:
+        return _in_box(np.asarray(points, dtype=np.float64), self.low, self.high)

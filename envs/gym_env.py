@@ -1,4 +1,4 @@
-"""Gymnasium goal-env front end of the DHRL mazes, and the registration of their ids."""
+"""Gymnasium goal-env front end of every DHRL task, and the registration of their ids."""
 
 from __future__ import annotations
 
@@ -8,37 +8,39 @@ import gymnasium as gym
 import numpy as np
 from gymnasium import spaces
 
-from .arena import OVERVIEW_CAMERA
-from .mazes import MAZES, MazeSpec, get_maze_spec
-from .simulation import MazeSimulation
+from .registry import ENVS, get_env_spec
+from .simulation import GoalSimulation
+from .task import OVERVIEW_CAMERA, TaskSpec
 
-__all__ = ["MazeGoalEnv", "register_gym_envs"]
+__all__ = ["GymGoalEnv", "MazeGoalEnv", "register_gym_envs"]
 
 
-class MazeGoalEnv(gym.Env):
-    """One DHRL maze as a Gymnasium goal-conditioned env (gymnasium-robotics convention).
+class GymGoalEnv(gym.Env):
+    """One DHRL task as a Gymnasium goal-conditioned env (gymnasium-robotics convention).
 
-    Observations are a ``Dict`` of float64 arrays: ``"observation"`` (``qpos ++ qvel``, 29-D for the ant,
-    6-D for the point), ``"achieved_goal"`` (the agent's x, y) and ``"desired_goal"``. The reward is sparse,
-    ``compute_reward(achieved_goal, desired_goal, info)`` (``-1``, or ``0`` within 0.5 of the goal),
-    vectorised over leading dims so that HER implementations (e.g. Stable-Baselines3) can relabel;
-    ``info["is_success"]`` tells whether the agent is within the evaluation threshold (2.5 or 5) of the goal.
+    Observations are a ``Dict`` of float64 arrays: ``"observation"`` (mazes: ``qpos ++ qvel``, 29-D for the
+    ant, 6-D for the point; Reacher3D: ``qpos ++ goal ++ qvel``, 17-D; UR3Obstacle: ``flange position ++
+    qpos ++ qvel``, 15-D), ``"achieved_goal"`` (a maze agent's x, y or an arm's end-effector position) and
+    ``"desired_goal"``. The reward is sparse, ``compute_reward(achieved_goal, desired_goal, info)`` (``-1``,
+    or ``0`` within the reward threshold of the goal: 0.5 in the mazes, 0.25 for Reacher3D, 0.08 for
+    UR3Obstacle), vectorised over leading dims so that HER implementations (e.g. Stable-Baselines3) can
+    relabel; ``info["is_success"]`` tells whether the agent is within the evaluation threshold of the goal.
     Episodes never terminate; they are truncated at ``max_episode_steps`` (the registered ids also carry
     the same time limit for Gymnasium's ``TimeLimit`` wrapper).
 
     Args:
-        maze (str or MazeSpec): one of :data:`~torchrl_dhrl.envs.MAZE_NAMES`.
+        task (str or TaskSpec): one of :data:`~torchrl_dhrl.envs.ENV_NAMES`.
 
     Keyword Args:
-        eval (bool): draw the fixed test goals instead of train goals (AntMazeComplex: one of its four per
+        eval (bool): draw test goals instead of train goals (AntMazeComplex: one of its four per
             episode). Defaults to ``False``; ``reset(options={"eval": ...})`` overrides it per episode.
-        max_episode_steps (int, optional): time limit; defaults to the maze's episode length.
-        render_mode (str, optional): ``"rgb_array"`` renders the top-down view offscreen (needs
+        max_episode_steps (int, optional): time limit; defaults to the task's episode length.
+        render_mode (str, optional): ``"rgb_array"`` renders the overview camera offscreen (needs
             ``MUJOCO_GL=egl`` or ``osmesa``).
         width (int): render width. Defaults to ``480``.
         height (int): render height. Defaults to ``480``.
 
-    ``reset(options={"goal": (x, y)})`` sets the goal explicitly (it must lie inside the arena).
+    ``reset(options={"goal": goal})`` sets the goal explicitly (it must lie inside the goal bounds).
 
     Examples:
         >>> import gymnasium as gym
@@ -50,13 +52,17 @@ class MazeGoalEnv(gym.Env):
         >>> obs, reward, terminated, truncated, info = env.step(env.action_space.sample())
         >>> bool(reward == env.unwrapped.compute_reward(obs["achieved_goal"], obs["desired_goal"], info))
         True
+        >>> arm = gym.make("dhrl/Reacher3D-v0")
+        >>> obs, info = arm.reset(seed=0, options={"goal": (0.0, 0.3, 0.1)})
+        >>> obs["observation"].shape, obs["desired_goal"].tolist(), obs["observation"][7:10].tolist()
+        ((17,), [0.0, 0.3, 0.1], [0.0, 0.3, 0.1])
     """
 
     metadata = {"render_modes": ["rgb_array"], "render_fps": 10}
 
     def __init__(
         self,
-        maze: str | MazeSpec,
+        task: str | TaskSpec,
         *,
         eval: bool = False,  # noqa: A002 - the documented option name
         max_episode_steps: int | None = None,
@@ -64,22 +70,22 @@ class MazeGoalEnv(gym.Env):
         width: int = 480,
         height: int = 480,
     ) -> None:
-        spec = get_maze_spec(maze)
+        spec = get_env_spec(task)
         if render_mode is not None and render_mode not in self.metadata["render_modes"]:
             raise ValueError(
                 f"render_mode must be None or one of {self.metadata['render_modes']}, got {render_mode!r}."
             )
-        self._sim = MazeSimulation(spec, 1, max_episode_steps=max_episode_steps, eval_goals=eval)
+        self._sim = GoalSimulation(spec, 1, max_episode_steps=max_episode_steps, eval_goals=eval)
         self.render_mode = render_mode
         self.width, self.height = width, height
         self.metadata = {**self.metadata, "render_fps": int(round(1.0 / self._sim.dt))}
-        agent = spec.agent
+        agent, dim = spec.agent, spec.goal_dim
         low, high = spec.goal_bounds
         self.observation_space = spaces.Dict(
             {
-                "observation": spaces.Box(-np.inf, np.inf, shape=(agent.obs_dim,), dtype=np.float64),
-                "achieved_goal": spaces.Box(-np.inf, np.inf, shape=(2,), dtype=np.float64),
-                "desired_goal": spaces.Box(low, high, shape=(2,), dtype=np.float64),
+                "observation": spaces.Box(-np.inf, np.inf, shape=(spec.obs_dim,), dtype=np.float64),
+                "achieved_goal": spaces.Box(-np.inf, np.inf, shape=(dim,), dtype=np.float64),
+                "desired_goal": spaces.Box(low, high, shape=(dim,), dtype=np.float64),
             }
         )
         self.action_space = spaces.Box(
@@ -87,12 +93,15 @@ class MazeGoalEnv(gym.Env):
         )
 
     @property
-    def maze(self) -> MazeSpec:
-        """The :class:`~torchrl_dhrl.envs.MazeSpec` of this environment."""
+    def task(self) -> TaskSpec:
+        """The spec of this environment."""
         return self._sim.spec
 
+    #: The former name of :attr:`task`.
+    maze = task
+
     @property
-    def simulation(self) -> MazeSimulation:
+    def simulation(self) -> GoalSimulation:
         """The underlying simulation core (one env)."""
         return self._sim
 
@@ -124,13 +133,13 @@ class MazeGoalEnv(gym.Env):
         action = np.asarray(action, dtype=np.float64)
         if action.shape != self.action_space.shape:
             raise ValueError(
-                f"{self.maze.name} expects an action of shape {self.action_space.shape}, got {action.shape}."
+                f"{self.task.name} expects an action of shape {self.action_space.shape}, got {action.shape}."
             )
         reward, success, truncated = self._sim.step(action[None])
         return self._get_obs(), float(reward[0]), False, bool(truncated[0]), {"is_success": bool(success[0])}
 
     def compute_reward(self, achieved_goal, desired_goal, info=None) -> np.ndarray:
-        """Sparse reward of goal pairs over leading dims: ``0`` within 0.5 of the goal, else ``-1``."""
+        """Sparse reward of goal pairs over leading dims: ``0`` within the reward threshold, else ``-1``."""
         return self._sim.compute_reward(achieved_goal, desired_goal)
 
     def render(self):
@@ -142,23 +151,28 @@ class MazeGoalEnv(gym.Env):
         self._sim.close()
 
 
-def register_gym_envs() -> list[str]:
-    """Registers ``dhrl/<name>-v0`` for every maze (idempotent) and returns the ids.
+#: The former name of :class:`GymGoalEnv`, kept for the maze code that uses it.
+MazeGoalEnv = GymGoalEnv
 
-    Each id carries the maze's episode length as ``max_episode_steps`` (Gymnasium's ``TimeLimit``).
+
+def register_gym_envs() -> list[str]:
+    """Registers ``dhrl/<name>-v0`` for every environment (idempotent) and returns the ids, mazes first.
+
+    Each id carries the task's episode length as ``max_episode_steps`` (Gymnasium's ``TimeLimit``).
 
     Examples:
         >>> from torchrl_dhrl.envs import register_gym_envs
-        >>> register_gym_envs()[0]
-        'dhrl/PointMaze-v0'
+        >>> ids = register_gym_envs()
+        >>> ids[0], ids[-2:]
+        ('dhrl/PointMaze-v0', ['dhrl/Reacher3D-v0', 'dhrl/UR3Obstacle-v0'])
     """
     ids = []
-    for name, spec in MAZES.items():
+    for name, spec in ENVS.items():
         if spec.gym_id not in gym.registry:
             gym.register(
                 id=spec.gym_id,
-                entry_point="torchrl_dhrl.envs.gym_env:MazeGoalEnv",
-                kwargs={"maze": name},
+                entry_point="torchrl_dhrl.envs.gym_env:GymGoalEnv",
+                kwargs={"task": name},
                 max_episode_steps=spec.episode_length,
             )
         ids.append(spec.gym_id)

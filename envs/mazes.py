@@ -9,13 +9,16 @@ import numpy as np
 from .agents import AntAgent, PointAgent
 from .goals import BoxGoalSampler, FixedGoalSampler, FreeCellGoalSampler, GoalSampler
 from .layouts import COMPLEX_MAZE, U_MAZE, MazeLayout, bottleneck_walls
+from .task import TaskSpec, lookup_spec
 
 __all__ = ["MazeSpec", "MAZES", "MAZE_NAMES", "get_maze_spec"]
 
 
 @dataclass(frozen=True)
-class MazeSpec:
-    """Everything that defines one maze environment.
+class MazeSpec(TaskSpec):
+    """Everything that defines one maze environment (a :class:`~torchrl_dhrl.envs.TaskSpec`).
+
+    The observation is ``qpos ++ qvel`` of the agent and the achieved goal its (x, y), ``qpos[:2]``.
 
     Args:
         name (str): the environment name (e.g. ``"AntMaze"``); the Gymnasium id is ``dhrl/<name>-v0``.
@@ -47,11 +50,6 @@ class MazeSpec:
     reward_threshold: float = 0.5
 
     @property
-    def gym_id(self) -> str:
-        """The registered Gymnasium id."""
-        return f"dhrl/{self.name}-v0"
-
-    @property
     def test_goal_sampler(self) -> FixedGoalSampler:
         """Sampler over :attr:`test_goals` (uniform choice of one per episode)."""
         return FixedGoalSampler(self.test_goals)
@@ -60,6 +58,22 @@ class MazeSpec:
     def goal_bounds(self) -> tuple[np.ndarray, np.ndarray]:
         """``(low, high)`` of the goal space: the arena inside the outer walls."""
         return self.layout.bounds
+
+    @property
+    def reference_goal(self) -> np.ndarray:
+        """The first test goal."""
+        return np.asarray(self.test_goals[0], dtype=np.float64)
+
+    @property
+    def obs_dim(self) -> int:
+        """Size of the observation (``qpos ++ qvel``: 29 for the ant, 6 for the point)."""
+        return self.agent.obs_dim
+
+    def build_mjcf(self):
+        """The maze scene, see :func:`~torchrl_dhrl.envs.build_maze_mjcf`."""
+        from .arena import build_maze_mjcf
+
+        return build_maze_mjcf(self)
 
 
 def _u_maze_train_goals(scale: float) -> BoxGoalSampler:
@@ -146,13 +160,4 @@ def get_maze_spec(maze: str | MazeSpec) -> MazeSpec:
         >>> get_maze_spec("dhrl/PointMaze-v0").agent.action_dim
         2
     """
-    if isinstance(maze, MazeSpec):
-        return maze
-    if not isinstance(maze, str):
-        raise TypeError(f"maze must be a maze name or a MazeSpec, got {type(maze).__name__}.")
-    name = maze
-    if name.startswith("dhrl/") and name.endswith("-v0"):
-        name = name[len("dhrl/") : -len("-v0")]
-    if name not in MAZES:
-        raise ValueError(f"Unknown maze {maze!r}. Valid names: {', '.join(MAZE_NAMES)}.")
-    return MAZES[name]
+    return lookup_spec(maze, MAZES, MazeSpec, "maze")

@@ -1,9 +1,10 @@
 """The batched simulation core shared by the Gymnasium and the TorchRL environments.
 
-:class:`MazeSimulation` holds one :class:`mujoco.MjModel` and ``num_envs`` :class:`mujoco.MjData`, with
-preallocated float64 numpy buffers for the observations and goals. Both front ends
-(:class:`~torchrl_dhrl.envs.MazeGoalEnv` and :class:`~torchrl_dhrl.envs.MazeEnv`) only convert inputs
-and outputs; every rule of the task (reset noise, goal sampling, reward, success, time limit) lives here.
+:class:`GoalSimulation` holds one :class:`mujoco.MjModel` and ``num_envs`` :class:`mujoco.MjData` of any
+task (:class:`~torchrl_dhrl.envs.TaskSpec`: the mazes and the arms), with preallocated float64 numpy
+buffers for the observations and goals. Both front ends (:class:`~torchrl_dhrl.envs.GymGoalEnv` and
+:class:`~torchrl_dhrl.envs.GoalEnv`) only convert inputs and outputs; every rule of the task (reset noise,
+goal sampling, observation, achieved goal, reward, success, time limit) lives here and in the task spec.
 """
 
 from __future__ import annotations
@@ -11,13 +12,14 @@ from __future__ import annotations
 import mujoco
 import numpy as np
 
-from .arena import GOAL_BODY, OVERVIEW_CAMERA, compile_maze_model
-from .mazes import MazeSpec, get_maze_spec
+from .registry import get_env_spec
+from .task import GOAL_BODY, OVERVIEW_CAMERA, TaskSpec
 
-__all__ = ["MazeSimulation", "sparse_reward"]
+__all__ = ["GoalSimulation", "MazeSimulation", "sparse_reward"]
 
-# Goals set explicitly may sit this far outside the arena bounds (float round-off of user inputs).
+# Goals set explicitly may sit this far outside the goal bounds (float round-off of user inputs).
 _GOAL_BOUNDS_TOLERANCE = 1e-6
+_AXES = "xyz"
 
 
 def sparse_reward(achieved_goal, desired_goal, threshold: float = 0.5) -> np.ndarray:
@@ -38,85 +40,113 @@ def sparse_reward(achieved_goal, desired_goal, threshold: float = 0.5) -> np.nda
     return np.where(distance > threshold, -1.0, 0.0)
 
 
-class MazeSimulation:
-    """Batched MuJoCo simulation of one maze: ``num_envs`` independent episodes on one model.
+class GoalSimulation:
+    """Batched MuJoCo simulation of one task: ``num_envs`` independent episodes on one model.
 
-    Observations are simulated and stored in float64: ``observation`` is ``qpos ++ qvel``
-    (29-D for the ant, 6-D for the point), ``achieved_goal`` is its first two entries (the agent's x, y).
-    Each env has its own :class:`numpy.random.Generator` (``rngs[i]``, spawned from one
+    Observations are simulated and stored in float64. ``observation`` concatenates the parts of the task's
+    :attr:`~torchrl_dhrl.envs.TaskSpec.observation_layout` (mazes: ``qpos ++ qvel``, 29-D for the ant and
+    6-D for the point; Reacher3D: ``qpos ++ goal ++ qvel``, 17-D; UR3Obstacle: ``achieved ++ qpos ++ qvel``,
+    15-D). ``achieved_goal`` is the maze agent's (x, y) (``qpos[:2]``) or the arm's end-effector site
+    position, recomputed from the new joint angles after every step (``mj_kinematics``), so it always
+    matches ``qpos``. Each env has its own :class:`numpy.random.Generator` (``rngs[i]``, spawned from one
     :class:`numpy.random.SeedSequence` by :meth:`seed`), used for its reset noise and goals, so an env's
     episodes do not depend on which other envs reset at the same time. The RNG state lives in this object.
 
     Args:
-        maze (str or MazeSpec): the maze name (see :data:`~torchrl_dhrl.envs.MAZE_NAMES`) or spec.
+        task (str or TaskSpec): the environment name (see :data:`~torchrl_dhrl.envs.ENV_NAMES`) or spec.
         num_envs (int): number of parallel episodes. Defaults to ``1``.
 
     Keyword Args:
-        max_episode_steps (int, optional): time limit in env steps; defaults to the maze's episode length.
-        eval_goals (bool): if ``True``, resets draw the fixed test goals instead of train goals.
-            Defaults to ``False``.
+        max_episode_steps (int, optional): time limit in env steps; defaults to the task's episode length.
+        eval_goals (bool): if ``True``, resets draw test goals instead of train goals. Defaults to ``False``.
         seed (int, optional): seed of the per-env RNG streams (``None``: fresh OS entropy).
 
     Examples:
         >>> import numpy as np
-        >>> from torchrl_dhrl.envs import MazeSimulation
-        >>> sim = MazeSimulation("AntMazeSmall", num_envs=2, seed=0)
+        >>> from torchrl_dhrl.envs import GoalSimulation
+        >>> sim = GoalSimulation("AntMazeSmall", num_envs=2, seed=0)
         >>> sim.reset()
         >>> sim.observation.shape, sim.desired_goal.shape
         ((2, 29), (2, 2))
         >>> reward, success, truncated = sim.step(np.zeros((2, 8)))
         >>> reward.shape, sim.step_count.tolist()
         ((2,), [1, 1])
+        >>> arm = GoalSimulation("Reacher3D", seed=0)
+        >>> arm.reset()
+        >>> arm.observation.shape, bool((arm.observation[0, 7:10] == arm.desired_goal[0]).all())
+        ((1, 17), True)
     """
 
     def __init__(
         self,
-        maze: str | MazeSpec,
+        task: str | TaskSpec,
         num_envs: int = 1,
         *,
         max_episode_steps: int | None = None,
         eval_goals: bool = False,
         seed: int | None = None,
     ) -> None:
-        self.spec = get_maze_spec(maze)
+        self.spec = spec = get_env_spec(task)
         if not isinstance(num_envs, int) or isinstance(num_envs, bool) or num_envs < 1:
             raise ValueError(f"num_envs must be a positive integer, got {num_envs!r}.")
         if max_episode_steps is None:
-            max_episode_steps = self.spec.episode_length
+            max_episode_steps = spec.episode_length
         if not isinstance(max_episode_steps, int) or max_episode_steps < 1:
             raise ValueError(f"max_episode_steps must be a positive integer, got {max_episode_steps!r}.")
         self.num_envs = num_envs
         self.max_episode_steps = max_episode_steps
         self.eval_goals = bool(eval_goals)
-        self.agent = self.spec.agent
+        self.agent = spec.agent
 
-        self.model = compile_maze_model(self.spec)
-        self.datas = [mujoco.MjData(self.model) for _ in range(num_envs)]
-        self._nq, self._nv = self.model.nq, self.model.nv
-        if self._nq + self._nv != self.agent.obs_dim:
-            raise RuntimeError(f"Model has nq + nv = {self._nq + self._nv}, expected {self.agent.obs_dim}.")
-        self._goal_mocap = int(self.model.body(GOAL_BODY).mocapid[0])
+        self.model = model = spec.compile_model()
+        self.datas = [mujoco.MjData(model) for _ in range(num_envs)]
+        self._nq, self._nv = model.nq, model.nv
+        self._make_layout()
+        self._site = None if spec.achieved_goal_site is None else model.site(spec.achieved_goal_site).id
+        self._goal_mocap = int(model.body(GOAL_BODY).mocapid[0])
         self._init_qpos = np.asarray(self.agent.init_qpos, dtype=np.float64)
-        self._goal_low, self._goal_high = self.spec.goal_bounds
+        self._goal_low, self._goal_high = spec.goal_bounds
         self._renderer: mujoco.Renderer | None = None
 
-        self.observation = np.zeros((num_envs, self.agent.obs_dim), dtype=np.float64)
-        self.desired_goal = np.zeros((num_envs, 2), dtype=np.float64)
+        goal_dim = spec.goal_dim
+        self.observation = np.zeros((num_envs, spec.obs_dim), dtype=np.float64)
+        self.achieved_goal = np.zeros((num_envs, goal_dim), dtype=np.float64)
+        self.desired_goal = np.zeros((num_envs, goal_dim), dtype=np.float64)
         self.step_count = np.zeros(num_envs, dtype=np.int64)
         self.rngs: list[np.random.Generator] = []
         self.seed(seed)
         # A valid, noise-free state until the first reset (it consumes no randomness).
-        for i, data in enumerate(self.datas):
-            data.qpos[:] = self._init_qpos
-            mujoco.mj_forward(self.model, data)
-            self._read_state(i, data)
-        self.desired_goal[:] = np.asarray(self.spec.test_goals[0])
+        self.desired_goal[:] = spec.reference_goal
+        for i in range(num_envs):
+            self.set_state(i, self._init_qpos)
+
+    def _make_layout(self) -> None:
+        """Slices of the observation parts, checked against the model and the task's ``obs_dim``."""
+        sizes = {
+            "qpos": self._nq,
+            "qvel": self._nv,
+            "goal": self.spec.goal_dim,
+            "achieved": self.spec.goal_dim,
+        }
+        self._parts: list[tuple[slice, str]] = []
+        offset = 0
+        for part in self.spec.observation_layout:
+            if part not in sizes:
+                raise ValueError(f"Unknown observation part {part!r}; valid parts: {', '.join(sizes)}.")
+            self._parts.append((slice(offset, offset + sizes[part]), part))
+            offset += sizes[part]
+        if offset != self.spec.obs_dim or "qpos" not in self.spec.observation_layout:
+            raise RuntimeError(
+                f"{self.spec.name}: the layout {self.spec.observation_layout} gives {offset} entries for "
+                f"nq = {self._nq}, nv = {self._nv}, expected obs_dim = {self.spec.obs_dim} including qpos."
+            )
+        self._qpos_slice = dict((part, sl) for sl, part in self._parts)["qpos"]
 
     # ------------------------------------------------------------------ properties
     @property
     def obs_dim(self) -> int:
         """Size of ``observation``."""
-        return self.agent.obs_dim
+        return self.spec.obs_dim
 
     @property
     def action_dim(self) -> int:
@@ -124,9 +154,9 @@ class MazeSimulation:
         return self.agent.action_dim
 
     @property
-    def achieved_goal(self) -> np.ndarray:
-        """``[num_envs, 2]`` view of the agents' (x, y)."""
-        return self.observation[:, :2]
+    def goal_dim(self) -> int:
+        """Size of a goal (2 for the mazes, 3 for the arms)."""
+        return self.spec.goal_dim
 
     @property
     def dt(self) -> float:
@@ -140,12 +170,15 @@ class MazeSimulation:
         self.rngs = [np.random.default_rng(child) for child in children]
 
     def check_goals(self, goals, count: int) -> np.ndarray:
-        """Validates explicit goals: ``[count, 2]`` (or one ``[2]`` goal for all), finite, inside the arena."""
+        """Validates explicit goals: ``[count, goal_dim]`` (or one goal for all), finite, inside the bounds."""
+        dim = self.goal_dim
         goals = np.asarray(goals, dtype=np.float64)
-        if goals.shape == (2,):
-            goals = np.broadcast_to(goals, (count, 2))
-        if goals.shape != (count, 2):
-            raise ValueError(f"Expected goals of shape ({count}, 2) or (2,), got {tuple(goals.shape)}.")
+        if goals.shape == (dim,):
+            goals = np.broadcast_to(goals, (count, dim))
+        if goals.shape != (count, dim):
+            raise ValueError(
+                f"Expected goals of shape ({count}, {dim}) or ({dim},), got {tuple(goals.shape)}."
+            )
         if not np.isfinite(goals).all():
             raise ValueError("Goals must be finite.")
         outside = (
@@ -153,9 +186,12 @@ class MazeSimulation:
             | (goals > self._goal_high + _GOAL_BOUNDS_TOLERANCE)
         ).any(axis=-1)
         if outside.any():
+            ranges = ", ".join(
+                f"{_AXES[k]} in [{self._goal_low[k]}, {self._goal_high[k]}]" for k in range(dim)
+            )
             raise ValueError(
                 f"Goal {goals[outside][0].tolist()} lies outside the {self.spec.name} arena: goals must be in "
-                f"x in [{self._goal_low[0]}, {self._goal_high[0]}], y in [{self._goal_low[1]}, {self._goal_high[1]}]."
+                f"{ranges}."
             )
         return goals
 
@@ -173,18 +209,84 @@ class MazeSimulation:
         return actions
 
     # ------------------------------------------------------------------ dynamics
-    def _read_state(self, i: int, data: mujoco.MjData) -> None:
-        self.observation[i, : self._nq] = data.qpos
-        self.observation[i, self._nq :] = data.qvel
+    def _observe(self, i: int, data: mujoco.MjData) -> None:
+        """Fills row ``i`` of ``achieved_goal`` and ``observation`` from ``data`` (positions already set)."""
+        achieved = self.achieved_goal[i]
+        if self._site is None:
+            achieved[:] = data.qpos[: achieved.shape[0]]
+        else:
+            mujoco.mj_kinematics(self.model, data)  # site positions of the new joint angles
+            achieved[:] = data.site_xpos[self._site]
+        observation = self.observation[i]
+        for sl, part in self._parts:
+            if part == "qpos":
+                observation[sl] = data.qpos
+            elif part == "qvel":
+                observation[sl] = data.qvel
+            elif part == "goal":
+                observation[sl] = self.desired_goal[i]
+            else:
+                observation[sl] = achieved
+
+    def set_state(self, index: int, qpos, qvel=None) -> None:
+        """Puts env ``index`` in the state ``(qpos, qvel)`` (zero velocities by default) and observes it.
+
+        The goal and the step count are left as they are; handy for scripted tests and demonstrations.
+        """
+        if not 0 <= index < self.num_envs:
+            raise ValueError(f"index must be in [0, {self.num_envs}), got {index}.")
+        data = self.datas[index]
+        data.qpos[:] = qpos
+        data.qvel[:] = 0.0 if qvel is None else qvel
+        data.mocap_pos[self._goal_mocap, : self.goal_dim] = self.desired_goal[index]
+        mujoco.mj_forward(self.model, data)
+        self._observe(index, data)
+
+    def get_state(self) -> dict:
+        """The exact state of every env: MuJoCo's full physics state, goals, step counts and RNG streams.
+
+        With :meth:`set_full_state` this makes checkpoints resume bit-for-bit (episodes in progress included).
+        """
+        spec = mujoco.mjtState.mjSTATE_FULLPHYSICS
+        physics = np.zeros((self.num_envs, mujoco.mj_stateSize(self.model, spec)), dtype=np.float64)
+        for i, data in enumerate(self.datas):
+            mujoco.mj_getState(self.model, data, physics[i], spec)
+        return {
+            "physics": physics,
+            "desired_goal": self.desired_goal.copy(),
+            "step_count": self.step_count.copy(),
+            "rngs": [rng.bit_generator.state for rng in self.rngs],
+            "eval_goals": self.eval_goals,
+        }
+
+    def set_full_state(self, state: dict) -> None:
+        """Restores a state returned by :meth:`get_state` (same task and number of envs)."""
+        physics = np.asarray(state["physics"], dtype=np.float64)
+        spec = mujoco.mjtState.mjSTATE_FULLPHYSICS
+        expected = (self.num_envs, mujoco.mj_stateSize(self.model, spec))
+        if physics.shape != expected or len(state["rngs"]) != self.num_envs:
+            raise ValueError(
+                f"State of shape {physics.shape} with {len(state['rngs'])} RNG streams does not fit "
+                f"{self.num_envs} {self.spec.name} envs (expected {expected})."
+            )
+        self.desired_goal[:] = state["desired_goal"]
+        self.step_count[:] = state["step_count"]
+        self.eval_goals = bool(state["eval_goals"])
+        for i, data in enumerate(self.datas):
+            mujoco.mj_setState(self.model, data, physics[i], spec)
+            data.mocap_pos[self._goal_mocap, : self.goal_dim] = self.desired_goal[i]
+            mujoco.mj_forward(self.model, data)
+            self._observe(i, data)
+            self.rngs[i].bit_generator.state = state["rngs"][i]
 
     def reset(self, mask=None, goals=None, *, eval_goals: bool | None = None) -> None:
         """Starts new episodes in the envs selected by ``mask`` (all by default).
 
         Args:
             mask (array-like of bool, optional): ``[num_envs]``, ``True`` for the envs to reset.
-            goals (array-like, optional): explicit goals, ``[k, 2]`` for the ``k`` reset envs or one ``[2]``
-                goal for all of them; they must lie inside the arena. By default goals are drawn from the
-                train (or test) distribution with each env's RNG.
+            goals (array-like, optional): explicit goals, ``[k, goal_dim]`` for the ``k`` reset envs or one
+                ``[goal_dim]`` goal for all of them; they must lie inside the goal bounds. By default goals
+                are drawn from the train (or test) distribution with each env's RNG.
             eval_goals (bool, optional): overrides :attr:`eval_goals` for this reset.
         """
         if mask is None:
@@ -205,13 +307,9 @@ class MazeSimulation:
             mujoco.mj_resetData(model, data)
             qpos = self._init_qpos + rng.uniform(-agent.qpos_noise, agent.qpos_noise, size=self._nq)
             agent.normalize_qpos(qpos)
-            data.qpos[:] = qpos
-            data.qvel[:] = agent.qvel_noise * rng.standard_normal(self._nv)
-            goal = sampler.sample(rng, 1)[0] if goals is None else goals[k]
-            self.desired_goal[i] = goal
-            data.mocap_pos[self._goal_mocap, :2] = goal
-            mujoco.mj_forward(model, data)
-            self._read_state(i, data)
+            qvel = agent.qvel_noise * rng.standard_normal(self._nv)
+            self.desired_goal[i] = sampler.sample(rng, 1)[0] if goals is None else goals[k]
+            self.set_state(i, qpos, qvel)
             self.step_count[i] = 0
 
     def step(self, actions) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
@@ -225,15 +323,13 @@ class MazeSimulation:
             bool) for the new states.
         """
         actions = self.check_actions(actions)
-        command = self.agent.command(actions, self.observation[:, : self._nq])
+        command = self.agent.command(actions, self.observation[:, self._qpos_slice])
         field = self.agent.control_field
-        model, nstep, nq = self.model, self.agent.frame_skip, self._nq
-        observation = self.observation
+        model, nstep, observe = self.model, self.agent.frame_skip, self._observe
         for i, data in enumerate(self.datas):
             getattr(data, field)[:] = command[i]
             mujoco.mj_step(model, data, nstep)
-            observation[i, :nq] = data.qpos
-            observation[i, nq:] = data.qvel
+            observe(i, data)
         self.step_count += 1
         reward, success = self.evaluate()
         return reward, success, self.step_count >= self.max_episode_steps
@@ -255,8 +351,9 @@ class MazeSimulation:
     ) -> np.ndarray:
         """Offscreen RGB render ``[height, width, 3]`` (uint8) of env ``index``.
 
-        Needs an OpenGL backend (``MUJOCO_GL=egl`` or ``osmesa``). The default camera looks straight down on
-        the whole maze; ``"ant/track"`` / ``"point/track"`` follow the agent.
+        Needs an OpenGL backend (``MUJOCO_GL=egl`` or ``osmesa``). The default camera shows the whole scene
+        (straight down on a maze, obliquely on an arm); ``"ant/track"`` / ``"point/track"`` follow a maze
+        agent.
         """
         if not 0 <= index < self.num_envs:
             raise ValueError(f"index must be in [0, {self.num_envs}), got {index}.")
@@ -274,3 +371,7 @@ class MazeSimulation:
         if self._renderer is not None:
             self._renderer.close()
             self._renderer = None
+
+
+#: The former name of :class:`GoalSimulation`, kept for the maze code that uses it.
+MazeSimulation = GoalSimulation

@@ -1,4 +1,4 @@
-"""Native batched TorchRL environment of the DHRL mazes."""
+"""Native batched TorchRL environment of every DHRL task (the mazes and the arms)."""
 
 from __future__ import annotations
 
@@ -8,35 +8,39 @@ from tensordict import TensorDict, TensorDictBase
 from torchrl.data import Bounded, Categorical, Composite, Unbounded
 from torchrl.envs import EnvBase
 
-from .arena import OVERVIEW_CAMERA
-from .mazes import MazeSpec, get_maze_spec
-from .simulation import MazeSimulation
+from .registry import get_env_spec
+from .simulation import GoalSimulation
+from .task import OVERVIEW_CAMERA, TaskSpec
 
-__all__ = ["MazeEnv", "make_env"]
+__all__ = ["GoalEnv", "MazeEnv", "make_env"]
 
 
-class MazeEnv(EnvBase):
-    """A batch of ``num_envs`` DHRL maze episodes as one TorchRL environment (``batch_size=[num_envs]``).
+class GoalEnv(EnvBase):
+    """A batch of ``num_envs`` DHRL episodes as one TorchRL environment (``batch_size=[num_envs]``).
 
     One MuJoCo model and ``num_envs`` MjData are stepped in a plain loop by the shared
-    :class:`~torchrl_dhrl.envs.MazeSimulation` core (simulated in float64); this class only converts actions
-    in and float32 tensors out, which keeps TorchRL's per-step overhead amortised over the batch.
+    :class:`~torchrl_dhrl.envs.GoalSimulation` core (simulated in float64); this class only converts actions
+    in and float32 tensors out, which keeps TorchRL's per-step overhead amortised over the batch. Every
+    task (the five mazes, Reacher3D and UR3Obstacle) has the same keys; only their sizes differ.
 
     Keys (all with leading dim ``num_envs``):
 
-    * ``"observation"`` float32 ``[obs_dim]``: ``qpos ++ qvel`` (29 for the ant, 6 for the point).
-    * ``"achieved_goal"`` float32 ``[2]``: the agent's (x, y), ``observation[..., :2]``.
-    * ``"desired_goal"`` float32 ``[2]``: the episode's goal.
+    * ``"observation"`` float32 ``[obs_dim]``: mazes ``qpos ++ qvel`` (29 for the ant, 6 for the point),
+      Reacher3D ``qpos ++ goal ++ qvel`` (17), UR3Obstacle ``flange position ++ qpos ++ qvel`` (15).
+    * ``"achieved_goal"`` float32 ``[goal_dim]``: a maze agent's (x, y) (``observation[..., :2]``) or an
+      arm's end-effector position (``goal_dim = 3``; UR3Obstacle: ``observation[..., :3]``).
+    * ``"desired_goal"`` float32 ``[goal_dim]``: the episode's goal.
     * ``"is_success"`` bool ``[1]``: within the evaluation threshold of the goal (DHRL scores the final
       state of an episode).
     * ``"step_count"`` int64 ``[1]``: the step index within the episode, ``0`` at reset.
-    * ``"reward"`` float32 ``[1]``: sparse, ``0`` within ``reward_threshold`` (0.5) of the goal, else ``-1``.
+    * ``"reward"`` float32 ``[1]``: sparse, ``0`` within ``reward_threshold`` of the goal (0.5 in the mazes,
+      0.25 for Reacher3D, 0.08 for UR3Obstacle), else ``-1``.
     * ``"done"``, ``"terminated"``, ``"truncated"`` bool ``[1]``: the only end of an episode is the time limit:
       ``truncated`` at ``max_episode_steps``, ``terminated`` is always ``False`` and ``done == truncated``.
 
     Resets honour the ``"_reset"`` mask (partial resets leave the other envs untouched). A reset tensordict
     carrying a ``"desired_goal"`` entry sets the goals of the envs being reset explicitly (they must lie
-    inside the arena); TorchRL's automatic resets (``rollout``, collectors) never pass it, so they draw
+    inside the goal bounds); TorchRL's automatic resets (``rollout``, collectors) never pass it, so they draw
     fresh goals. Episodes of different envs stay distinguishable in collected data through
     ``"step_count"`` and the collectors' ``("collector", "traj_ids")``.
 
@@ -45,12 +49,12 @@ class MazeEnv(EnvBase):
     same actions.
 
     Args:
-        maze (str or MazeSpec): one of :data:`~torchrl_dhrl.envs.MAZE_NAMES` (or ``"dhrl/<name>-v0"``).
+        task (str or TaskSpec): one of :data:`~torchrl_dhrl.envs.ENV_NAMES` (or ``"dhrl/<name>-v0"``).
 
     Keyword Args:
         num_envs (int): number of parallel episodes. Defaults to ``1``.
-        max_episode_steps (int, optional): time limit; defaults to the maze's episode length.
-        eval_goals (bool): draw the fixed test goals instead of train goals. Defaults to ``False``.
+        max_episode_steps (int, optional): time limit; defaults to the task's episode length.
+        eval_goals (bool): draw test goals instead of train goals. Defaults to ``False``.
             Can be changed later through the :attr:`eval_goals` attribute.
         device (torch.device, optional): device of the output tensors. Defaults to CPU.
         seed (int, optional): seed passed to :meth:`set_seed`.
@@ -58,8 +62,8 @@ class MazeEnv(EnvBase):
     Examples:
         >>> import torch
         >>> from torchrl.envs.utils import check_env_specs
-        >>> from torchrl_dhrl.envs import MazeEnv
-        >>> env = MazeEnv("AntMazeSmall", num_envs=3, seed=0, max_episode_steps=5)
+        >>> from torchrl_dhrl.envs import GoalEnv
+        >>> env = GoalEnv("AntMazeSmall", num_envs=3, seed=0, max_episode_steps=5)
         >>> check_env_specs(env)
         >>> rollout = env.rollout(6, break_when_any_done=False)
         >>> rollout["observation"].shape, rollout["next", "step_count"][0, :, 0].tolist()
@@ -67,11 +71,17 @@ class MazeEnv(EnvBase):
         >>> td = env.reset(env.reset().set("desired_goal", torch.tensor([[0.0, 8.0]]).expand(3, 2)))
         >>> td["desired_goal"][:, 1].tolist()
         [8.0, 8.0, 8.0]
+        >>> arm = GoalEnv("UR3Obstacle", num_envs=2, seed=0)
+        >>> td = arm.reset()
+        >>> td["observation"].shape, td["achieved_goal"].shape
+        (torch.Size([2, 15]), torch.Size([2, 3]))
+        >>> bool((td["achieved_goal"] == td["observation"][:, :3]).all())
+        True
     """
 
     def __init__(
         self,
-        maze: str | MazeSpec,
+        task: str | TaskSpec,
         *,
         num_envs: int = 1,
         max_episode_steps: int | None = None,
@@ -79,8 +89,8 @@ class MazeEnv(EnvBase):
         device=None,
         seed: int | None = None,
     ) -> None:
-        spec = get_maze_spec(maze)
-        sim = MazeSimulation(spec, num_envs, max_episode_steps=max_episode_steps, eval_goals=eval_goals)
+        spec = get_env_spec(task)
+        sim = GoalSimulation(spec, num_envs, max_episode_steps=max_episode_steps, eval_goals=eval_goals)
         super().__init__(device=device, batch_size=torch.Size([num_envs]))
         self._sim = sim
         self._make_specs()
@@ -89,12 +99,16 @@ class MazeEnv(EnvBase):
 
     # ------------------------------------------------------------------ attributes
     @property
-    def maze(self) -> MazeSpec:
-        """The :class:`~torchrl_dhrl.envs.MazeSpec` of this environment."""
+    def task(self) -> TaskSpec:
+        """The spec of this environment (:class:`~torchrl_dhrl.envs.MazeSpec` or
+        :class:`~torchrl_dhrl.envs.ArmSpec`)."""
         return self._sim.spec
 
+    #: The former name of :attr:`task`.
+    maze = task
+
     @property
-    def simulation(self) -> MazeSimulation:
+    def simulation(self) -> GoalSimulation:
         """The underlying batched simulation core (float64 numpy state)."""
         return self._sim
 
@@ -110,7 +124,7 @@ class MazeEnv(EnvBase):
 
     @property
     def eval_goals(self) -> bool:
-        """Whether resets draw the fixed test goals (``True``) or train goals (``False``)."""
+        """Whether resets draw test goals (``True``) or train goals (``False``)."""
         return self._sim.eval_goals
 
     @eval_goals.setter
@@ -119,15 +133,15 @@ class MazeEnv(EnvBase):
 
     def _make_specs(self) -> None:
         shape = self.batch_size
-        sim, device = self._sim, self.device
+        sim, device, dim = self._sim, self.device, self._sim.goal_dim
         low, high = (torch.as_tensor(bound, dtype=torch.float32) for bound in sim.spec.goal_bounds)
         self.observation_spec = Composite(
             observation=Unbounded(shape=(*shape, sim.obs_dim), dtype=torch.float32, device=device),
-            achieved_goal=Unbounded(shape=(*shape, 2), dtype=torch.float32, device=device),
+            achieved_goal=Unbounded(shape=(*shape, dim), dtype=torch.float32, device=device),
             desired_goal=Bounded(
-                low=low.expand(*shape, 2),
-                high=high.expand(*shape, 2),
-                shape=(*shape, 2),
+                low=low.expand(*shape, dim),
+                high=high.expand(*shape, dim),
+                shape=(*shape, dim),
                 dtype=torch.float32,
                 device=device,
             ),
@@ -166,10 +180,9 @@ class MazeEnv(EnvBase):
 
     def _observations(self, success: np.ndarray) -> dict[str, torch.Tensor]:
         sim = self._sim
-        observation = self._tensor(sim.observation, torch.float32)
         return {
-            "observation": observation,
-            "achieved_goal": observation[:, :2].contiguous(),
+            "observation": self._tensor(sim.observation, torch.float32),
+            "achieved_goal": self._tensor(sim.achieved_goal, torch.float32),
             "desired_goal": self._tensor(sim.desired_goal, torch.float32),
             "is_success": self._tensor(success[:, None], torch.bool),
             "step_count": self._tensor(sim.step_count[:, None], torch.int64),
@@ -180,7 +193,7 @@ class MazeEnv(EnvBase):
         action = tensordict.get("action")
         if action.shape != self.action_spec.shape:
             raise ValueError(
-                f"{self.maze.name} expects an 'action' of shape {tuple(self.action_spec.shape)} "
+                f"{self.task.name} expects an 'action' of shape {tuple(self.action_spec.shape)} "
                 f"(num_envs, action_dim), got {tuple(action.shape)}."
             )
         reward, success, truncated = self._sim.step(action.detach().cpu().numpy())
@@ -200,9 +213,10 @@ class MazeEnv(EnvBase):
                 mask = reset.reshape(self.batch_size).cpu().numpy()
             goals = tensordict.get("desired_goal", None)
             if goals is not None:
-                if goals.shape != (*self.batch_size, 2):
+                expected = (*self.batch_size, self._sim.goal_dim)
+                if goals.shape != expected:
                     raise ValueError(
-                        f"A 'desired_goal' passed to reset must have shape {(*self.batch_size, 2)}, "
+                        f"A 'desired_goal' passed to reset must have shape {expected}, "
                         f"got {tuple(goals.shape)}."
                     )
                 goals = goals.detach().cpu().numpy()
@@ -218,19 +232,34 @@ class MazeEnv(EnvBase):
     def _set_seed(self, seed: int | None) -> None:
         self._sim.seed(seed)
 
+    def get_extra_state(self) -> dict:
+        """The simulation's exact state (physics, goals, step counts, RNG streams), saved by ``state_dict()``.
+
+        ``env.load_state_dict(env.state_dict())`` then continues every episode, and every future reset,
+        exactly as the saved env would have (the training recipe's resume relies on it).
+        """
+        return self._sim.get_state()
+
+    def set_extra_state(self, state: dict) -> None:
+        self._sim.set_full_state(state)
+
     def render(
         self, env_index: int = 0, *, width: int = 480, height: int = 480, camera: str | int = OVERVIEW_CAMERA
     ) -> torch.Tensor:
         """Offscreen RGB frame (uint8 ``[height, width, 3]``) of env ``env_index`` through MuJoCo's renderer.
 
-        Needs an OpenGL backend (``MUJOCO_GL=egl`` or ``osmesa``). The default camera shows the whole maze
-        from above; ``"ant/track"`` or ``"point/track"`` follow the agent.
+        Needs an OpenGL backend (``MUJOCO_GL=egl`` or ``osmesa``). The default camera shows the whole scene
+        (a maze from above, an arm obliquely); ``"ant/track"`` or ``"point/track"`` follow a maze agent.
         """
         return torch.from_numpy(self._sim.render(env_index, width=width, height=height, camera=camera).copy())
 
     def close(self, *, raise_if_closed: bool = True) -> None:
         self._sim.close()
         super().close(raise_if_closed=raise_if_closed)
+
+
+#: The former name of :class:`GoalEnv`, kept for the maze code that uses it.
+MazeEnv = GoalEnv
 
 
 def make_env(
@@ -241,19 +270,21 @@ def make_env(
     device=None,
     eval: bool = False,  # noqa: A002 - the documented option name
     max_episode_steps: int | None = None,
-) -> MazeEnv:
-    """Builds a DHRL maze as a native batched TorchRL environment.
+) -> GoalEnv:
+    """Builds a DHRL environment as a native batched TorchRL environment.
 
     Args:
-        name (str): ``"PointMaze"``, ``"AntMazeSmall"``, ``"AntMaze"``, ``"AntMazeBottleneck"`` or
-            ``"AntMazeComplex"`` (the Gymnasium ids ``"dhrl/<name>-v0"`` are accepted too).
+        name (str): ``"PointMaze"``, ``"AntMazeSmall"``, ``"AntMaze"``, ``"AntMazeBottleneck"``,
+            ``"AntMazeComplex"``, ``"Reacher3D"`` or ``"UR3Obstacle"`` (the Gymnasium ids
+            ``"dhrl/<name>-v0"`` are accepted too).
 
     Keyword Args:
         num_envs (int): batch size of the env. Defaults to ``1``.
         seed (int, optional): seed of the per-env RNG streams.
         device (torch.device, optional): device of the output tensors.
-        eval (bool): use the fixed test goals (AntMazeComplex: one of its four per episode).
-            Defaults to ``False`` (train goals).
+        eval (bool): use the test goals (mazes: the fixed test goals, AntMazeComplex one of its four per
+            episode; Reacher3D: the train distribution; UR3Obstacle: goals inside the bin, behind the
+            fence). Defaults to ``False`` (train goals).
         max_episode_steps (int, optional): time limit override (defaults to the paper's episode length).
 
     Raises:
@@ -264,8 +295,10 @@ def make_env(
         >>> env = make_env("AntMaze", num_envs=2, seed=0, eval=True)
         >>> env.reset()["desired_goal"].tolist()
         [[0.0, 16.0], [0.0, 16.0]]
+        >>> make_env("Reacher3D", seed=0).rollout(3)["next", "achieved_goal"].shape
+        torch.Size([1, 3, 3])
     """
-    return MazeEnv(
+    return GoalEnv(
         name,
         num_envs=num_envs,
         max_episode_steps=max_episode_steps,

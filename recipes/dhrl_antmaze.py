@@ -39,6 +39,7 @@ from torchrl.data import RandomSampler
 
 from torchrl_dhrl.training import (
     LOW_LEVEL_KEYS,
+    ModuleTimer,
     NonFiniteLossError,
     evaluate,
     get_rng_state,
@@ -49,7 +50,6 @@ from torchrl_dhrl.training import (
     make_logger,
     make_replay_buffers,
     make_updaters,
-    ModuleTimer,
     plot_episode,
     plot_success_curve,
     record_video,
@@ -152,7 +152,9 @@ def train(cfg: DictConfig | dict, run_dir: str | Path | None = None) -> dict:
             counters["episodes"] += num_envs
             # ---- learn: low_updates_per_step SQGC updates per env step, a high-level one every 10
             start = time.perf_counter()
-            n_low = math.floor(counters["env_steps"] * schedule["low_updates_per_step"]) - low_updater.num_updates
+            n_low = (
+                math.floor(counters["env_steps"] * schedule["low_updates_per_step"]) - low_updater.num_updates
+            )
             low_out = low_updater.run(n_low)
             n_high = counters["env_steps"] // schedule["high_update_interval"] - high_updater.num_updates
             high_out = high_updater.run(n_high) if len(high_rb) else None
@@ -212,7 +214,9 @@ def train(cfg: DictConfig | dict, run_dir: str | Path | None = None) -> dict:
     return summary
 
 
-def _end_of_epoch(cfg, agent, low_rb, eval_env, episode_length, counters, graph_start, timer, run_dir) -> dict:
+def _end_of_epoch(
+    cfg, agent, low_rb, eval_env, episode_length, counters, graph_start, timer, run_dir
+) -> dict:
     """Graph rebuild (when due), evaluation on the test goals, pictures; returns the epoch's metrics."""
     schedule, planner = cfg["schedule"], agent.planner
     epoch = counters["epochs"]

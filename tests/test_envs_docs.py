@@ -10,12 +10,16 @@ import pytest
 MODULES = [
     "agents",
     "arena",
+    "arms",
     "goals",
     "gym_env",
     "layouts",
     "mazes",
     "plotting",
+    "registry",
+    "robots",
     "simulation",
+    "task",
     "torchrl_env",
 ]
 

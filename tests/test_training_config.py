@@ -3,8 +3,8 @@
 import pytest
 import torch
 from _recipe import recipe_config
+from torchrl_dhrl.envs import ENV_NAMES
 
-from torchrl_dhrl.envs import MAZE_NAMES
 from torchrl_dhrl.training import ConfigError, resolve_device, validate_config
 
 REFERENCE = {  # c_h, high-level window, max landmarks, p2, warm-up episodes, FGS
@@ -15,7 +15,7 @@ REFERENCE = {  # c_h, high-level window, max landmarks, p2, warm-up episodes, FG
 }
 
 
-@pytest.mark.parametrize("env", MAZE_NAMES)
+@pytest.mark.parametrize("env", ENV_NAMES)
 def test_every_env_config_is_valid(env):
     cfg = recipe_config(f"env={env}")
     validate_config(cfg)

@@ -11,8 +11,8 @@ from tensordict import TensorDict
 from torchrl.data import LazyTensorStorage, TensorDictReplayBuffer
 from torchrl.envs import TransformedEnv
 from torchrl.envs.utils import check_env_specs
-
 from torchrl_dhrl.envs import make_env
+
 from torchrl_dhrl.modules import GoalConditionedCritic, HighLevelActor
 from torchrl_dhrl.objectives import HighLevelLoss, make_optimizers
 from torchrl_dhrl.planner import FrontierGoalShifting, GraphPlanner
@@ -66,8 +66,14 @@ def _high_level_setup(batch=8, num_cells=(16,)):
     low, high = [-4.0, -4.0], [20.0, 20.0]
     actor = HighLevelActor(6, 2, low, high, num_cells=num_cells)
     critic = GoalConditionedCritic(
-        6, 2, action_low=low, action_high=high, goal_key="desired_goal", action_key="subgoal",
-        relative_goal=False, num_cells=num_cells,
+        6,
+        2,
+        action_low=low,
+        action_high=high,
+        goal_key="desired_goal",
+        action_key="subgoal",
+        relative_goal=False,
+        num_cells=num_cells,
     )
     loss = HighLevelLoss(actor, critic)
     rb = TensorDictReplayBuffer(storage=LazyTensorStorage(100), batch_size=batch)
@@ -126,7 +132,10 @@ def test_updater_run_averages_and_state_dict():
     other = LossUpdater(other_loss, other_rb, make_optimizers(other_loss))
     other.load_state_dict(state)
     assert other.num_updates == 4
-    assert other.optimizers["critic"].state_dict()["state"].keys() == state["optimizers"]["critic"]["state"].keys()
+    assert (
+        other.optimizers["critic"].state_dict()["state"].keys()
+        == state["optimizers"]["critic"]["state"].keys()
+    )
 
 
 def test_updater_stops_on_nan_before_changing_parameters():
@@ -221,7 +230,8 @@ def test_goal_shift_on_reset_in_env():
 def test_goal_shift_without_graph_keeps_goals_and_partial_reset():
     planner = GraphPlanner(lambda s, g: (g - s[..., :2]).norm(dim=-1), goal_dim=2, cutoff=30.0)
     env = TransformedEnv(
-        make_env("PointMaze", num_envs=2, seed=0, max_episode_steps=3), GoalShiftOnReset(FrontierGoalShifting(planner))
+        make_env("PointMaze", num_envs=2, seed=0, max_episode_steps=3),
+        GoalShiftOnReset(FrontierGoalShifting(planner)),
     )
     td = env.reset()
     assert not td["goal_shifted"].any() and torch.equal(td["episode_goal"], td["desired_goal"])
@@ -240,3 +250,19 @@ def test_evaluate_final_vs_any_time_success():
     assert result.success == 0.0 and result.any_success == 0.0
     assert result.final_distance == pytest.approx(8.0, abs=0.5)
     assert result.rollout.shape == (2, 4)
+
+
+@pytest.mark.skipif(
+    os.environ.get("MUJOCO_GL", "").lower() not in ("egl", "osmesa"),
+    reason="offscreen rendering needs MUJOCO_GL=egl or osmesa (an OpenGL backend)",
+)
+def test_record_video(tmp_path):
+    from PIL import Image
+
+    from torchrl_dhrl.training import record_video
+
+    env = make_env("PointMaze", num_envs=2, seed=0, eval=True, max_episode_steps=9)
+    still = lambda td: td.set("action", torch.zeros(*td.batch_size, 2))  # noqa: E731
+    path = record_video(TransformedEnv(env), still, 9, tmp_path / "episode.gif", every=4, size=64)
+    with Image.open(path) as gif:
+        assert gif.n_frames == 3 and gif.size == (64, 64)

@@ -18,7 +18,12 @@ from torchrl.collectors import Collector
 from torchrl.data import LazyTensorStorage, TensorDictReplayBuffer
 from torchrl.envs import Compose, EnvBase, TransformedEnv
 
-from torchrl_dhrl.data import FutureGoalRelabel, HighLevelTransitionBuilder, HindsightSubgoalRelabel, SparseGoalReward
+from torchrl_dhrl.data import (
+    FutureGoalRelabel,
+    HighLevelTransitionBuilder,
+    HindsightSubgoalRelabel,
+    SparseGoalReward,
+)
 from torchrl_dhrl.envs import make_env
 from torchrl_dhrl.modules import (
     GaussianUniformExplorationModule,
@@ -107,23 +112,27 @@ def make_graph_distance(cfg: Mapping, sqgc_loss: SQGCLoss):
             f"planner.distance=oracle needs the achieved goal inside the observation (goal_indices), "
             f"which {cfg['env_name']} does not provide."
         )
-    boxes = None
-    walls = _obstacle_boxes(cfg["env_name"])
-    if walls is not None:
-        boxes = walls
     return LineOfSightDistance(
-        cfg["planner"]["oracle_speed"], boxes=boxes, margin=cfg["planner"]["oracle_margin"], goal_indices=indices
+        cfg["planner"]["oracle_speed"],
+        boxes=_obstacle_boxes(cfg["env_name"]),
+        margin=cfg["planner"]["oracle_margin"],
+        goal_indices=indices,
     )
 
 
 def _obstacle_boxes(name: str) -> torch.Tensor | None:
-    """``[W, 2, 2]`` wall footprints of a maze (``None`` for environments without a maze layout)."""
-    from torchrl_dhrl.envs import MAZE_NAMES, get_maze_spec
+    """``[W, 2, goal_dim]`` obstacle boxes in goal space: maze wall footprints or the UR3's boards."""
+    from torchrl_dhrl.envs import ARM_NAMES, MAZE_NAMES, get_arm_spec, get_maze_spec
 
-    if name not in MAZE_NAMES:
-        return None
-    boxes = [wall.xy_bounds for wall in get_maze_spec(name).layout.wall_boxes]
-    return torch.tensor([[[x0, y0], [x1, y1]] for x0, x1, y0, y1 in boxes], dtype=torch.float32)
+    if name in MAZE_NAMES:
+        boxes = [wall.xy_bounds for wall in get_maze_spec(name).layout.wall_boxes]
+        return torch.tensor([[[x0, y0], [x1, y1]] for x0, x1, y0, y1 in boxes], dtype=torch.float32)
+    if name in ARM_NAMES and get_arm_spec(name).boards:
+        boards = get_arm_spec(name).boards
+        centre = torch.tensor([b.center for b in boards], dtype=torch.float32)
+        half = torch.tensor([b.half_size for b in boards], dtype=torch.float32)
+        return torch.stack([centre - half, centre + half], 1)
+    return None
 
 
 def make_agent(cfg: Mapping, env: EnvBase, device: torch.device) -> DHRLAgent:
@@ -131,13 +140,17 @@ def make_agent(cfg: Mapping, env: EnvBase, device: torch.device) -> DHRLAgent:
     obs_dim = env.observation_spec["observation"].shape[-1]
     goal_dim = env.observation_spec["achieved_goal"].shape[-1]
     if len(cfg["high"]["subgoal_low"]) != goal_dim:
-        raise ConfigError(f"high.subgoal_low has {len(cfg['high']['subgoal_low'])} entries; the goal space has {goal_dim}.")
+        raise ConfigError(
+            f"high.subgoal_low has {len(cfg['high']['subgoal_low'])} entries; the goal space has {goal_dim}."
+        )
     action_spec = env.action_spec_unbatched.to(device)
     indices = _goal_indices(cfg)
     low, high = cfg["low"], cfg["high"]
     relative = bool(low["relative_goal"])
     if relative and indices is None:
-        raise ConfigError(f"low.relative_goal=true needs goal_indices, which {cfg['env_name']} does not provide.")
+        raise ConfigError(
+            f"low.relative_goal=true needs goal_indices, which {cfg['env_name']} does not provide."
+        )
     common = {"goal_indices": indices, "num_cells": tuple(low["hidden"])}
     actor = LowLevelActor(obs_dim, goal_dim, action_spec, relative_goal=relative, **common).to(device)
     exploration = GaussianUniformExplorationModule(
@@ -146,7 +159,13 @@ def make_agent(cfg: Mapping, env: EnvBase, device: torch.device) -> DHRLAgent:
 
     def critic() -> GoalConditionedCritic:
         return GoalConditionedCritic(
-            obs_dim, goal_dim, action_spec, relative_goal=relative, gamma=low["gamma"], goal_key="goal", **common
+            obs_dim,
+            goal_dim,
+            action_spec,
+            relative_goal=relative,
+            gamma=low["gamma"],
+            goal_key="goal",
+            **common,
         ).to(device)
 
     sqgc_loss = SQGCLoss(
@@ -196,13 +215,18 @@ def make_agent(cfg: Mapping, env: EnvBase, device: torch.device) -> DHRLAgent:
         cutoff=planner_cfg["cutoff"],
         max_landmarks=planner_cfg["max_landmarks"],
         early_stop=planner_cfg["early_stop"],
+        reach_radius=planner_cfg["reach_radius"],
     ).to(device)
     policy = TensorDictSequential(high_policy, planner, TensorDictSequential(actor, exploration))
     return DHRLAgent(high_policy, actor, exploration, sqgc_loss, high_loss, planner, policy)
 
 
 def make_environment(
-    cfg: Mapping, device: torch.device, *, eval: bool = False, agent: DHRLAgent | None = None  # noqa: A002
+    cfg: Mapping,
+    device: torch.device,
+    *,
+    eval: bool = False,
+    agent: DHRLAgent | None = None,  # noqa: A002
 ) -> EnvBase:
     """The batched env (``eval``: ``eval_episodes`` envs on the test goals), with the agent's primers.
 

@@ -44,7 +44,9 @@ def save_checkpoint(state: dict[str, Any], path: str | os.PathLike) -> Path:
     return path
 
 
-def load_checkpoint(path: str | os.PathLike, map_location: str | torch.device | None = "cpu") -> dict[str, Any]:
+def load_checkpoint(
+    path: str | os.PathLike, map_location: str | torch.device | None = "cpu"
+) -> dict[str, Any]:
     """Loads a checkpoint written by :func:`save_checkpoint` (``map_location`` defaults to CPU)."""
     path = Path(path)
     if not path.is_file():

@@ -60,7 +60,9 @@ def resolve_device(device: str | torch.device | None) -> torch.device:
     except RuntimeError as err:
         raise ConfigError(f"`device` must be 'auto', 'cpu', 'cuda' or 'cuda:N', got {device!r}.") from err
     if device.type == "cuda" and not torch.cuda.is_available():
-        raise ConfigError("`device` asks for CUDA but torch.cuda.is_available() is False; use device=auto or cpu.")
+        raise ConfigError(
+            "`device` asks for CUDA but torch.cuda.is_available() is False; use device=auto or cpu."
+        )
     return device
 
 
@@ -79,9 +81,9 @@ def validate_config(cfg: Mapping, env_names: tuple[str, ...] | None = None) -> N
         Unknown env_name 'AntMase'; choose one of: AntMaze.
     """
     if env_names is None:
-        from torchrl_dhrl.envs import MAZE_NAMES
+        from torchrl_dhrl.envs import ENV_NAMES
 
-        env_names = tuple(MAZE_NAMES)
+        env_names = tuple(ENV_NAMES)
     name = _get(cfg, "env_name")
     if name not in env_names:
         raise ConfigError(f"Unknown env_name {name!r}; choose one of: {', '.join(env_names)}.")
@@ -104,7 +106,9 @@ def validate_config(cfg: Mapping, env_names: tuple[str, ...] | None = None) -> N
     for level in ("low", "high"):
         hidden = _get(cfg, f"{level}.hidden")
         if not hidden or any(isinstance(h, bool) or not isinstance(h, int) or h < 1 for h in hidden):
-            raise ConfigError(f"`{level}.hidden` must be a non-empty list of positive integers, got {hidden!r}.")
+            raise ConfigError(
+                f"`{level}.hidden` must be a non-empty list of positive integers, got {hidden!r}."
+            )
         _number(cfg, f"{level}.batch_size", low=1, integer=True)
         _number(cfg, f"{level}.buffer_size", low=1, integer=True)
         _number(cfg, f"{level}.her_window", low=1, integer=True)
@@ -126,9 +130,13 @@ def validate_config(cfg: Mapping, env_names: tuple[str, ...] | None = None) -> N
         raise ConfigError(f"`high.c_h` (the high-level interval) must be an integer >= 1, got {c_h!r}.")
     low, high = list(_get(cfg, "high.subgoal_low")), list(_get(cfg, "high.subgoal_high"))
     if len(low) != len(high) or not low:
-        raise ConfigError(f"`high.subgoal_low` and `high.subgoal_high` must have the same length, got {low}, {high}.")
+        raise ConfigError(
+            f"`high.subgoal_low` and `high.subgoal_high` must have the same length, got {low}, {high}."
+        )
     if any(lo >= hi for lo, hi in zip(low, high, strict=True)):
-        raise ConfigError(f"`high.subgoal_low` must be below `high.subgoal_high` on every axis, got {low}, {high}.")
+        raise ConfigError(
+            f"`high.subgoal_low` must be below `high.subgoal_high` on every axis, got {low}, {high}."
+        )
     _number(cfg, "high.subgoal_noise", low=0.0)
     _fraction(cfg, "high.subgoal_test_ratio")
     _number(cfg, "high.subgoal_test_threshold", low=0.0, strict=True)
@@ -140,6 +148,13 @@ def validate_config(cfg: Mapping, env_names: tuple[str, ...] | None = None) -> N
     distance = _get(cfg, "planner.distance")
     if distance not in DISTANCES:
         raise ConfigError(f"`planner.distance` must be one of {DISTANCES}, got {distance!r}.")
+    if distance == "oracle" and _get(cfg, "goal_indices") is None:
+        raise ConfigError(
+            f"planner.distance=oracle needs the achieved goal inside the observation (goal_indices), "
+            f"which {name} does not provide."
+        )
+    if _get(cfg, "low.relative_goal") and _get(cfg, "goal_indices") is None:
+        raise ConfigError(f"low.relative_goal=true needs goal_indices, which {name} does not provide.")
     _number(cfg, "planner.cutoff", low=0.0, strict=True)
     landmarks = _number(cfg, "planner.max_landmarks", integer=True)
     if landmarks < 2:
@@ -150,6 +165,8 @@ def validate_config(cfg: Mapping, env_names: tuple[str, ...] | None = None) -> N
             f"`planner.candidates` ({candidates}) must be >= `planner.max_landmarks` ({landmarks})."
         )
     _number(cfg, "planner.early_stop", low=0.0)
+    _number(cfg, "planner.reach_radius", low=0.0, strict=True)
+    _number(cfg, "planner.oracle_margin", low=0.0)
     _number(cfg, "planner.oracle_speed", low=0.0, strict=True)
     _number(cfg, "fgs.noise", low=0.0)
 
@@ -159,6 +176,8 @@ def validate_config(cfg: Mapping, env_names: tuple[str, ...] | None = None) -> N
     if backend in ("wandb", "tensorboard") and importlib.util.find_spec(backend) is None:
         raise ConfigError(f"`logger.backend={backend}` needs the {backend} package: pip install {backend}.")
     if _get(cfg, "logger.wandb_mode") not in ("offline", "online"):
-        raise ConfigError(f"`logger.wandb_mode` must be 'offline' or 'online', got {_get(cfg, 'logger.wandb_mode')!r}.")
+        raise ConfigError(
+            f"`logger.wandb_mode` must be 'offline' or 'online', got {_get(cfg, 'logger.wandb_mode')!r}."
+        )
     _number(cfg, "checkpoint.every_epochs", low=1, integer=True)
     _number(cfg, "plots.every_epochs", low=0, integer=True)

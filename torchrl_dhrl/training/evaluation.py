@@ -2,10 +2,9 @@
 
 from __future__ import annotations
 
-from typing import NamedTuple
-
 import time
 from pathlib import Path
+from typing import NamedTuple
 
 import torch
 from tensordict import TensorDictBase
@@ -96,8 +95,15 @@ class ModuleTimer:
 
 
 @torch.no_grad()
-def record_video(env: EnvBase, policy: TensorDictModuleBase, max_steps: int, path: str | Path, *, every: int = 4,
-                 size: int = 320) -> Path:
+def record_video(
+    env: EnvBase,
+    policy: TensorDictModuleBase,
+    max_steps: int,
+    path: str | Path,
+    *,
+    every: int = 4,
+    size: int = 320,
+) -> Path:
     """Renders the first env of a deterministic episode with MuJoCo (every ``every``-th step) to a GIF.
 
     Needs an OpenGL back end for MuJoCo (e.g. ``MUJOCO_GL=egl``); raises the renderer's error otherwise.

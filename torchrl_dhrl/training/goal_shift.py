@@ -95,8 +95,12 @@ class GoalShiftOnReset(Transform):
     def transform_observation_spec(self, observation_spec: Composite) -> Composite:
         goal_spec = observation_spec[self.goal_key]
         shape = goal_spec.shape
-        observation_spec[self.goal_key] = Unbounded(shape=shape, dtype=goal_spec.dtype, device=goal_spec.device)
-        observation_spec[self.held_goal_key] = Unbounded(shape=shape, dtype=goal_spec.dtype, device=goal_spec.device)
+        observation_spec[self.goal_key] = Unbounded(
+            shape=shape, dtype=goal_spec.dtype, device=goal_spec.device
+        )
+        observation_spec[self.held_goal_key] = Unbounded(
+            shape=shape, dtype=goal_spec.dtype, device=goal_spec.device
+        )
         observation_spec[self.shifted_key] = Unbounded(
             shape=(*shape[:-1], 1), dtype=torch.bool, device=goal_spec.device
         )

@@ -13,7 +13,7 @@ import numpy as np  # noqa: E402
 import torch  # noqa: E402
 from tensordict import TensorDictBase  # noqa: E402
 
-from torchrl_dhrl.envs import plot_maze  # noqa: E402
+from torchrl_dhrl.envs import plot_env  # noqa: E402
 from torchrl_dhrl.planner import GraphPlanner  # noqa: E402
 
 __all__ = ["graph_path_to_goal", "plot_episode", "plot_success_curve"]
@@ -30,18 +30,24 @@ def graph_path_to_goal(planner: GraphPlanner, state: torch.Tensor, goal: torch.T
 
 
 def plot_episode(
-    env_name: str, planner: GraphPlanner, rollout: TensorDictBase, path: str | Path, *, title: str | None = None
+    env_name: str,
+    planner: GraphPlanner,
+    rollout: TensorDictBase,
+    path: str | Path,
+    *,
+    title: str | None = None,
 ) -> Path:
     """Saves a top view with the graph (landmarks, edges), the route the graph plans from the start
     to the test goal and the executed trajectory of the first episode of ``rollout`` (``[B, T]``)."""
     episode = rollout[0]
     start, goal = episode[0]["observation"], episode[0]["desired_goal"]
     trajectory = torch.cat([episode[0]["achieved_goal"].reshape(1, -1), episode["next", "achieved_goal"]])
-    route = np.concatenate([episode[0]["achieved_goal"].reshape(1, -1).cpu().numpy(),
-                            graph_path_to_goal(planner, start, goal)])
+    route = np.concatenate(
+        [episode[0]["achieved_goal"].reshape(1, -1).cpu().numpy(), graph_path_to_goal(planner, start, goal)]
+    )
     has_graph = planner.has_graph
     fig, ax = plt.subplots(figsize=(5, 5))
-    plot_maze(
+    plot_env(
         env_name,
         trajectory=trajectory.cpu().numpy(),
         landmarks=planner.landmark_goals.cpu().numpy() if has_graph else None,

@@ -117,12 +117,13 @@ class LossUpdater:
             return None
         outputs = [self.step() for _ in range(num_updates)]
         stacked = torch.stack([o.select(*(k for k, v in o.items() if v.numel() == 1)) for o in outputs])
-        return TensorDict(
-            {key: value.float().mean() for key, value in stacked.items()}, batch_size=[]
-        )
+        return TensorDict({key: value.float().mean() for key, value in stacked.items()}, batch_size=[])
 
     def state_dict(self) -> dict:
-        return {"num_updates": self.num_updates, "optimizers": {k: o.state_dict() for k, o in self.optimizers.items()}}
+        return {
+            "num_updates": self.num_updates,
+            "optimizers": {k: o.state_dict() for k, o in self.optimizers.items()},
+        }
 
     def load_state_dict(self, state_dict: dict) -> None:
         self.num_updates = int(state_dict["num_updates"])
