@@ -8,12 +8,20 @@ Prints, in one run and side by side:
 2. a full graph rebuild (FPS over 6000 candidates to 500 landmarks, the 500 x 500 distance matrix and
    all-pairs shortest paths) with a distance of realistic cost: a 3x256 ReLU actor and twin critic
    (obs_dim 29, goal_dim 2) evaluated for every pair, whose *values* are a geometric distance so
-   that FPS behaves as with a trained critic;
-3. the all-pairs step alone: ours (torch Floyd-Warshall with next-hop table) against scipy's
+   that FPS behaves as with a trained critic; the previous build (lazy FPS without proxy, 256
+   candidates per round) against the current one (goal proxy, 64 per round);
+3. the same rebuild with the library's own distance, ``GoalDistance(LowLevelActor,
+   GoalConditionedCritic)`` (3x256, twin critic in one stacked-weight ensemble), first trained for a
+   few hundred steps to regress the geometric distance (a "trained-like" network): the previous
+   build and distance settings (no proxy, 65536 pairs per forward) against the current defaults in
+   float32 and with ``build_autocast_dtype=torch.bfloat16``, interleaved; then the accuracy of the
+   bfloat16 path (distance errors, landmark overlap, edges and path costs);
+4. the all-pairs step alone: ours (torch Floyd-Warshall with next-hop table) against scipy's
    Floyd-Warshall (with predecessors).
 
-Run ``OMP_NUM_THREADS=1 python benchmarks/bench_planner.py`` (``--quick`` for a smoke run,
-``--dense`` to also time dense FPS instead of extrapolating it).
+Run ``python benchmarks/bench_planner.py`` (``--quick`` for a smoke run, ``--dense`` to also time
+dense FPS instead of extrapolating it, ``--rebuild-repeats`` for more interleaved rebuilds).
+Timings on a shared machine are noisy: compare the ratios of rows measured in the same run.
 """
 
 from __future__ import annotations
@@ -29,7 +37,15 @@ from scipy.sparse.csgraph import floyd_warshall as scipy_floyd_warshall
 from tensordict import TensorDict
 from torch import nn
 
+from torchrl_dhrl.modules import GoalConditionedCritic, GoalDistance, LowLevelActor
+from torchrl_dhrl.modules.distance import DEFAULT_CPU_CHUNK_SIZE
 from torchrl_dhrl.planner import GraphPlanner, LandmarkGraph, farthest_point_sampling, floyd_warshall
+
+#: The previous build settings: lazy FPS without proxy, 256 candidates per round (same evaluations
+#: as the previous implementation, pair for pair).
+OLD_GRAPH = {"fps_proxy": None, "fps_lazy_batch": 256}
+#: The previous GoalDistance chunk (pairs per forward pass).
+OLD_CHUNK = 65536
 
 SPEED = 0.1  # goal units per env step: landmarks ~1 unit apart are ~10 steps apart
 CUTOFF = 30.0
@@ -69,10 +85,33 @@ class MLPDistance(nn.Module):
         self.pairs += s.shape[0]
         x = torch.cat([s, g - s[:, :2]], -1)
         a = self.actor(x).tanh()
-        y = torch.cat([x, a], -1)
-        q = torch.minimum(self.q1(y), self.q2(y)).squeeze(-1)
+        y = torch.cat([x, a.to(x.dtype)], -1)
+        q = torch.minimum(self.q1(y), self.q2(y)).squeeze(-1).float()
         d = (g - s[:, :2]).norm(dim=-1) / SPEED
         return (d + 1e-6 * torch.nn.functional.softplus(-q)).reshape(shape)
+
+
+class Counting:
+    """Counts the pairs a distance evaluates, also through its ``with_autocast`` copies."""
+
+    def __init__(self, distance, counter=None):
+        self.distance = distance
+        self.counter = counter if counter is not None else {"pairs": 0}
+
+    def __call__(self, states, goals):
+        out = self.distance(states, goals)
+        self.counter["pairs"] += out.numel()
+        return out
+
+    def with_autocast(self, dtype):
+        return Counting(self.distance.with_autocast(dtype), self.counter)
+
+    @property
+    def pairs(self):
+        return self.counter["pairs"]
+
+    def reset(self):
+        self.counter["pairs"] = 0
 
 
 def timed(fn, repeats):
@@ -158,26 +197,46 @@ def bench_query(args, gen):
 def bench_rebuild(args, gen):
     print(
         f"\n== 2. graph rebuild: FPS {args.candidates} -> {args.landmarks} + distances + all-pairs, "
-        "3x256 MLP actor + twin critic =="
+        "3x256 MLP actor + twin critic (cost model, geometric values) =="
     )
     side = (args.landmarks**0.5) * 1.0
     cand_states, cand_goals = points(args.candidates, side, 29, gen)
-    distance = MLPDistance()
+    distance = Counting(MLPDistance())
     per_pair = timed(lambda: distance(cand_states, cand_goals), 3) / args.candidates
-    distance.pairs = 0
 
-    start = time.perf_counter()
-    fps = farthest_point_sampling(cand_states, cand_goals, distance, args.landmarks, early_stop=0.0)
-    fps_time = time.perf_counter() - start
-    fps_pairs = distance.pairs
-    graph = LandmarkGraph(cutoff=CUTOFF, max_landmarks=args.landmarks, early_stop=0.0)
-    distance.pairs = 0
-    start = time.perf_counter()
-    graph.build(cand_states, cand_goals, distance)
-    build_time = time.perf_counter() - start
+    rows = {name: ([], [], [], [], None, None) for name in ("old", "new")}
+    for _ in range(args.rebuild_repeats):  # interleaved, so that load changes hit both rows alike
+        for name, options in (("old", OLD_GRAPH), ("new", {})):
+            distance.reset()
+            start = time.perf_counter()
+            fps = farthest_point_sampling(
+                cand_states,
+                cand_goals,
+                distance,
+                args.landmarks,
+                early_stop=0.0,
+                proxy=options.get("fps_proxy", "goal"),
+                lazy_batch=options.get("fps_lazy_batch", 64),
+            )
+            fps_time, fps_pairs = time.perf_counter() - start, distance.pairs
+            graph = LandmarkGraph(cutoff=CUTOFF, max_landmarks=args.landmarks, early_stop=0.0, **options)
+            distance.reset()
+            start = time.perf_counter()
+            graph.build(cand_states, cand_goals, distance)
+            build_time = time.perf_counter() - start
+            row = rows[name]
+            row[0].append(fps_pairs)
+            row[1].append(fps_time)
+            row[2].append(distance.pairs)
+            row[3].append(build_time)
+            rows[name] = (*row[:4], fps, graph)
+    rows = {
+        name: (row[0][0], statistics.median(row[1]), row[2][0], statistics.median(row[3]), row[4], row[5])
+        for name, row in rows.items()
+    }
     dense_pairs = args.landmarks * args.candidates
     if args.dense:
-        distance.pairs = 0
+        distance.reset()
         start = time.perf_counter()
         farthest_point_sampling(
             cand_states, cand_goals, distance, args.landmarks, early_stop=0.0, strategy="dense"
@@ -186,24 +245,204 @@ def bench_rebuild(args, gen):
         dense_label = "measured"
     else:
         dense_time = dense_pairs * per_pair
-        dense_label = "extrapolated from the per-pair cost"
-    matrix_pairs = args.landmarks**2
+        dense_label = "extrapolated"
     print(f"network cost: {per_pair * 1e6:.2f} us per pair (batch {args.candidates})")
-    print(f"{'':44s}{'pairs':>12s}{'time':>10s}")
-    print(f"{'FPS, lazy (default)':44s}{fps_pairs:12d}{fps_time:9.2f}s")
-    print(f"{'FPS, dense (' + dense_label + ')':44s}{dense_pairs:12d}{dense_time:9.2f}s")
-    print(f"{'full build (lazy FPS + missing pairs + APSP)':44s}{distance.pairs:12d}{build_time:9.2f}s")
-    print(f"{'separate K x K matrix (not needed)':44s}{matrix_pairs:12d}{matrix_pairs * per_pair:9.2f}s")
     print(
-        f"lazy / dense pair ratio {fps_pairs / dense_pairs:.2f}; "
-        f"rebuild target 2 s would need <= {2.0 / dense_pairs * 1e6:.2f} us per pair with dense FPS"
+        f"{'median of ' + str(args.rebuild_repeats) + ' interleaved runs':52s}{'pairs':>10s}{'time':>9s}{'vs old':>8s}"
     )
-    assert torch.equal(graph.landmark_goals, cand_goals[fps.indices])
+    print(f"{'FPS, dense (' + dense_label + ')':52s}{dense_pairs:10d}{dense_time:8.2f}s")
+    for label, index in (("FPS only", 0), ("full build", 2)):
+        old_time = rows["old"][index + 1]
+        for name, text in (
+            ("old", "old (no proxy, 256/round)"),
+            ("new", "new (goal proxy, 64/round)"),
+        ):
+            pairs, elapsed = rows[name][index], rows[name][index + 1]
+            print(f"{label + ', ' + text:52s}{pairs:10d}{elapsed:8.2f}s{old_time / elapsed:7.1f}x")
+    print("full build = lazy FPS + the missing landmark pairs + all-pairs shortest paths")
+    print("same landmarks (exact greedy selection) with both: True")
+    graph = rows["new"][5]
+    assert torch.equal(graph.landmark_goals, cand_goals[rows["new"][4].indices])
     return graph
 
 
+def trained_like_distance(args, side, gen):
+    """A GoalDistance of the library's modules, its critic regressed onto the geometric distance."""
+    torch.manual_seed(1)
+    actor = LowLevelActor(29, 2, action_max=30.0, action_dim=8)
+    critic = GoalConditionedCritic(29, 2, action_max=30.0, action_dim=8)
+    net = critic.module
+    optim = torch.optim.Adam(net.parameters(), lr=1e-3)
+
+    def sample(num):
+        start, _ = points(num, side, 29, gen)
+        far = torch.rand(num, 2, generator=gen) * side
+        near = start[:, :2] + torch.randn(num, 2, generator=gen) * 2.0
+        goals = torch.where(torch.rand(num, 1, generator=gen) < 0.5, near, far)
+        return start, goals
+
+    for _ in range(args.train_steps):
+        states, goals = sample(256)
+        with torch.no_grad():
+            action = actor.module(states, goals)
+        raw = net.ensemble(net.features(states, goals, action)).squeeze(-1)
+        target = (goals - states[:, :2]).norm(dim=-1) / SPEED
+        loss = torch.nn.functional.smooth_l1_loss(
+            torch.nn.functional.softplus(raw) / 10, target.expand_as(raw) / 10
+        )
+        optim.zero_grad()
+        loss.backward()
+        optim.step()
+    return actor, critic, sample
+
+
+def error_stats(value, reference):
+    abs_err = (value - reference).abs()
+    rel_err = abs_err / reference.abs().clamp_min(1.0)
+    quantiles = torch.tensor([0.5, 0.99])
+    return abs_err.quantile(quantiles).tolist() + [abs_err.max().item()], rel_err.quantile(
+        quantiles
+    ).tolist() + [rel_err.max().item()]
+
+
+def bench_goal_distance(args, gen):
+    print(
+        f"\n== 3. graph rebuild with the library's GoalDistance (LowLevelActor + GoalConditionedCritic, "
+        f"3x256, trained-like), FPS {args.candidates} -> {args.landmarks} =="
+    )
+    side = (args.landmarks**0.5) * 1.0
+    start = time.perf_counter()
+    actor, critic, sample = trained_like_distance(args, side, gen)
+    cand_states, cand_goals = points(args.candidates, side, 29, gen)
+    test_states, test_goals = sample(20000)
+    fp32 = GoalDistance(actor, critic)
+    fit = (fp32(test_states, test_goals) - (test_goals - test_states[:, :2]).norm(dim=-1) / SPEED).abs()
+    print(
+        f"trained-like critic: {args.train_steps} regression steps in {time.perf_counter() - start:.1f}s, "
+        f"median |distance - geometric| {fit.median():.2f} steps"
+    )
+
+    # per-pair cost of one forward pass over 32768 pairs
+    states_b, goals_b = test_states[:16384].repeat(2, 1), test_goals[:16384].repeat(2, 1)
+    variants = {
+        f"float32, {OLD_CHUNK} pairs per forward (old default)": GoalDistance(
+            actor, critic, chunk_size=OLD_CHUNK
+        ),
+        f"float32, {DEFAULT_CPU_CHUNK_SIZE} pairs per forward (new CPU default)": fp32,
+        f"bfloat16 autocast, {DEFAULT_CPU_CHUNK_SIZE} pairs per forward": fp32.with_autocast(torch.bfloat16),
+    }
+    costs = {name: [] for name in variants}
+    for _ in range(3):  # interleaved
+        for name, dist in variants.items():
+            costs[name].append(timed(lambda dist=dist: dist(states_b, goals_b), 1) / states_b.shape[0])
+    base = statistics.median(costs[next(iter(costs))])
+    print(f"{'network cost, batch of 32768 pairs':52s}{'us/pair':>10s}{'vs old':>8s}")
+    for name, values in costs.items():
+        cost = statistics.median(values)
+        print(f"{name:52s}{cost * 1e6:10.2f}{base / cost:7.1f}x")
+
+    configs = {
+        "old: no proxy, 256/round, 65536/forward, fp32": (
+            OLD_GRAPH,
+            GoalDistance(actor, critic, chunk_size=OLD_CHUNK),
+        ),
+        "new defaults, float32": ({}, fp32),
+        "new, build_autocast_dtype=bfloat16": ({"build_autocast_dtype": torch.bfloat16}, fp32),
+    }
+    times = {name: [] for name in configs}
+    cpu_times = {name: [] for name in configs}
+    graphs, pairs = {}, {}
+    for _ in range(args.rebuild_repeats):  # interleaved, so that load changes hit every row alike
+        for name, (options, dist) in configs.items():
+            counting = Counting(dist)
+            graph = LandmarkGraph(cutoff=CUTOFF, max_landmarks=args.landmarks, early_stop=0.0, **options)
+            start, start_cpu = time.perf_counter(), time.process_time()
+            graph.build(cand_states, cand_goals, counting)
+            times[name].append(time.perf_counter() - start)
+            cpu_times[name].append(time.process_time() - start_cpu)
+            graphs[name], pairs[name] = graph, counting.pairs
+    old_name, fp32_name, bf16_name = configs
+    old_time, old_cpu = statistics.median(times[old_name]), statistics.median(cpu_times[old_name])
+    print(
+        f"{'full rebuild (median of ' + str(args.rebuild_repeats) + ')':52s}{'pairs':>10s}{'time':>9s}"
+        f"{'vs old':>8s}{'CPU time':>10s}{'vs old':>8s}"
+    )
+    for name in configs:
+        elapsed, cpu = statistics.median(times[name]), statistics.median(cpu_times[name])
+        print(
+            f"{name:52s}{pairs[name]:10d}{elapsed:8.2f}s{old_time / elapsed:7.1f}x"
+            f"{cpu:9.2f}s{old_cpu / cpu:7.1f}x"
+        )
+    print(
+        "(CPU time: all threads of this process, steadier than the wall-clock time on a machine shared "
+        "with other jobs; with --threads 1 on an idle machine the two are equal)"
+    )
+    old_ids = {tuple(x) for x in graphs[old_name].landmark_goals.tolist()}
+    new_ids = {tuple(x) for x in graphs[fp32_name].landmark_goals.tolist()}
+    shared = len(old_ids & new_ids)
+    if shared == len(old_ids):
+        diff = (graphs[old_name].landmark_distances - graphs[fp32_name].landmark_distances).abs().max().item()
+        detail = f"max |distance matrix difference| {diff:.2g} steps"
+    else:
+        detail = "FPS met a near-tie"
+    print(
+        f"old vs new float32 build: {shared} of {len(old_ids)} landmarks shared, {detail} (the same greedy "
+        "selection; a pair evaluated in a batch of another size may differ in the last float bits)"
+    )
+
+    print("accuracy of the bfloat16 path against float32:")
+    bf16 = fp32.with_autocast(torch.bfloat16)
+    abs_err, rel_err = error_stats(bf16(test_states, test_goals), fp32(test_states, test_goals))
+    print(
+        "  distance, 20000 random pairs: |error| median/p99/max "
+        + "/".join(f"{x:.3f}" for x in abs_err)
+        + " steps, relative "
+        + "/".join(f"{x * 100:.2f}" for x in rel_err)
+        + " %"
+    )
+    ref_graph, fast_graph = graphs[fp32_name], graphs[bf16_name]
+    ref_ids = {tuple(x) for x in ref_graph.landmark_goals.tolist()}
+    fast_ids = {tuple(x) for x in fast_graph.landmark_goals.tolist()}
+    print(
+        f"  FPS landmarks shared by the float32 and bfloat16 builds: {len(ref_ids & fast_ids)} of "
+        f"{len(ref_ids)}; coverage radius {ref_graph.coverage_radius.item():.2f} vs "
+        f"{fast_graph.coverage_radius.item():.2f} steps"
+    )
+    # the same landmarks, distance matrix in bfloat16: edges and all-pairs path costs
+    same_lm = LandmarkGraph(cutoff=CUTOFF, max_landmarks=args.landmarks, build_autocast_dtype=torch.bfloat16)
+    same_lm.set_landmarks(ref_graph.landmark_states, ref_graph.landmark_goals, fp32)
+    edges_ref, edges_fast = ref_graph.edge_mask, same_lm.edge_mask
+    agree = (edges_ref == edges_fast).float().mean().item()
+    print(
+        f"  same landmarks, bfloat16 matrix: {int(edges_ref.sum())} vs {int(edges_fast.sum())} edges, "
+        f"{int((edges_ref != edges_fast).sum())} pairs differ ({agree * 100:.3f}% agree)"
+    )
+    finite = torch.isfinite(ref_graph.shortest_distances) & torch.isfinite(same_lm.shortest_distances)
+    off_diag = ~torch.eye(ref_graph.num_landmarks, dtype=torch.bool)
+    _, rel_paths = error_stats(
+        same_lm.shortest_distances[finite & off_diag], ref_graph.shortest_distances[finite & off_diag]
+    )
+    print(
+        "  same landmarks, all-pairs path costs: relative error median/p99/max "
+        + "/".join(f"{x * 100:.2f}" for x in rel_paths)
+        + " %"
+    )
+    q_states, _ = points(512, side, 29, gen)
+    q_goals = torch.rand(512, 2, generator=gen) * side
+    cost_ref = ref_graph.plan(q_states, q_goals, fp32).cost
+    cost_fast = fast_graph.plan(q_states, q_goals, fp32).cost
+    ok = torch.isfinite(cost_ref) & torch.isfinite(cost_fast)
+    _, rel_plan = error_stats(cost_fast[ok], cost_ref[ok])
+    print(
+        "  512 plans (float32 queries) on the bfloat16-built vs float32-built graph: cost difference "
+        "median/p99/max "
+        + "/".join(f"{x * 100:.2f}" for x in rel_plan)
+        + f" % ({int(ok.sum())} reachable in both)"
+    )
+
+
 def bench_apsp(args, graph):
-    print(f"\n== 3. all-pairs shortest paths on the rebuilt graph ({graph.num_landmarks} nodes) ==")
+    print(f"\n== 4. all-pairs shortest paths on the rebuilt graph ({graph.num_landmarks} nodes) ==")
     weights = graph.edge_weights
     ours = timed(lambda: floyd_warshall(weights), max(3, args.repeats // 10))
     dense = weights.double().numpy().copy()
@@ -226,17 +465,28 @@ def main():
     parser.add_argument("--landmarks", type=int, default=500)
     parser.add_argument("--candidates", type=int, default=6000)
     parser.add_argument("--repeats", type=int, default=50)
+    parser.add_argument("--rebuild-repeats", type=int, default=3, help="interleaved rebuilds (sections 2, 3)")
+    parser.add_argument("--train-steps", type=int, default=300, help="regression steps of the critic")
+    parser.add_argument("--sections", default="1234", help="sections to run, e.g. 3 or 234")
+    parser.add_argument("--threads", type=int, default=None, help="torch intra-op threads (default: torch's)")
     parser.add_argument("--dense", action="store_true", help="also time dense FPS (slow on CPU)")
     parser.add_argument("--quick", action="store_true", help="small sizes, for a smoke run")
     args = parser.parse_args()
     if args.quick:
         args.landmarks, args.candidates, args.repeats = 100, 1000, 5
+        args.rebuild_repeats, args.train_steps = 1, 50
+    if args.threads is not None:
+        torch.set_num_threads(args.threads)
     torch.manual_seed(0)
     gen = torch.Generator().manual_seed(0)
     print(f"torch {torch.__version__}, {torch.get_num_threads()} threads, device cpu")
-    bench_query(args, gen)
-    graph = bench_rebuild(args, gen)
-    bench_apsp(args, graph)
+    if "1" in args.sections:
+        bench_query(args, gen)
+    graph = bench_rebuild(args, gen) if "2" in args.sections or "4" in args.sections else None
+    if "3" in args.sections:
+        bench_goal_distance(args, gen)
+    if "4" in args.sections:
+        bench_apsp(args, graph)
 
 
 if __name__ == "__main__":

@@ -93,7 +93,7 @@ def train(cfg: DictConfig | dict, run_dir: str | Path | None = None) -> dict:
     low_rb, _, high_rb, _ = buffers
     low_updater, high_updater = make_updaters(cfg, agent, buffers)
     collector = make_collector(train_env, agent, episode_length)
-    counters = {"env_steps": 0, "episodes": 0, "epochs": 0, "graph_builds": 0}
+    counters = {"env_steps": 0, "episodes": 0, "epochs": 0, "graph_builds": 0, "wall_s": 0.0}
     history: list[dict] = []
     if resume is not None:
         state = load_checkpoint(resume, map_location=device)
@@ -139,6 +139,7 @@ def train(cfg: DictConfig | dict, run_dir: str | Path | None = None) -> dict:
         total=cfg["total_steps"], initial=counters["env_steps"], unit="step", disable=not cfg["progress"]
     )
     timer = {"collect": 0.0, "update": 0.0, "planner": ModuleTimer(agent.planner)}
+    wall_start, wall_before = time.perf_counter(), counters["wall_s"]
     last_time = time.perf_counter()
     metrics: dict = {}
     _raise_keyboard_interrupt_on_sigterm()
@@ -163,6 +164,7 @@ def train(cfg: DictConfig | dict, run_dir: str | Path | None = None) -> dict:
             # ---- phase: random warm-up, then the policies
             agent.exploration.uniform_prob = 1.0 if counters["episodes"] < warmup_end else uniform_prob
             epoch = counters["episodes"] // schedule["epoch_episodes"]
+            counters["wall_s"] = wall_before + time.perf_counter() - wall_start
             if epoch > counters["epochs"]:
                 counters["epochs"] = epoch
                 metrics = _end_of_epoch(
@@ -221,6 +223,7 @@ def _end_of_epoch(
     schedule, planner = cfg["schedule"], agent.planner
     epoch = counters["epochs"]
     metrics = {"epoch": epoch, "env_steps": counters["env_steps"], "episodes": counters["episodes"]}
+    metrics["time/wall_s"] = counters["wall_s"]  # since the start of the run, resumes included
     graph_due = (
         cfg["planner"]["enabled"]
         and counters["episodes"] >= graph_start

@@ -77,7 +77,7 @@ def test_landmark_distances_are_the_evaluated_pairs(strategy):
 
 def test_lazy_evaluates_fewer_pairs_than_dense():
     states, goals = make_candidates(2000, seed=2)
-    calls = {"dense": 0, "lazy": 0}
+    calls = {"dense": 0, "lazy": 0, "no_proxy": 0}
 
     def counting(mode):
         def dist(s, g):
@@ -88,8 +88,69 @@ def test_lazy_evaluates_fewer_pairs_than_dense():
 
     dense = farthest_point_sampling(states, goals, counting("dense"), 200, strategy="dense")
     lazy = farthest_point_sampling(states, goals, counting("lazy"), 200, strategy="lazy")
-    assert torch.equal(dense.indices, lazy.indices)
-    assert calls["lazy"] < 0.8 * calls["dense"]
+    no_proxy = farthest_point_sampling(states, goals, counting("no_proxy"), 200, proxy=None)
+    assert torch.equal(dense.indices, lazy.indices) and torch.equal(dense.indices, no_proxy.indices)
+    assert calls["no_proxy"] < 0.8 * calls["dense"]
+    # the goal proxy (measured: 10% of dense, 21% of no proxy)
+    assert calls["lazy"] < 0.2 * calls["dense"] and calls["lazy"] < 0.4 * calls["no_proxy"]
+
+
+def _random_proxy(landmark_goal, goals):
+    gen = torch.Generator().manual_seed(int(landmark_goal.sum() * 1000) % 1000)
+    return torch.rand(goals.shape[0], generator=gen)
+
+
+PROXIES = {
+    "goal": "goal",
+    "none": None,
+    "random": _random_proxy,
+    "farthest_first": lambda landmark_goal, goals: -(goals - landmark_goal).norm(dim=-1),
+    "nan_and_inf": lambda landmark_goal, goals: torch.where(
+        goals[:, 0] > 10, torch.full_like(goals[:, 0], math.nan), torch.full_like(goals[:, 0], math.inf)
+    ),
+}
+
+
+@pytest.mark.parametrize("proxy", list(PROXIES))
+@pytest.mark.parametrize("lazy_batch", [1, 16, 10_000])
+def test_lazy_selection_does_not_depend_on_the_proxy(proxy, lazy_batch):
+    states, goals = make_candidates(500, seed=5)
+    expected, radius = naive_fps(states.numpy(), goals.numpy(), asymmetric_distance, 60)
+    res = farthest_point_sampling(
+        states, goals, asymmetric_distance, 60, proxy=PROXIES[proxy], lazy_batch=lazy_batch
+    )
+    assert res.indices.tolist() == expected
+    assert res.radius.item() == pytest.approx(radius, rel=1e-5)
+
+
+@pytest.mark.parametrize("proxy", ["goal", None])
+def test_lazy_knows_every_distance_to_earlier_landmarks(proxy):
+    # A landmark is exact when selected: its distances from all earlier landmarks are known (the
+    # graph reuses them), the ones from later landmarks are not (it is no longer a candidate).
+    states, goals = make_candidates(600, seed=6)
+    res = farthest_point_sampling(states, goals, asymmetric_distance, 50, proxy=proxy)
+    known = ~torch.isnan(res.landmark_distances)
+    earlier = torch.ones(50, 50, dtype=torch.bool).tril(-1).T  # [m, j] with m < j
+    assert torch.equal(known & ~torch.eye(50, dtype=torch.bool), earlier)
+    idx = res.indices
+    expected = asymmetric_distance(states[idx].unsqueeze(1), goals[idx].unsqueeze(0))
+    torch.testing.assert_close(res.landmark_distances[known], expected[known])
+
+
+def test_proxy_and_lazy_batch_errors():
+    states, goals = make_candidates(50, seed=7)
+    with pytest.raises(ValueError, match="proxy"):
+        farthest_point_sampling(states, goals, asymmetric_distance, 10, proxy="euclidean")
+    with pytest.raises(ValueError, match="proxy"):
+        farthest_point_sampling(states, goals, asymmetric_distance, 10, proxy=lambda a, b: b)
+    for bad in (0, True, 2.0):
+        with pytest.raises(ValueError, match="lazy_batch"):
+            farthest_point_sampling(states, goals, asymmetric_distance, 10, lazy_batch=bad)
+    # the dense strategy does not use the proxy
+    res = farthest_point_sampling(
+        states, goals, asymmetric_distance, 10, strategy="dense", proxy=lambda a, b: b
+    )
+    assert res.indices.numel() == 10
 
 
 def test_ties_infinities_and_min_count():

@@ -15,7 +15,18 @@ ROOT = Path(__file__).resolve().parents[1]
 def wheel(tmp_path_factory):
     out = tmp_path_factory.mktemp("wheel")
     subprocess.run(
-        [sys.executable, "-m", "pip", "wheel", "--no-deps", "--no-build-isolation", "-q", "-w", str(out), str(ROOT)],
+        [
+            sys.executable,
+            "-m",
+            "pip",
+            "wheel",
+            "--no-deps",
+            "--no-build-isolation",
+            "-q",
+            "-w",
+            str(out),
+            str(ROOT),
+        ],
         check=True,
         capture_output=True,
     )
@@ -31,7 +42,7 @@ def test_wheel_layout(wheel):
     assert "torchrl_dhrl/envs/__init__.py" in names
     # never a bare top-level ``envs`` package in site-packages
     assert not any(n.startswith("envs/") for n in names), [n for n in names if n.startswith("envs/")]
-    for sub in ("modules", "objectives", "planner", "data"):
+    for sub in ("modules", "objectives", "planner", "data", "training"):
         assert f"torchrl_dhrl/{sub}/__init__.py" in names
 
 
@@ -65,7 +76,9 @@ def _readme_commands():
     text = (ROOT / "README.md").read_text()
     block = re.search(r"```(?:bash|sh)?\n(.*?)```", text, re.S)
     assert block, "README must start with a code block holding the two set-up commands"
-    lines = [ln.strip() for ln in block.group(1).splitlines() if ln.strip() and not ln.strip().startswith("#")]
+    lines = [
+        ln.strip() for ln in block.group(1).splitlines() if ln.strip() and not ln.strip().startswith("#")
+    ]
     return lines
 
 

@@ -87,6 +87,7 @@ def test_resume_continues_exactly(tmp_path):
         ("UR3Obstacle", "planner.distance=oracle"),
         ("PointMaze", "fgs.enabled=true"),
         ("PointMaze", "high.c_h=5"),
+        ("PointMaze", "planner.build_dtype=bfloat16"),
     ],
 )
 def test_ablation_switches_run(env, override, tmp_path):

@@ -67,6 +67,8 @@ def test_command_line_overrides_and_presets():
         ("high.subgoal_low=[0.0]", "same length"),
         ("low.hidden=[]", "low.hidden"),
         ("device=tpu", "device"),
+        ("planner.build_dtype=int8", "build_dtype"),
+        ("planner.reach_radius=0", "reach_radius"),
     ],
 )
 def test_bad_values_get_a_clear_error(override, match):

@@ -159,7 +159,10 @@ class GoalConditionedCriticNet(nn.Module):
 
     def q_from_features(self, x: torch.Tensor, per_member: bool = False) -> torch.Tensor:
         """Q of every member from :meth:`features`: ``[*batch, in]`` (or ``[E, *batch, in]``) -> ``[E, *batch]``."""
-        raw = self.ensemble(x, per_member=per_member).squeeze(-1)
+        return self.q_from_raw(self.ensemble(x, per_member=per_member).squeeze(-1))
+
+    def q_from_raw(self, raw: torch.Tensor) -> torch.Tensor:
+        """Q from the raw network outputs (the parameterisation's output map), elementwise."""
         if self.parameterization == "distance":
             return distance_to_q(F.softplus(raw), self.gamma)
         return raw

@@ -15,6 +15,35 @@ DistanceFn = Callable[[Tensor, Tensor], Tensor]
 #: Default number of (state, goal) pairs per call of the distance function.
 DEFAULT_CHUNK_SIZE = 65536
 
+#: Reduced-precision dtypes for graph building (``build_autocast_dtype``).
+BUILD_AUTOCAST_DTYPES = (torch.bfloat16, torch.float16)
+
+
+def check_build_autocast_dtype(dtype: torch.dtype | None) -> torch.dtype | None:
+    if dtype is not None and dtype not in BUILD_AUTOCAST_DTYPES:
+        raise ValueError(
+            f"`build_autocast_dtype` must be None, torch.bfloat16 or torch.float16, got {dtype!r}."
+        )
+    return dtype
+
+
+def check_supports_autocast(distance: DistanceFn, dtype: torch.dtype | None) -> None:
+    """Reduced-precision building needs a distance with ``with_autocast(dtype)`` (e.g. ``GoalDistance``)."""
+    if dtype is not None and not callable(getattr(distance, "with_autocast", None)):
+        raise TypeError(
+            f"`build_autocast_dtype={dtype}` needs a distance with a `with_autocast(dtype)` method returning "
+            f"its reduced-precision version (e.g. torchrl_dhrl.modules.GoalDistance); got "
+            f"{type(distance).__name__}. Use build_autocast_dtype=None for other distances."
+        )
+
+
+def build_distance(distance: DistanceFn, dtype: torch.dtype | None) -> DistanceFn:
+    """The distance used for graph building: ``distance.with_autocast(dtype)``, or ``distance`` itself."""
+    if dtype is None:
+        return distance
+    check_supports_autocast(distance, dtype)
+    return distance.with_autocast(dtype)
+
 
 def check_chunk_size(chunk_size: int) -> int:
     if not isinstance(chunk_size, int) or isinstance(chunk_size, bool) or chunk_size < 1:

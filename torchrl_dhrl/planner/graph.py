@@ -2,14 +2,23 @@
 
 from __future__ import annotations
 
+import contextlib
 import math
 from typing import NamedTuple
 
 import torch
 from torch import Tensor, nn
 
-from ._distance import DEFAULT_CHUNK_SIZE, DistanceFn, check_chunk_size, paired_distances, pairwise_distances
-from .fps import FPS_STRATEGIES, farthest_point_sampling
+from ._distance import (
+    DEFAULT_CHUNK_SIZE,
+    DistanceFn,
+    build_distance,
+    check_build_autocast_dtype,
+    check_chunk_size,
+    paired_distances,
+    pairwise_distances,
+)
+from .fps import DEFAULT_LAZY_BATCH, FPS_STRATEGIES, ProxyFn, farthest_point_sampling, resolve_proxy
 from .shortest_paths import floyd_warshall, reconstruct_paths
 
 #: Buffers whose shapes follow the number of landmarks (resized when a state dict is loaded).
@@ -99,6 +108,20 @@ class LandmarkGraph(nn.Module):
         chunk_size (int): maximum number of pairs per distance call. Defaults to ``65536``.
         fps_strategy (str): ``"lazy"`` or ``"dense"`` (same result, see
             :func:`~torchrl_dhrl.planner.farthest_point_sampling`). Defaults to ``"lazy"``.
+        fps_proxy (str, callable or None): the evaluation-order heuristic of lazy FPS (``"goal"``:
+            Euclidean distance between goals; ``None``: none). Changes the cost, never the
+            landmarks. Defaults to ``"goal"``.
+        fps_lazy_batch (int): candidates refreshed per round of lazy FPS. Defaults to ``64``.
+        build_autocast_dtype (torch.dtype, optional): ``torch.bfloat16`` or ``torch.float16`` to
+            evaluate the distances of :meth:`build` and :meth:`set_landmarks` in reduced precision,
+            through the distance's ``with_autocast(dtype)`` (e.g.
+            :meth:`~torchrl_dhrl.modules.GoalDistance.with_autocast`; other distances raise a
+            TypeError). With bfloat16 on a CPU with bfloat16 units: 2-3.5x faster per pair, at a
+            relative distance error of about 0.1% (median) to 0.6% (max) on a 3x256 critic. FPS
+            may part ways with a full-precision build after a near-tie (other landmarks, same
+            coverage radius within about 1%), and an edge whose length sits at the cutoff may
+            flip. Queries (:meth:`plan`, :meth:`distance_from_graph`) always use the distance as
+            given. Defaults to ``None`` (full precision).
 
     Examples:
         >>> import torch
@@ -124,6 +147,10 @@ class LandmarkGraph(nn.Module):
         start_fallback_factor: float = 1.5,
         chunk_size: int = DEFAULT_CHUNK_SIZE,
         fps_strategy: str = "lazy",
+        *,
+        fps_proxy: str | ProxyFn | None = "goal",
+        fps_lazy_batch: int = DEFAULT_LAZY_BATCH,
+        build_autocast_dtype: torch.dtype | None = None,
     ) -> None:
         super().__init__()
         self.cutoff = _check_positive("cutoff", cutoff)
@@ -142,6 +169,12 @@ class LandmarkGraph(nn.Module):
         if fps_strategy not in FPS_STRATEGIES:
             raise ValueError(f"`fps_strategy` must be one of {FPS_STRATEGIES}, got {fps_strategy!r}.")
         self.fps_strategy = fps_strategy
+        resolve_proxy(fps_proxy)
+        self.fps_proxy = fps_proxy
+        if isinstance(fps_lazy_batch, bool) or not isinstance(fps_lazy_batch, int) or fps_lazy_batch < 1:
+            raise ValueError(f"`fps_lazy_batch` must be a positive int, got {fps_lazy_batch!r}.")
+        self.fps_lazy_batch = fps_lazy_batch
+        self.build_autocast_dtype = check_build_autocast_dtype(build_autocast_dtype)
         self.register_buffer("landmark_states", torch.zeros(0, 0))
         self.register_buffer("landmark_goals", torch.zeros(0, 0))
         self.register_buffer("landmark_distances", torch.zeros(0, 0))
@@ -194,10 +227,14 @@ class LandmarkGraph(nn.Module):
     def build(self, candidate_states: Tensor, candidate_goals: Tensor, distance: DistanceFn) -> LandmarkGraph:
         """Rebuilds the graph from scratch from candidate states (e.g. sampled from the replay buffer).
 
+        The landmark distance matrix reuses every pair FPS evaluated (all ``d(l_m -> l_j)`` with
+        ``l_m`` selected before ``l_j``); only the others are evaluated afterwards.
+
         Args:
             candidate_states (Tensor): ``[N, obs_dim]`` states.
             candidate_goals (Tensor): ``[N, goal_dim]`` their achieved goals.
-            distance (callable): ``distance(states, goals) -> steps``.
+            distance (callable): ``distance(states, goals) -> steps`` (its
+                ``with_autocast(build_autocast_dtype)`` when that option is set).
 
         Returns:
             this graph, rebuilt (on the device of the candidates).
@@ -209,25 +246,30 @@ class LandmarkGraph(nn.Module):
             )
         if candidate_states.shape[0] == 0:
             return self.clear()
-        result = farthest_point_sampling(
-            candidate_states,
-            candidate_goals,
-            distance,
-            self.max_landmarks,
-            early_stop=self.early_stop,
-            min_count=self.min_landmarks,
-            strategy=self.fps_strategy,
-            chunk_size=self.chunk_size,
-        )
-        states = candidate_states[result.indices]
-        goals = candidate_goals[result.indices]
-        matrix = result.landmark_distances
-        missing = torch.isnan(matrix)
-        if missing.any():
-            rows, cols = missing.nonzero(as_tuple=True)
-            matrix[rows, cols] = paired_distances(distance, states[rows], goals[cols], self.chunk_size).to(
-                matrix.dtype
+        distance = build_distance(distance, self.build_autocast_dtype)
+        with self._build_autocast(candidate_states.device):
+            result = farthest_point_sampling(
+                candidate_states,
+                candidate_goals,
+                distance,
+                self.max_landmarks,
+                early_stop=self.early_stop,
+                min_count=self.min_landmarks,
+                strategy=self.fps_strategy,
+                lazy_batch=self.fps_lazy_batch,
+                chunk_size=self.chunk_size,
+                proxy=self.fps_proxy,
             )
+            states = candidate_states[result.indices]
+            goals = candidate_goals[result.indices]
+            matrix = result.landmark_distances
+            matrix.fill_diagonal_(0.0)  # ignored by set_distance_matrix: not worth evaluating
+            missing = torch.isnan(matrix)
+            if missing.any():
+                rows, cols = missing.nonzero(as_tuple=True)
+                matrix[rows, cols] = paired_distances(
+                    distance, states[rows], goals[cols], self.chunk_size
+                ).to(matrix.dtype)
         self.set_distance_matrix(states, goals, matrix)
         self.coverage_radius = result.radius.to(self.landmark_states)
         return self
@@ -242,8 +284,23 @@ class LandmarkGraph(nn.Module):
             distance (callable): ``distance(states, goals) -> steps``.
         """
         self._check_landmarks(states, goals)
-        matrix = pairwise_distances(distance, states, goals, self.chunk_size)
+        distance = build_distance(distance, self.build_autocast_dtype)
+        with self._build_autocast(states.device):
+            matrix = pairwise_distances(distance, states, goals, self.chunk_size)
         return self.set_distance_matrix(states, goals, matrix)
+
+    def _build_autocast(self, device: torch.device):
+        """``torch.autocast(build_autocast_dtype)`` around the distance evaluations of a build.
+
+        The distance (``distance.with_autocast(dtype)``) runs in reduced precision anyway; the
+        enclosing context keeps autocast's cache of the networks' reduced-precision weights alive
+        for the whole build, so they are cast once per build instead of once per call (about 10%
+        of a CPU rebuild).
+        """
+        dtype = self.build_autocast_dtype
+        if dtype is None or not torch.amp.is_autocast_available(device.type):
+            return contextlib.nullcontext()
+        return torch.autocast(device.type, dtype=dtype)
 
     @torch.no_grad()
     def set_distance_matrix(self, states: Tensor, goals: Tensor, distances: Tensor) -> LandmarkGraph:

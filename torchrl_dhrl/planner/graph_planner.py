@@ -12,7 +12,8 @@ from torchrl.data import Composite, Unbounded
 from torchrl.envs import TensorDictPrimer
 from torchrl.envs.transforms import Transform
 
-from ._distance import DEFAULT_CHUNK_SIZE, DistanceFn
+from ._distance import DEFAULT_CHUNK_SIZE, DistanceFn, check_supports_autocast
+from .fps import DEFAULT_LAZY_BATCH, ProxyFn
 from .graph import GraphPlan, LandmarkGraph
 
 #: Per-env tracking entries stored under ``state_key`` (all with a trailing feature dim).
@@ -95,6 +96,15 @@ class GraphPlanner(Transform):
         chunk_size (int): maximum number of pairs per distance call. Defaults to ``65536``.
         fps_strategy (str): ``"lazy"`` or ``"dense"`` farthest point sampling (same landmarks).
             Defaults to ``"lazy"``.
+        fps_proxy (str, callable or None): evaluation-order heuristic of lazy FPS (cost only, the
+            landmarks are the same). Defaults to ``"goal"`` (see :class:`LandmarkGraph`).
+        fps_lazy_batch (int): candidates refreshed per round of lazy FPS. Defaults to ``64``.
+        build_autocast_dtype (torch.dtype, optional): ``torch.bfloat16`` (or ``torch.float16``)
+            builds the graph with ``distance.with_autocast(dtype)``, e.g. a reduced-precision
+            :class:`~torchrl_dhrl.modules.GoalDistance`: about 2x faster rebuilds on a CPU with
+            bfloat16 units, at about 0.1% median relative distance error (see
+            :class:`LandmarkGraph`); queries keep the full precision. Needs a distance with
+            ``with_autocast`` (TypeError otherwise). Defaults to ``None`` (full precision).
         observation_key (NestedKey): Defaults to ``"observation"``.
         achieved_goal_key (NestedKey): Defaults to ``"achieved_goal"``.
         subgoal_key (NestedKey): Defaults to ``"subgoal"``.
@@ -140,6 +150,9 @@ class GraphPlanner(Transform):
         max_path_length: int = 32,
         chunk_size: int = DEFAULT_CHUNK_SIZE,
         fps_strategy: str = "lazy",
+        fps_proxy: str | ProxyFn | None = "goal",
+        fps_lazy_batch: int = DEFAULT_LAZY_BATCH,
+        build_autocast_dtype: torch.dtype | None = None,
         observation_key: NestedKey = "observation",
         achieved_goal_key: NestedKey = "achieved_goal",
         subgoal_key: NestedKey = "subgoal",
@@ -190,8 +203,12 @@ class GraphPlanner(Transform):
             start_fallback_factor=start_fallback_factor,
             chunk_size=chunk_size,
             fps_strategy=fps_strategy,
+            fps_proxy=fps_proxy,
+            fps_lazy_batch=fps_lazy_batch,
+            build_autocast_dtype=build_autocast_dtype,
         )
         self.distance = distance
+        check_supports_autocast(distance, build_autocast_dtype)
 
     # ------------------------------------------------------------------ distance and graph
     @property

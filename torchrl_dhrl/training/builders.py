@@ -35,7 +35,7 @@ from torchrl_dhrl.modules import (
 from torchrl_dhrl.objectives import HighLevelLoss, SQGCLoss, make_optimizers
 from torchrl_dhrl.planner import FrontierGoalShifting, GraphPlanner
 
-from .config import ConfigError
+from .config import BUILD_DTYPES, ConfigError
 from .goal_shift import GoalShiftOnReset
 from .oracle import LineOfSightDistance
 from .updates import LossUpdater
@@ -216,6 +216,7 @@ def make_agent(cfg: Mapping, env: EnvBase, device: torch.device) -> DHRLAgent:
         max_landmarks=planner_cfg["max_landmarks"],
         early_stop=planner_cfg["early_stop"],
         reach_radius=planner_cfg["reach_radius"],
+        build_autocast_dtype=BUILD_DTYPES[planner_cfg["build_dtype"]],
     ).to(device)
     policy = TensorDictSequential(high_policy, planner, TensorDictSequential(actor, exploration))
     return DHRLAgent(high_policy, actor, exploration, sqgc_loss, high_loss, planner, policy)

@@ -8,8 +8,10 @@ from typing import Any
 
 import torch
 
-__all__ = ["ConfigError", "DISTANCES", "LOGGER_BACKENDS", "resolve_device", "validate_config"]
+__all__ = ["BUILD_DTYPES", "ConfigError", "DISTANCES", "LOGGER_BACKENDS", "resolve_device", "validate_config"]
 
+#: Precisions of the distance evaluations of a graph rebuild (``None``: the networks' own, float32).
+BUILD_DTYPES = {"float32": None, "bfloat16": torch.bfloat16, "float16": torch.float16}
 #: Graph distances the recipe can plan with.
 DISTANCES = ("learned", "oracle")
 #: Logger back ends (``none`` logs nothing but the progress bar).
@@ -166,6 +168,10 @@ def validate_config(cfg: Mapping, env_names: tuple[str, ...] | None = None) -> N
         )
     _number(cfg, "planner.early_stop", low=0.0)
     _number(cfg, "planner.reach_radius", low=0.0, strict=True)
+    if _get(cfg, "planner.build_dtype") not in BUILD_DTYPES:
+        raise ConfigError(
+            f"`planner.build_dtype` must be one of {tuple(BUILD_DTYPES)}, got {_get(cfg, 'planner.build_dtype')!r}."
+        )
     _number(cfg, "planner.oracle_margin", low=0.0)
     _number(cfg, "planner.oracle_speed", low=0.0, strict=True)
     _number(cfg, "fgs.noise", low=0.0)
