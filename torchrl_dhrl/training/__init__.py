@@ -14,6 +14,14 @@ from .builders import (
 )
 from .checkpoint import get_rng_state, load_checkpoint, save_checkpoint, set_rng_state
 from .config import DISTANCES, LOGGER_BACKENDS, ConfigError, resolve_device, validate_config
+from .diagnostics import (
+    ReachResult,
+    low_level_reach_test,
+    reach_offsets,
+    reach_test_from_checkpoint,
+    summarize_reach,
+    visible_offsets,
+)
 from .evaluation import EvaluationResult, ModuleTimer, evaluate, record_video
 from .goal_shift import GoalShiftOnReset
 from .oracle import LineOfSightDistance
@@ -32,10 +40,12 @@ __all__ = [
     "LossUpdater",
     "ModuleTimer",
     "NonFiniteLossError",
+    "ReachResult",
     "evaluate",
     "get_rng_state",
     "graph_path_to_goal",
     "load_checkpoint",
+    "low_level_reach_test",
     "make_agent",
     "make_collector",
     "make_environment",
@@ -45,9 +55,13 @@ __all__ = [
     "make_updaters",
     "plot_episode",
     "plot_success_curve",
+    "reach_offsets",
+    "reach_test_from_checkpoint",
     "record_video",
     "resolve_device",
     "save_checkpoint",
     "set_rng_state",
+    "summarize_reach",
     "validate_config",
+    "visible_offsets",
 ]

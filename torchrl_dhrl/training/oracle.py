@@ -64,8 +64,8 @@ class LineOfSightDistance:
         self.blocked = float(blocked)
         self.chunk_size = int(chunk_size)
 
-    def _blocked(self, start: Tensor, end: Tensor) -> Tensor:
-        """``[n]`` bool: does the segment ``start -> end`` (``[n, dim]``) cross any box?"""
+    def crosses_obstacle(self, start: Tensor, end: Tensor) -> Tensor:
+        """``[n]`` bool: does the segment ``start -> end`` (``[n, dim]``) cross any (inflated) box?"""
         boxes = self.boxes.to(start.device, start.dtype)
         if boxes.shape[0] == 0:
             return torch.zeros(start.shape[0], dtype=torch.bool, device=start.device)
@@ -94,5 +94,5 @@ class LineOfSightDistance:
         for lo in range(0, start.shape[0], self.chunk_size):
             s, e = start[lo : lo + self.chunk_size], end[lo : lo + self.chunk_size]
             steps = (e - s).norm(dim=-1) / self.speed
-            out[lo : lo + self.chunk_size] = torch.where(self._blocked(s, e), self.blocked, steps)
+            out[lo : lo + self.chunk_size] = torch.where(self.crosses_obstacle(s, e), self.blocked, steps)
         return out.reshape(shape)

@@ -1,0 +1,45 @@
+"""Can the low level of a DHRL run reach nearby goals on its own (no high level, no graph)?
+
+When a run does not learn, this separates "the low level cannot move yet" from "the graph or the
+high level is wrong": the low-level actor of a checkpoint chases fixed goals at a few radii around
+the start, in straight-line-reachable directions, with exploration off.
+
+    python recipes/diagnose_low_level.py outputs/<date>/<time>            # the run directory
+    python recipes/diagnose_low_level.py run/checkpoint.pt --radii 1 2 4 --steps 120
+"""
+
+from __future__ import annotations
+
+import argparse
+
+from torchrl_dhrl.training.diagnostics import reach_test_from_checkpoint
+
+
+def main(argv: list[str] | None = None) -> list[dict]:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("checkpoint", help="a checkpoint.pt or the run directory holding it")
+    parser.add_argument("--radii", type=float, nargs="+", default=None, help="goal distances (goal units)")
+    parser.add_argument("--directions", type=int, default=16, help="directions per radius")
+    parser.add_argument("--steps", type=int, default=None, help="steps per goal (default 3 x cutoff)")
+    parser.add_argument("--device", default="cpu")
+    args = parser.parse_args(argv)
+    rows = reach_test_from_checkpoint(
+        args.checkpoint,
+        radii=args.radii,
+        num_directions=args.directions,
+        max_steps=args.steps,
+        device=args.device,
+    )
+    print(
+        f"{'radius':>8} {'goals':>6} {'reached':>8} {'median steps':>13} {'min dist':>9} {'final dist':>11}"
+    )
+    for row in rows:
+        print(
+            f"{row['radius']:8.2f} {row['goals']:6d} {row['reach_rate']:8.0%} {row['median_steps']:13.1f} "
+            f"{row['mean_min_distance']:9.2f} {row['mean_final_distance']:11.2f}"
+        )
+    return rows
+
+
+if __name__ == "__main__":
+    main()

@@ -1,0 +1,223 @@
+"""Diagnostics for runs that do not learn: can the low level reach nearby goals on its own?"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Sequence
+from typing import NamedTuple
+
+import torch
+from tensordict.nn import TensorDictModule, TensorDictModuleBase, TensorDictSequential
+from torch import Tensor
+from torchrl.envs import EnvBase
+from torchrl.envs.utils import ExplorationType, set_exploration_type
+
+from .oracle import LineOfSightDistance
+
+__all__ = [
+    "ReachResult",
+    "low_level_reach_test",
+    "reach_offsets",
+    "reach_test_from_checkpoint",
+    "summarize_reach",
+    "visible_offsets",
+]
+
+
+class ReachResult(NamedTuple):
+    """Outcome of :func:`low_level_reach_test`, one entry per env (goal).
+
+    Attributes:
+        radius (Tensor): the offset radius each goal was drawn at (goal units).
+        start_distance (Tensor): distance between the achieved goal after the reset and the goal.
+        reached (Tensor): bool, within ``reach_radius`` at some step.
+        steps_to_reach (Tensor): first step within ``reach_radius`` (1-based); ``max_steps + 1`` if never.
+        min_distance (Tensor): closest approach over the episode.
+        final_distance (Tensor): distance after the last step.
+    """
+
+    radius: Tensor
+    start_distance: Tensor
+    reached: Tensor
+    steps_to_reach: Tensor
+    min_distance: Tensor
+    final_distance: Tensor
+
+
+def reach_offsets(goal_dim: int, radii: Sequence[float], num_directions: int, *, seed: int = 0) -> Tensor:
+    """``[len(radii) * num_directions, goal_dim]`` offsets: ``num_directions`` unit directions per radius.
+
+    In 2-D the directions are evenly spaced angles; in other dimensions they are seeded random unit
+    vectors (the same for every radius).
+
+    Examples:
+        >>> reach_offsets(2, [1.0, 2.0], 4).round(decimals=3).tolist()[:4]
+        [[1.0, 0.0], [0.0, 1.0], [-1.0, 0.0], [-0.0, -1.0]]
+    """
+    if num_directions < 1 or not radii or min(radii) <= 0:
+        raise ValueError(f"Need num_directions >= 1 and positive radii, got {num_directions}, {list(radii)}.")
+    if goal_dim == 2:
+        angle = torch.arange(num_directions, dtype=torch.float64) * (2 * math.pi / num_directions)
+        directions = torch.stack([angle.cos(), angle.sin()], -1)
+    else:
+        generator = torch.Generator().manual_seed(seed)
+        directions = torch.randn(num_directions, goal_dim, generator=generator, dtype=torch.float64)
+        directions = directions / directions.norm(dim=-1, keepdim=True)
+    radius = torch.as_tensor(list(radii), dtype=torch.float64)
+    return (radius[:, None, None] * directions).reshape(-1, goal_dim).float()
+
+
+def visible_offsets(start: Tensor, offsets: Tensor, obstacles: LineOfSightDistance) -> Tensor:
+    """The ``offsets`` whose straight segment ``start -> start + offset`` no obstacle of ``obstacles`` blocks.
+
+    Examples:
+        >>> import torch
+        >>> wall = LineOfSightDistance(1.0, boxes=[[[1.0, -5.0], [2.0, 5.0]]])
+        >>> visible_offsets(torch.zeros(2), reach_offsets(2, [3.0], 4), wall).round().tolist()
+        [[0.0, 3.0], [-3.0, 0.0], [-0.0, -3.0]]
+    """
+    start = start.to(offsets.dtype).expand_as(offsets)
+    return offsets[~obstacles.crosses_obstacle(start, start + offsets)]
+
+
+@torch.no_grad()
+def low_level_reach_test(
+    env: EnvBase,
+    actor: TensorDictModuleBase,
+    offsets: Tensor,
+    *,
+    max_steps: int,
+    reach_radius: float,
+) -> ReachResult:
+    """Runs the low-level actor alone (no high level, no graph) towards ``start + offset`` goals.
+
+    Separates "the low level cannot move yet" from "the graph or the high level is wrong" when a run
+    does not learn: env ``i`` of ``env`` (a bare goal env, e.g. ``make_env(name, num_envs=N)``) is
+    reset, given the goal ``achieved goal + offsets[i]`` as its waypoint for the whole episode, and
+    stepped ``max_steps`` times with exploration off. Use :func:`visible_offsets` first to keep only
+    goals reachable in a straight line.
+
+    Args:
+        env (EnvBase): a goal env of batch size ``[N]`` honouring ``"desired_goal"`` at reset.
+        actor (TensorDictModuleBase): reads ``(observation, waypoint)`` in the order of its ``in_keys``
+            and writes the action (e.g. :class:`~torchrl_dhrl.modules.LowLevelActor`).
+        offsets (Tensor): ``[N, goal_dim]`` goal offsets from the reset's achieved goal.
+
+    Keyword Args:
+        max_steps (int): steps per episode.
+        reach_radius (float): the low level's success radius (the planner's waypoint radius).
+
+    Examples:
+        >>> import torch
+        >>> from tensordict.nn import TensorDictModule
+        >>> from torchrl_dhrl.envs import make_env
+        >>> offsets = reach_offsets(2, [1.0], 4)
+        >>> env = make_env("PointMaze", num_envs=4, seed=0)
+        >>> still = TensorDictModule(lambda o, w: torch.zeros(*o.shape[:-1], 2),
+        ...                          in_keys=["observation", "waypoint"], out_keys=["action"])
+        >>> low_level_reach_test(env, still, offsets, max_steps=5, reach_radius=0.5).reached.tolist()
+        [False, False, False, False]
+    """
+    if tuple(env.batch_size) != (offsets.shape[0],):
+        raise ValueError(
+            f"The env must have batch size [{offsets.shape[0]}] (one env per offset), got {tuple(env.batch_size)}."
+        )
+    if max_steps < 1 or not reach_radius > 0:
+        raise ValueError(f"Need max_steps >= 1 and reach_radius > 0, got {max_steps}, {reach_radius}.")
+    td = env.reset()
+    start = td["achieved_goal"]
+    offsets = offsets.to(start.device, start.dtype)
+    td = env.reset(td.set("desired_goal", start + offsets))
+    goal = td["desired_goal"]
+    waypoint_key = actor.in_keys[1]
+    policy = TensorDictSequential(
+        TensorDictModule(lambda g: g.clone(), in_keys=["desired_goal"], out_keys=[waypoint_key]), actor
+    )
+    with set_exploration_type(ExplorationType.DETERMINISTIC):
+        rollout = env.rollout(max_steps, policy, tensordict=td, auto_reset=False, break_when_any_done=False)
+    distance = (rollout["next", "achieved_goal"] - goal.unsqueeze(-2)).norm(dim=-1)  # [N, T]
+    within = distance <= reach_radius
+    reached = within.any(-1)
+    never = torch.full_like(reached, max_steps + 1, dtype=torch.long)
+    first = torch.where(reached, within.float().argmax(-1) + 1, never)
+    return ReachResult(
+        radius=offsets.norm(dim=-1).cpu(),
+        start_distance=(td["achieved_goal"] - goal).norm(dim=-1).cpu(),
+        reached=reached.cpu(),
+        steps_to_reach=first.cpu(),
+        min_distance=distance.amin(-1).cpu(),
+        final_distance=distance[..., -1].cpu(),
+    )
+
+
+def summarize_reach(result: ReachResult) -> list[dict]:
+    """One row per offset radius: goals, reach rate, median steps to reach (reached goals), mean final distance."""
+    rows = []
+    for radius in torch.unique(result.radius.round(decimals=4)).tolist():
+        mask = (result.radius - radius).abs() < 1e-3
+        reached = result.reached[mask]
+        steps = result.steps_to_reach[mask][reached]
+        rows.append(
+            {
+                "radius": radius,
+                "goals": int(mask.sum()),
+                "reach_rate": reached.float().mean().item(),
+                "median_steps": steps.float().median().item() if steps.numel() else float("nan"),
+                "mean_min_distance": result.min_distance[mask].mean().item(),
+                "mean_final_distance": result.final_distance[mask].mean().item(),
+            }
+        )
+    return rows
+
+
+def reach_test_from_checkpoint(
+    path,
+    *,
+    radii: Sequence[float] | None = None,
+    num_directions: int = 16,
+    max_steps: int | None = None,
+    device: str | torch.device = "cpu",
+    seed: int = 0,
+) -> list[dict]:
+    """:func:`low_level_reach_test` for the low-level actor of a recipe checkpoint, summarised per radius.
+
+    Defaults follow the run's config: radii ``(0.25, 0.5, 1, 1.5) x cutoff x oracle_speed`` (the goal-space
+    span of a graph edge, at the env's nominal speed), ``max_steps = 3 x cutoff``, the planner's
+    ``reach_radius``; goals blocked by the maze walls (or the UR3 boards) are dropped.
+
+    Args:
+        path (str or Path): a ``checkpoint.pt`` or the run directory holding it.
+    """
+    from pathlib import Path
+
+    from torchrl_dhrl.envs import make_env
+
+    from .builders import _obstacle_boxes, make_agent, make_environment
+    from .checkpoint import load_checkpoint
+
+    path = Path(path)
+    path = path / "checkpoint.pt" if path.is_dir() else path
+    device = torch.device(device)
+    state = load_checkpoint(path, map_location=device)
+    cfg = state["config"]
+    planner = cfg["planner"]
+    agent = make_agent(cfg, make_environment(cfg, device), device)
+    agent.load_state_dict(state["agent"])
+    if radii is None:
+        span = planner["cutoff"] * planner["oracle_speed"]
+        radii = [f * span for f in (0.25, 0.5, 1.0, 1.5)]
+    max_steps = int(max_steps or 3 * planner["cutoff"])
+    probe = make_env(cfg["env_name"], num_envs=1, seed=seed, device=device)
+    start = probe.reset()["achieved_goal"][0]
+    offsets = reach_offsets(start.shape[-1], radii, num_directions, seed=seed)
+    boxes = _obstacle_boxes(cfg["env_name"])
+    if boxes is not None:
+        walls = LineOfSightDistance(
+            1.0, boxes=boxes, margin=planner["oracle_margin"], goal_indices=range(start.shape[-1])
+        )
+        offsets = visible_offsets(start.cpu(), offsets, walls)
+    env = make_env(cfg["env_name"], num_envs=offsets.shape[0], seed=seed, device=device)
+    result = low_level_reach_test(
+        env, agent.low_actor, offsets, max_steps=max_steps, reach_radius=planner["reach_radius"]
+    )
+    return summarize_reach(result)
