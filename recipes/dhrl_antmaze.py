@@ -185,6 +185,7 @@ def train(cfg: DictConfig | dict, run_dir: str | Path | None = None) -> dict:
     except KeyboardInterrupt:
         bar.close()
         path = checkpoint()
+        _plot_curve(cfg, history, run_dir)
         print(f"\nInterrupted: checkpoint written to {path}; continue with resume={run_dir}")
         collector.shutdown()
         raise
@@ -197,21 +198,19 @@ def train(cfg: DictConfig | dict, run_dir: str | Path | None = None) -> dict:
     bar.close()
     path = checkpoint()
     collector.shutdown()
-    if history:
-        plot_success_curve(
-            history,
-            run_dir / "success_curve.png",
-            title=f"DHRL {cfg['env_name']} (seed {cfg['seed']})",
-            reference=PAPER_SUCCESS.get(cfg["env_name"]),
-        )
+    _plot_curve(cfg, history, run_dir)
     if cfg["plots"]["video"]:
         video = record_video(eval_env, agent.policy, episode_length, run_dir / "test_episode.gif")
         print(f"Video of a test episode: {video}")
     summary = {"run_dir": str(run_dir), "checkpoint": str(path), **(history[-1] if history else {})}
     print(
         f"Done: {counters['env_steps']} env steps, last success {summary.get('eval/success', float('nan')):.2f}. "
-        f"Curve: {run_dir / 'success_curve.png'}, metrics: {run_dir / 'metrics.csv'}, "
-        f"pictures: {run_dir / 'episodes'}, checkpoint: {path}"
+        + (
+            f"Curve: {run_dir / 'success_curve.png'}, metrics: {run_dir / 'metrics.csv'}, "
+            f"pictures: {run_dir / 'episodes'}, checkpoint: {path}"
+            if history
+            else f"No epoch finished (no curve or metrics yet); checkpoint: {path}"
+        )
     )
     return summary
 
@@ -264,6 +263,17 @@ def _end_of_epoch(
     metrics["time/update_s"] = timer["update"]
     metrics["env_steps_per_s"] = counters["env_steps"] / max(timer["collect"] + timer["update"], 1e-9)
     return metrics
+
+
+def _plot_curve(cfg: dict, history: list[dict], run_dir: Path) -> None:
+    """``success_curve.png`` with the paper's points (at the end, and on Ctrl-C)."""
+    if history:
+        plot_success_curve(
+            history,
+            run_dir / "success_curve.png",
+            title=f"DHRL {cfg['env_name']} (seed {cfg['seed']})",
+            reference=PAPER_SUCCESS.get(cfg["env_name"]),
+        )
 
 
 def _log(logger, metrics: dict, step: int) -> None:

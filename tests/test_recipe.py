@@ -167,6 +167,7 @@ def test_ctrl_c_saves_a_checkpoint_that_resumes(tmp_path, monkeypatch):
         recipe.train(cfg, run_dir=tmp_path)
     state = load_checkpoint(tmp_path / "checkpoint.pt")
     assert state["counters"]["env_steps"] == 240  # batch 3 was collected and stored before the interrupt
+    assert (tmp_path / "success_curve.png").stat().st_size > 1000  # the curve so far is drawn too
     monkeypatch.setattr(LossUpdater, "run", real_run)
     summary = recipe.train(
         recipe_config("env=PointMaze", *SMOKE, "plots.every_epochs=0", f"resume={tmp_path}"), run_dir=tmp_path
