@@ -138,7 +138,13 @@ def train(cfg: DictConfig | dict, run_dir: str | Path | None = None) -> dict:
     bar = tqdm.tqdm(
         total=cfg["total_steps"], initial=counters["env_steps"], unit="step", disable=not cfg["progress"]
     )
-    timer = {"collect": 0.0, "update": 0.0, "planner": ModuleTimer(agent.planner)}
+    # timers cover this process only (a resumed run starts them again), hence the steps at the start
+    timer = {
+        "collect": 0.0,
+        "update": 0.0,
+        "planner": ModuleTimer(agent.planner),
+        "steps": counters["env_steps"],
+    }
     wall_start, wall_before = time.perf_counter(), counters["wall_s"]
     last_time = time.perf_counter()
     metrics: dict = {}
@@ -261,7 +267,8 @@ def _end_of_epoch(
     metrics["time/planner_ms_per_call"] = 1e3 * planner_s / max(planner_calls, 1)
     metrics["time/collect_s"] = timer["collect"]
     metrics["time/update_s"] = timer["update"]
-    metrics["env_steps_per_s"] = counters["env_steps"] / max(timer["collect"] + timer["update"], 1e-9)
+    steps = counters["env_steps"] - timer["steps"]
+    metrics["env_steps_per_s"] = steps / max(timer["collect"] + timer["update"], 1e-9)
     return metrics
 
 

@@ -77,6 +77,10 @@ def test_resume_continues_exactly(tmp_path):
     timing = ("time/", "env_steps_per_s", "graph/build_s")
     untimed = lambda rows: [{k: v for k, v in r.items() if not k.startswith(timing)} for r in rows]  # noqa: E731
     assert untimed(_metrics(straight)) == untimed(_metrics(halves))  # losses, success, graph: all identical
+    for row in _metrics(halves)[3:]:  # after the resume the rate counts this process's steps and time only
+        busy = float(row["time/collect_s"]) + float(row["time/update_s"])
+        rate = (int(row["env_steps"]) - 240) / busy
+        assert float(row["env_steps_per_s"]) == pytest.approx(rate, rel=1e-4)
 
 
 @pytest.mark.parametrize(
