@@ -41,6 +41,7 @@ from torchrl_dhrl.training import (
     LOW_LEVEL_KEYS,
     ModuleTimer,
     NonFiniteLossError,
+    checkpoint_file,
     evaluate,
     get_rng_state,
     load_checkpoint,
@@ -77,7 +78,7 @@ def train(cfg: DictConfig | dict, run_dir: str | Path | None = None) -> dict:
     device = resolve_device(cfg["device"])
     run_dir = Path(run_dir or cfg["run_dir"] or ".").resolve()
     run_dir.mkdir(parents=True, exist_ok=True)
-    resume = _checkpoint_path(cfg["resume"]) if cfg["resume"] else None
+    resume = checkpoint_file(cfg["resume"]) if cfg["resume"] else None
     torch.manual_seed(cfg["seed"])
     np.random.seed(cfg["seed"])
     random.seed(cfg["seed"])
@@ -298,11 +299,6 @@ def _write_metrics_csv(history: list[dict], path: Path) -> None:
         writer.writeheader()
         writer.writerows(history)
     tmp.replace(path)
-
-
-def _checkpoint_path(resume: str) -> Path:
-    path = Path(resume)
-    return path / "checkpoint.pt" if path.is_dir() else path
 
 
 def _raise_keyboard_interrupt_on_sigterm() -> None:

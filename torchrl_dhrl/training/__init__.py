@@ -12,7 +12,7 @@ from .builders import (
     make_replay_buffers,
     make_updaters,
 )
-from .checkpoint import get_rng_state, load_checkpoint, save_checkpoint, set_rng_state
+from .checkpoint import checkpoint_file, get_rng_state, load_checkpoint, save_checkpoint, set_rng_state
 from .config import DISTANCES, LOGGER_BACKENDS, ConfigError, resolve_device, validate_config
 from .diagnostics import (
     ReachResult,
@@ -41,6 +41,7 @@ __all__ = [
     "ModuleTimer",
     "NonFiniteLossError",
     "ReachResult",
+    "checkpoint_file",
     "evaluate",
     "get_rng_state",
     "graph_path_to_goal",

@@ -44,11 +44,18 @@ def save_checkpoint(state: dict[str, Any], path: str | os.PathLike) -> Path:
     return path
 
 
+def checkpoint_file(path: str | os.PathLike) -> Path:
+    """``path`` itself, or ``path/checkpoint.pt`` when ``path`` is a run directory."""
+    path = Path(path)
+    return path / "checkpoint.pt" if path.is_dir() else path
+
+
 def load_checkpoint(
     path: str | os.PathLike, map_location: str | torch.device | None = "cpu"
 ) -> dict[str, Any]:
-    """Loads a checkpoint written by :func:`save_checkpoint` (``map_location`` defaults to CPU)."""
-    path = Path(path)
+    """Loads a checkpoint written by :func:`save_checkpoint` (a file, or the run directory holding
+    ``checkpoint.pt``; ``map_location`` defaults to CPU)."""
+    path = checkpoint_file(path)
     if not path.is_file():
         raise FileNotFoundError(f"No checkpoint at {str(path)!r}.")
     return torch.load(path, map_location=map_location, weights_only=False)

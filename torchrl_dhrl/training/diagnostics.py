@@ -12,6 +12,10 @@ from torch import Tensor
 from torchrl.envs import EnvBase
 from torchrl.envs.utils import ExplorationType, set_exploration_type
 
+from torchrl_dhrl.envs import make_env
+
+from .builders import _obstacle_boxes, make_agent, make_environment
+from .checkpoint import load_checkpoint
 from .oracle import LineOfSightDistance
 
 __all__ = [
@@ -188,15 +192,6 @@ def reach_test_from_checkpoint(
     Args:
         path (str or Path): a ``checkpoint.pt`` or the run directory holding it.
     """
-    from pathlib import Path
-
-    from torchrl_dhrl.envs import make_env
-
-    from .builders import _obstacle_boxes, make_agent, make_environment
-    from .checkpoint import load_checkpoint
-
-    path = Path(path)
-    path = path / "checkpoint.pt" if path.is_dir() else path
     device = torch.device(device)
     state = load_checkpoint(path, map_location=device)
     cfg = state["config"]
