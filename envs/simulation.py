@@ -11,6 +11,7 @@ from __future__ import annotations
 
 import mujoco
 import numpy as np
+from mujoco import mjtState
 
 from .registry import get_env_spec
 from .task import GOAL_BODY, OVERVIEW_CAMERA, TaskSpec
@@ -243,11 +244,13 @@ class GoalSimulation:
         self._observe(index, data)
 
     def get_state(self) -> dict:
-        """The exact state of every env: MuJoCo's full physics state, goals, step counts and RNG streams.
+        """The exact state of every env: MuJoCo's integration state, goals, step counts and RNG streams.
 
         With :meth:`set_full_state` this makes checkpoints resume bit-for-bit (episodes in progress included).
+        The integration state holds the constraint solver's warm start too: without it the first steps after
+        a restore start the solver from another guess and can differ in the last bits.
         """
-        spec = mujoco.mjtState.mjSTATE_FULLPHYSICS
+        spec = mjtState.mjSTATE_INTEGRATION
         physics = np.zeros((self.num_envs, mujoco.mj_stateSize(self.model, spec)), dtype=np.float64)
         for i, data in enumerate(self.datas):
             mujoco.mj_getState(self.model, data, physics[i], spec)
@@ -262,9 +265,14 @@ class GoalSimulation:
     def set_full_state(self, state: dict) -> None:
         """Restores a state returned by :meth:`get_state` (same task and number of envs)."""
         physics = np.asarray(state["physics"], dtype=np.float64)
-        spec = mujoco.mjtState.mjSTATE_FULLPHYSICS
-        expected = (self.num_envs, mujoco.mj_stateSize(self.model, spec))
-        if physics.shape != expected or len(state["rngs"]) != self.num_envs:
+        # states saved before the warm start was included hold the full physics state only
+        specs = {
+            mujoco.mj_stateSize(self.model, s): s
+            for s in (mjtState.mjSTATE_FULLPHYSICS, mjtState.mjSTATE_INTEGRATION)
+        }
+        expected = (self.num_envs, mujoco.mj_stateSize(self.model, mjtState.mjSTATE_INTEGRATION))
+        spec = specs.get(physics.shape[-1]) if physics.ndim == 2 and len(physics) == self.num_envs else None
+        if spec is None or len(state["rngs"]) != self.num_envs:
             raise ValueError(
                 f"State of shape {physics.shape} with {len(state['rngs'])} RNG streams does not fit "
                 f"{self.num_envs} {self.spec.name} envs (expected {expected})."

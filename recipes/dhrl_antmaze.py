@@ -106,7 +106,9 @@ def train(cfg: DictConfig | dict, run_dir: str | Path | None = None) -> dict:
         train_env.base_env.load_state_dict(state["train_env"])
         eval_env.base_env.load_state_dict(state["eval_env"])
         collector.load_state_dict(state["collector"])
-        collector._carrier.update(state["carrier"].to(device))  # the post-reset state of the live episodes
+        # the post-reset state of the live episodes, copied into the carrier's own tensors: the collector keeps
+        # some of them (trajectory ids) on its storing device, not on the training device
+        collector._carrier.update_(state["carrier"])
         counters, history = state["counters"], state["history"]
         set_rng_state(state["rng"])
         print(f"Resumed from {resume} at {counters['env_steps']} env steps.")

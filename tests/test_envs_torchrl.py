@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import mujoco
 import numpy as np
 import pytest
 import torch
@@ -213,7 +214,8 @@ def test_cuda_device():
     check_env_specs(env)
     td = env.rollout(3)
     assert td["observation"].device.type == "cuda" and td["next", "reward"].device.type == "cuda"
-    cpu = make_env("AntMaze", num_envs=2, seed=0)
+    # fresh envs with the same seed: the one above has advanced its RNG streams
+    env, cpu = make_env("AntMaze", num_envs=2, seed=0, device="cuda"), make_env("AntMaze", num_envs=2, seed=0)
     torch.manual_seed(0)
     actions = cpu.action_spec.rand((3,))
     torch.testing.assert_close(
@@ -234,6 +236,8 @@ def test_state_dict_round_trip_continues_exactly(name):
     other = make_env(name, num_envs=2, seed=99, max_episode_steps=6)
     other.reset()
     other.load_state_dict(state)
+    for a, b in zip(env.simulation.datas, other.simulation.datas, strict=True):  # the solver's warm start too
+        assert a.qacc_warmstart.any() and np.array_equal(a.qacc_warmstart, b.qacc_warmstart)
     td_other = td.clone()
     for a in actions[4:]:  # crosses the episode end: the automatic reset must draw the same goals and noise
         out, td = env.step_and_maybe_reset(td.set("action", a.clone()))
@@ -243,3 +247,20 @@ def test_state_dict_round_trip_continues_exactly(name):
             assert torch.equal(td[key], td_other[key])
     with pytest.raises(ValueError, match="does not fit"):
         make_env(name, num_envs=3, seed=0).load_state_dict(state)
+
+
+def test_loads_states_saved_without_the_warm_start():
+    """States of the full physics only (checkpoints written before the warm start was saved) still load."""
+    env = make_env("AntMaze", num_envs=2, seed=0)
+    env.rollout(5)
+    state = env.state_dict()
+    sim = env.simulation
+    spec = mujoco.mjtState.mjSTATE_FULLPHYSICS
+    physics = np.zeros((2, mujoco.mj_stateSize(sim.model, spec)))
+    for i, data in enumerate(sim.datas):
+        mujoco.mj_getState(sim.model, data, physics[i], spec)
+    assert physics.shape != np.shape(state["_extra_state"]["physics"])
+    other = make_env("AntMaze", num_envs=2, seed=1)
+    other.load_state_dict({"_extra_state": {**state["_extra_state"], "physics": physics}})
+    for a, b in zip(sim.datas, other.simulation.datas, strict=True):
+        assert np.array_equal(a.qpos, b.qpos) and np.array_equal(a.qvel, b.qvel)

@@ -60,7 +60,7 @@ def _flat(state, prefix=""):
 
 def test_resume_continues_exactly(tmp_path):
     """K steps, checkpoint, resume, K more == 2K straight (CPU, fixed seed)."""
-    overrides = ("env=PointMaze", *SMOKE, "plots.every_epochs=0")
+    overrides = ("env=PointMaze", *SMOKE, "plots.every_epochs=0", "device=cpu")
     straight = tmp_path / "straight"
     recipe.train(recipe_config(*overrides, "total_steps=480"), run_dir=straight)
     halves = tmp_path / "halves"

@@ -260,6 +260,8 @@ def make_collector(env: EnvBase, agent: DHRLAgent, episode_length: int) -> Colle
 
     Episodes only truncate, so every env ends its episode at the last step of a batch and the
     collector's automatic reset starts the next one: batches are ``[num_envs, episode_length]``.
+    Batches are stored on the env's device, trajectory ids included, so that they can be written into
+    replay buffers on that device (also into a storage restored from a checkpoint, which has no device).
     """
     num_envs = env.batch_size.numel()
     # The planner and the subgoal scheduler carry their state with TensorDictPrimers (already on the env);
@@ -269,6 +271,7 @@ def make_collector(env: EnvBase, agent: DHRLAgent, episode_length: int) -> Colle
         agent.policy,
         frames_per_batch=num_envs * episode_length,
         total_frames=-1,
+        storing_device=env.device,
         auto_register_policy_transforms=False,
     )
 
