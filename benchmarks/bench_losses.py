@@ -14,10 +14,17 @@ Compared, per batch size:
   (:class:`~torchrl_dhrl.objectives.HighLevelLoss` on the low-level networks is exactly that);
 * ``td3 (torchrl)`` -- :class:`torchrl.objectives.TD3Loss` (vmap over two ``nn.Linear`` MLPs).
 
-The ratios use the CPU default (``sqgc (separate)``). Run::
+With ``--device cuda`` a fifth variant runs too:
+
+* ``sqgc (cudagraph)`` -- the fused SQGC update (critic step; critic + actor step every second call)
+  captured in two CUDA graphs with :class:`tensordict.nn.CudaGraphModule` (capturable Adam). It shows
+  how much of a GPU update is Python and kernel-launch overhead; the recipe does not use it yet.
+
+The ratios use the device's default (``sqgc (separate)`` on CPU, ``sqgc (fused)`` on CUDA). Run::
 
     OMP_NUM_THREADS=2 python benchmarks/bench_losses.py            # batch 1024 and 256
     python benchmarks/bench_losses.py --batch-sizes 1024 --iters 50 --threads 1
+    python benchmarks/bench_losses.py --device cuda
 """
 
 from __future__ import annotations
@@ -57,7 +64,7 @@ def _batch(n: int) -> TensorDict:
     )
 
 
-def _ours(kind: str):
+def _ours(kind: str, device: torch.device):
     actor = LowLevelActor(OBS, GOAL, action_max=AMAX, action_dim=ACT, goal_key="goal", num_cells=CELLS)
 
     def critic():
@@ -67,9 +74,12 @@ def _ours(kind: str):
         loss = HighLevelLoss(actor, critic())
         loss.set_keys(goal="goal", action="action")
     else:
-        loss = SQGCLoss(actor, critic(), critic(), fuse_critics=(kind == "fused"))
+        loss = SQGCLoss(actor, critic(), critic(), fuse_critics=kind in ("fused", "cudagraph"))
+    loss = loss.to(device)
     optims = make_optimizers(loss)
     SoftUpdate(loss, eps=0.995)
+    if kind == "cudagraph":
+        return _captured_sqgc_update(loss, optims)
 
     def update(data):
         out = loss(data)
@@ -79,6 +89,39 @@ def _ours(kind: str):
         total.backward()
         for opt in optims.values():
             opt.step()
+
+    return update
+
+
+def _captured_sqgc_update(loss: SQGCLoss, optims: dict):
+    """The SQGC update as two CUDA graphs: critics only, and critics + actor (every second call)."""
+    from tensordict.nn import CudaGraphModule
+
+    for opt in optims.values():
+        for group in opt.param_groups:
+            group["capturable"] = True  # Adam's step counter stays on the GPU
+
+    def critic_step(data):
+        value, _ = loss.value_loss(data)
+        optims["critic"].zero_grad(set_to_none=True)
+        value.backward()
+        optims["critic"].step()
+
+    def critic_actor_step(data):
+        value, _ = loss.value_loss(data)
+        actor, _ = loss.actor_loss(data)
+        for opt in optims.values():
+            opt.zero_grad(set_to_none=True)
+        (value + actor).backward()
+        for opt in optims.values():
+            opt.step()
+
+    graphs = [CudaGraphModule(f, warmup=3, in_keys=[], out_keys=[]) for f in (critic_step, critic_actor_step)]
+    calls = [0]
+
+    def update(data):
+        calls[0] += 1
+        graphs[calls[0] % 2](data)
 
     return update
 
@@ -96,8 +139,8 @@ class _ConcatMLP(nn.Module):
         return out if self.bound is None else self.bound * torch.tanh(out)
 
 
-def _torchrl_td3():
-    spec = Bounded(-AMAX, AMAX, (ACT,))
+def _torchrl_td3(device: torch.device):
+    spec = Bounded(-AMAX, AMAX, (ACT,), device=device)
     actor = Actor(
         _ConcatMLP(MLP(OBS + GOAL, ACT, num_cells=list(CELLS), activation_class=nn.ReLU), AMAX),
         in_keys=["observation", "goal"],
@@ -109,6 +152,7 @@ def _torchrl_td3():
     )
     loss = TD3Loss(actor, qvalue, action_spec=spec, policy_noise=0.05, noise_clip=1e9, loss_function="l2")
     loss.make_value_estimator(gamma=GAMMA)
+    loss = loss.to(device)
     SoftUpdate(loss, eps=0.995)
     # The same (fused) Adam as make_optimizers, for a like-for-like comparison.
     actor_opt = torch.optim.Adam(list(loss.actor_network_params.values(True, True)), lr=1e-4, fused=True)
@@ -130,21 +174,30 @@ def _torchrl_td3():
     return update
 
 
-def _time_interleaved(updates: dict, data: TensorDict, iters: int, repeats: int) -> dict[str, float]:
+def _sync(device: torch.device) -> None:
+    if device.type == "cuda":
+        torch.cuda.synchronize(device)
+
+
+def _time_interleaved(
+    updates: dict, data: TensorDict, iters: int, repeats: int, device: torch.device
+) -> dict[str, float]:
     """Milliseconds per update of each variant: the minimum over repeats, variants interleaved.
 
     Interleaving exposes every variant to the same background load, and the minimum is the
     least-disturbed estimate on a shared machine.
     """
     for update in updates.values():
-        for _ in range(4):
+        for _ in range(8):  # CUDA graphs: 3 warm-up calls per graph, then capture
             update(data)
     times = {name: [] for name in updates}
     for _ in range(repeats):
         for name, update in updates.items():
+            _sync(device)
             start = time.perf_counter()
             for _ in range(iters):
                 update(data)
+            _sync(device)
             times[name].append((time.perf_counter() - start) / iters * 1e3)
     return {name: min(values) for name, values in times.items()}
 
@@ -159,34 +212,44 @@ def main() -> None:
     )
     parser.add_argument("--repeats", type=int, default=7, help="timed repeats; the minimum is reported")
     parser.add_argument("--threads", type=int, default=None, help="torch.set_num_threads (default: torch's)")
+    parser.add_argument("--device", default="cpu", help="cpu or cuda")
     args = parser.parse_args()
+    device = torch.device(args.device)
+    if device.type == "cuda" and not torch.cuda.is_available():
+        parser.error("--device cuda needs a CUDA device")
     if args.threads:
         torch.set_num_threads(args.threads)
     warnings.filterwarnings("ignore")
     torch.manual_seed(0)
     variants = {
-        "sqgc (fused)": lambda: _ours("fused"),
-        "sqgc (separate)": lambda: _ours("separate"),
-        "td3 (ours)": lambda: _ours("td3"),
-        "td3 (torchrl)": _torchrl_td3,
+        "sqgc (fused)": lambda: _ours("fused", device),
+        "sqgc (separate)": lambda: _ours("separate", device),
+        "td3 (ours)": lambda: _ours("td3", device),
+        "td3 (torchrl)": lambda: _torchrl_td3(device),
     }
+    if device.type == "cuda":
+        variants["sqgc (cudagraph)"] = lambda: _ours("cudagraph", device)
+    default = "sqgc (fused)" if device.type == "cuda" else "sqgc (separate)"  # what fuse_critics=None picks
     print(
-        f"torch {torch.__version__}, threads {torch.get_num_threads()}, MLPs {CELLS}, obs {OBS} goal {GOAL} act {ACT}"
+        f"torch {torch.__version__}, {device} ({torch.cuda.get_device_name(device) if device.type == 'cuda' else f'{torch.get_num_threads()} threads'}), "
+        f"MLPs {CELLS}, obs {OBS} goal {GOAL} act {ACT}; ratios use {default}"
     )
     print(
         f"{'batch':>6} "
         + " ".join(f"{name:>16}" for name in variants)
         + f" {'sqgc/td3(ours)':>15} {'sqgc/td3(trl)':>14}"
+        + (f" {'fused/cudagraph':>16}" if device.type == "cuda" else "")
     )
     for batch_size in args.batch_sizes:
-        data = _batch(batch_size)
+        data = _batch(batch_size).to(device)
         ms = _time_interleaved(
-            {name: make() for name, make in variants.items()}, data, args.iters, args.repeats
+            {name: make() for name, make in variants.items()}, data, args.iters, args.repeats, device
         )
         row = " ".join(f"{ms[name]:>13.2f} ms" for name in variants)
-        sqgc = ms["sqgc (separate)"]  # the CPU default (fuse_critics=None)
+        sqgc = ms[default]
         r_ours, r_trl = sqgc / ms["td3 (ours)"], sqgc / ms["td3 (torchrl)"]
-        print(f"{batch_size:>6} {row} {r_ours:>15.2f} {r_trl:>14.2f}")
+        graph = f" {sqgc / ms['sqgc (cudagraph)']:>16.2f}" if device.type == "cuda" else ""
+        print(f"{batch_size:>6} {row} {r_ours:>15.2f} {r_trl:>14.2f}{graph}")
 
 
 if __name__ == "__main__":

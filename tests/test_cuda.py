@@ -20,12 +20,14 @@ from torchrl.data import LazyTensorStorage, TensorDictReplayBuffer
 
 from torchrl_dhrl.data import FutureGoalRelabel
 from torchrl_dhrl.modules import GoalConditionedCritic, HighLevelPolicy, LowLevelActor
-from torchrl_dhrl.objectives import HighLevelLoss, SQGCLoss
+from torchrl_dhrl.objectives import HighLevelLoss, SQGCLoss, make_optimizers
 from torchrl_dhrl.planner import GraphPlanner, LandmarkGraph, farthest_point_sampling
-from torchrl_dhrl.training import load_checkpoint
+from torchrl_dhrl.training import LossUpdater, NonFiniteLossError, load_checkpoint
 
 pytestmark = pytest.mark.skipif(not torch.cuda.is_available(), reason="needs a CUDA device")
 CUDA = torch.device("cuda")
+recipe = load_recipe()
+SMOKE = ("env=PointMaze", "preset=smoke", "logger.backend=csv", "plots.every_epochs=0")
 
 
 @pytest.fixture(autouse=True)
@@ -175,6 +177,48 @@ def test_high_level_loss_on_cuda_matches_cpu():
         torch.testing.assert_close(grads_gpu[name], grads_cpu[name], rtol=1e-3, atol=1e-4, msg=name)
 
 
+def _updater_run(cudagraphs, steps=13, nan=False):
+    loss = _low_nets().to(CUDA)  # seeds the global RNG: both runs sample the same batches
+    rb = TensorDictReplayBuffer(storage=LazyTensorStorage(256, device=CUDA), batch_size=64)
+    data = _low_batch(200)
+    if nan:
+        data["next", "reward"][:] = float("nan")
+    rb.extend(data.to(CUDA))
+    updater = LossUpdater(loss, rb, make_optimizers(loss), target_update_interval=3, cudagraphs=cudagraphs)
+    return loss, updater, updater.run(steps)
+
+
+def test_cudagraph_updates_match_eager_updates():
+    eager_loss, eager, eager_means = _updater_run(False)
+    graph_loss, graph, graph_means = _updater_run(True)
+    assert set(graph._graphs) == {False, True}  # both graphs captured (3 eager warm-up calls each)
+    assert graph.num_updates == eager.num_updates == 13
+    assert int(graph_loss.update_count) == int(eager_loss.update_count) == 13
+    for key in eager_means.keys():
+        torch.testing.assert_close(graph_means[key], eager_means[key], rtol=1e-4, atol=1e-5, msg=key)
+    eager_state, graph_state = eager_loss.state_dict(), graph_loss.state_dict()
+    for key, value in eager_state.items():  # online and target networks after 13 updates (4 target updates)
+        torch.testing.assert_close(graph_state[key], value, rtol=1e-4, atol=1e-5, msg=key)
+    # a resumed updater (eager optimiser state) captures again and keeps training
+    _, resumed, _ = _updater_run(True, steps=1)
+    resumed.load_state_dict(eager.state_dict())
+    assert not resumed._graphs and torch.isfinite(resumed.run(6)["loss_policy_qvalue"])
+    with pytest.raises(NonFiniteLossError, match="non-finite"):
+        _updater_run(True, steps=8, nan=True)
+
+
+def test_recipe_with_cudagraphs(tmp_path):
+    summary = recipe.train(
+        recipe_config(*SMOKE, "device=cuda", "cudagraphs=true", "total_steps=240"), run_dir=tmp_path
+    )
+    assert 0.0 <= summary["eval/success"] <= 1.0
+    recipe.train(
+        recipe_config(*SMOKE, "device=cuda", "cudagraphs=true", "total_steps=480", f"resume={tmp_path}"),
+        run_dir=tmp_path,
+    )
+    assert load_checkpoint(tmp_path)["counters"]["env_steps"] == 480
+
+
 def test_future_goal_relabel_on_a_cuda_buffer():
     torch.manual_seed(0)
     stream = GoalStream(num_envs=4, min_len=5, max_len=40, seed=1)
@@ -189,10 +233,6 @@ def test_future_goal_relabel_on_a_cuda_buffer():
         assert torch.equal(relabel.window_lengths(sample["index"].to(CUDA)).cpu(), expected)
         for key in ("goal", "graph_goal"):
             check_goals(sample, key, expected)
-
-
-recipe = load_recipe()
-SMOKE = ("env=PointMaze", "preset=smoke", "logger.backend=csv", "plots.every_epochs=0")
 
 
 def test_recipe_every_phase_on_cuda_resumes_on_cuda_and_on_cpu(tmp_path):

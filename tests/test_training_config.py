@@ -84,6 +84,12 @@ def test_missing_key():
         validate_config(cfg)
 
 
+def test_cudagraphs_need_a_cuda_device():
+    with pytest.raises(ConfigError, match="cudagraphs"):
+        validate_config(recipe_config("env=AntMaze", "device=cpu", "cudagraphs=true"))
+    validate_config(recipe_config("env=AntMaze", "device=cpu", "cudagraphs=false"))
+
+
 def test_resolve_device():
     assert resolve_device("auto").type == ("cuda" if torch.cuda.is_available() else "cpu")
     assert resolve_device("cpu") == torch.device("cpu")

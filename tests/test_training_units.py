@@ -154,6 +154,27 @@ def test_updater_stops_on_nan_before_changing_parameters():
         LossUpdater(loss, rb, {"critic": None})
 
 
+def test_loss_terms_equal_forward_with_the_counted_decision():
+    """``loss_terms(td, update_actor)`` (the CUDA-graph entry point) is ``forward`` minus the counting."""
+    loss, rb = _high_level_setup(batch=16)
+    data = rb.sample()
+    for call in range(1, 5):
+        torch.manual_seed(call)
+        out = loss(data)  # counts: the actor is updated on even calls
+        torch.manual_seed(call)
+        terms = loss.loss_terms(data, update_actor=call % 2 == 0)
+        assert bool(out["actor_updated"]) == (call % 2 == 0) and terms.keys() == out.keys()
+        for key in out.keys():
+            assert torch.equal(out[key], terms[key]), key
+    assert int(loss.update_count) == 4  # loss_terms does not count
+
+
+def test_updater_cudagraphs_needs_a_cuda_loss():
+    loss, rb = _high_level_setup()
+    with pytest.raises(ValueError, match="needs the loss on a CUDA device"):
+        LossUpdater(loss, rb, make_optimizers(loss), cudagraphs=True)
+
+
 # ---------------------------------------------------------------- oracle distance
 def _blocked_by_sampling(start, end, boxes, n=4001):
     t = torch.linspace(0, 1, n).view(1, n, 1)

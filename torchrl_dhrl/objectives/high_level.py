@@ -183,17 +183,21 @@ class HighLevelLoss(_GoalConditionedTD3Base):
 
     def forward(self, tensordict: TensorDictBase) -> TensorDictBase:
         """``loss_qvalue`` and (every ``actor_update_interval``-th call, else 0) ``loss_actor``, plus diagnostics."""
+        return self.loss_terms(tensordict, update_actor=self._due_actor_update())
+
+    def loss_terms(self, tensordict: TensorDictBase, update_actor: bool) -> TensorDictBase:
+        """:meth:`forward` with the delayed-actor decision given instead of counted (CUDA-graph safe)."""
         loss_qvalue, metadata = self.value_loss(tensordict)
-        due = self._due_actor_update()
-        if due:
+        device = self.action_loc.device
+        if update_actor:
             loss_actor, _ = self.actor_loss(tensordict)
         else:
-            loss_actor = torch.zeros((), device=self.action_loc.device)
+            loss_actor = torch.zeros((), device=device)
         return TensorDict(
             {
                 "loss_qvalue": loss_qvalue,
                 "loss_actor": loss_actor,
-                "actor_updated": torch.tensor(due, device=self.action_loc.device),
+                "actor_updated": torch.full((), update_actor, dtype=torch.bool, device=device),
                 **metadata,
             },
             batch_size=[],

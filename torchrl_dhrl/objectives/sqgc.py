@@ -292,17 +292,25 @@ class SQGCLoss(_GoalConditionedTD3Base):
         (critic parameters are detached there). On steps without an actor update the actor
         has no gradient, so optimisers leave it untouched (``zero_grad(set_to_none=True)``).
         """
+        return self.loss_terms(tensordict, update_actor=self._due_actor_update())
+
+    def loss_terms(self, tensordict: TensorDictBase, update_actor: bool) -> TensorDictBase:
+        """:meth:`forward` with the delayed-actor decision given instead of counted.
+
+        Creates no tensor from host data and reads nothing back, so it can be captured in a CUDA graph
+        (one graph per value of ``update_actor``; see :class:`~torchrl_dhrl.training.LossUpdater`).
+        """
         _, metadata = self.value_loss(tensordict)
-        due = self._due_actor_update()
-        if due:
+        device = self.action_loc.device
+        if update_actor:
             loss_actor, _ = self.actor_loss(tensordict)
         else:
-            loss_actor = torch.zeros((), device=self.action_loc.device)
+            loss_actor = torch.zeros((), device=device)
         return TensorDict(
             {
                 **metadata,
                 "loss_actor": loss_actor,
-                "actor_updated": torch.tensor(due, device=self.action_loc.device),
+                "actor_updated": torch.full((), update_actor, dtype=torch.bool, device=device),
             },
             batch_size=[],
         )

@@ -344,6 +344,7 @@ def make_updaters(cfg: Mapping, agent: DHRLAgent, buffers) -> tuple[LossUpdater,
                 relabel=relabel,
                 polyak=c["polyak"],
                 target_update_interval=c["target_update_interval"],
+                cudagraphs=cfg.get("cudagraphs", False),
             )
         )
     return updaters[0], updaters[1]

@@ -90,7 +90,9 @@ def validate_config(cfg: Mapping, env_names: tuple[str, ...] | None = None) -> N
     if name not in env_names:
         raise ConfigError(f"Unknown env_name {name!r}; choose one of: {', '.join(env_names)}.")
     _number(cfg, "seed", integer=True)
-    resolve_device(_get(cfg, "device"))
+    device = resolve_device(_get(cfg, "device"))
+    if cfg.get("cudagraphs", False) and device.type != "cuda":
+        raise ConfigError(f"`cudagraphs=true` needs a CUDA device, but `device` resolves to {device}.")
     _number(cfg, "total_steps", low=0, strict=True, integer=True)
     _number(cfg, "num_envs", low=1, integer=True)
     length = _get(cfg, "episode_length")

@@ -6,6 +6,7 @@ from collections.abc import Callable, Mapping
 
 import torch
 from tensordict import TensorDict, TensorDictBase
+from tensordict.nn import CudaGraphModule
 from torchrl.data import ReplayBuffer
 from torchrl.objectives import LossModule, SoftUpdate
 
@@ -31,6 +32,16 @@ class LossUpdater:
     The number of steps taken is the updater's only state (``state_dict``); the optimisers and the
     loss (with its target parameters) are checkpointed by their owners.
 
+    With ``cudagraphs=True`` (loss on a CUDA device) the loss, backward pass and Adam steps are captured
+    in two CUDA graphs with :class:`tensordict.nn.CudaGraphModule`, one with and one without the actor
+    step, and replayed: on an H100 this cuts an SQGC update at batch 1024 from about 9 ms to about 1 ms
+    (``benchmarks/bench_losses.py --device cuda``). Sampling, relabelling, the delayed-actor count and
+    Polyak averaging stay eager. The optimisers are switched to ``capturable`` Adam, and the graphs are
+    captured after a few eager warm-up steps: load any state (``resume``) before the first step. The
+    non-finite check then runs after the steps (once per :meth:`run`): the parameters have already taken
+    the steps of that call when it raises (the recipe stops without saving them, keeping its last good
+    checkpoint).
+
     Args:
         loss (LossModule): the loss, returning ``loss_*`` entries and a bool ``actor_updated``.
         replay_buffer (ReplayBuffer): the buffer to sample from (its ``batch_size`` is used).
@@ -41,6 +52,7 @@ class LossUpdater:
         relabel (callable, optional): ``relabel(sample) -> sample``. Defaults to ``None``.
         polyak (float): Polyak coefficient of the target networks. Defaults to ``0.995``.
         target_update_interval (int): steps between target updates. Defaults to ``10``.
+        cudagraphs (bool): replay the update as CUDA graphs (see above). Defaults to ``False``.
 
     Examples:
         >>> import torch
@@ -72,6 +84,7 @@ class LossUpdater:
         relabel: Callable[[TensorDictBase], TensorDictBase] | None = None,
         polyak: float = 0.995,
         target_update_interval: int = 10,
+        cudagraphs: bool = False,
     ) -> None:
         if set(optimizers) != {"actor", "critic"}:
             raise ValueError(f"`optimizers` must have keys 'actor' and 'critic', got {sorted(optimizers)}.")
@@ -86,12 +99,37 @@ class LossUpdater:
         self.target_update_interval = int(target_update_interval)
         self.target_updater = SoftUpdate(loss, eps=polyak)
         self.num_updates = 0
+        self.cudagraphs = bool(cudagraphs)
+        self._graphs: dict[bool, CudaGraphModule] = {}
+        if self.cudagraphs:
+            devices = {p.device.type for p in loss.parameters()}
+            if devices != {"cuda"}:
+                raise ValueError(
+                    f"`cudagraphs=True` needs the loss on a CUDA device, its parameters are on {devices}."
+                )
+            if not hasattr(loss, "loss_terms"):
+                raise TypeError(
+                    f"`cudagraphs=True` needs a loss with `loss_terms`, got {type(loss).__name__}."
+                )
+            for optimizer in self.optimizers.values():
+                for group in optimizer.param_groups:
+                    group["capturable"] = True  # Adam's step counts stay on the GPU
 
     def step(self) -> TensorDictBase:
         """One update; returns the loss's output (detached) as a TensorDict of scalars."""
+        out = self._step()
+        if self.cudagraphs:
+            self._check_finite([out])
+        return out
+
+    def _sample(self) -> TensorDictBase:
         sample = self.replay_buffer.sample()
-        if self.relabel is not None:
-            sample = self.relabel(sample)
+        return sample if self.relabel is None else self.relabel(sample)
+
+    def _step(self) -> TensorDictBase:
+        if self.cudagraphs:
+            return self._graph_step()
+        sample = self._sample()
         out = self.loss(sample)
         losses = [value for key, value in out.items() if key.startswith("loss_")]
         total = torch.stack(losses).sum()
@@ -111,11 +149,50 @@ class LossUpdater:
             self.target_updater.step()
         return out.detach()
 
+    def _graph_update(self, update_actor: bool):
+        """The captured part of a step: loss terms, backward, Adam steps (no host synchronisation)."""
+
+        def update(sample: TensorDictBase) -> TensorDictBase:
+            out = self.loss.loss_terms(sample, update_actor=update_actor)
+            total = torch.stack([value for key, value in out.items() if key.startswith("loss_")]).sum()
+            for optimizer in self.optimizers.values():
+                optimizer.zero_grad(set_to_none=True)
+            total.backward()
+            self.optimizers["critic"].step()
+            if update_actor:
+                self.optimizers["actor"].step()
+            return out.detach()
+
+        return update
+
+    def _graph_step(self) -> TensorDictBase:
+        sample = self._sample()
+        due = self.loss._due_actor_update()  # counted eagerly: the graphs cannot branch
+        if due not in self._graphs:
+            self._graphs[due] = CudaGraphModule(self._graph_update(due), warmup=3, in_keys=[], out_keys=[])
+        out = self._graphs[due](sample).clone()  # the graph's output buffers are reused by the next replay
+        self.num_updates += 1
+        if self.num_updates % self.target_update_interval == 0:
+            self.target_updater.step()
+        return out
+
+    def _check_finite(self, outputs: list[TensorDictBase]) -> None:
+        """Raises :class:`NonFiniteLossError` if a ``loss_*`` entry of ``outputs`` is not finite (one sync)."""
+        losses = torch.stack([v for out in outputs for k, v in out.items() if k.startswith("loss_")])
+        if not bool(torch.isfinite(losses).all()):
+            raise NonFiniteLossError(
+                f"{type(self.loss).__name__} produced a non-finite loss within its last {len(outputs)} update(s) "
+                f"(up to update {self.num_updates}): "
+                + ", ".join(f"{k}={v.item():.4g}" for k, v in outputs[-1].items() if k.startswith("loss_"))
+            )
+
     def run(self, num_updates: int) -> TensorDictBase | None:
         """Runs ``num_updates`` steps; returns the mean of each output entry (``None`` when 0)."""
         if num_updates <= 0:
             return None
-        outputs = [self.step() for _ in range(num_updates)]
+        outputs = [self._step() for _ in range(num_updates)]
+        if self.cudagraphs:
+            self._check_finite(outputs)
         stacked = torch.stack([o.select(*(k for k, v in o.items() if v.numel() == 1)) for o in outputs])
         return TensorDict({key: value.float().mean() for key, value in stacked.items()}, batch_size=[])
 
@@ -129,3 +206,11 @@ class LossUpdater:
         self.num_updates = int(state_dict["num_updates"])
         for key, optimizer in self.optimizers.items():
             optimizer.load_state_dict(state_dict["optimizers"][key])
+            if self.cudagraphs:  # the saved groups may come from an eager run
+                for group in optimizer.param_groups:
+                    group["capturable"] = True
+                    for param in group["params"]:
+                        state = optimizer.state.get(param, {})
+                        if "step" in state:
+                            state["step"] = state["step"].to(param.device, torch.float32)
+        self._graphs = {}  # captured graphs point at the replaced optimiser state: capture again
