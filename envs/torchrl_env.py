@@ -41,7 +41,9 @@ class GoalEnv(EnvBase):
     Resets honour the ``"_reset"`` mask (partial resets leave the other envs untouched). A reset tensordict
     carrying a ``"desired_goal"`` entry sets the goals of the envs being reset explicitly (they must lie
     inside the goal bounds); TorchRL's automatic resets (``rollout``, collectors) never pass it, so they draw
-    fresh goals. Episodes of different envs stay distinguishable in collected data through
+    fresh goals. A :class:`~torchrl.envs.TransformedEnv` forwards only reset and state keys to its base env,
+    so it drops that entry (goals are deliberately not state keys: automatic resets would then reuse the old
+    goal); build the env with ``eval=True`` for the fixed test goals, or reset the base env. Episodes of different envs stay distinguishable in collected data through
     ``"step_count"`` and the collectors' ``("collector", "traj_ids")``.
 
     Seeding: :meth:`set_seed` spawns one numpy RNG stream per env (reset noise and goals); the RNG state
