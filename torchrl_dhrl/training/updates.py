@@ -190,8 +190,10 @@ class LossUpdater:
         """Runs ``num_updates`` steps; returns the mean of each output entry (``None`` when 0)."""
         if num_updates <= 0:
             return None
-        outputs = [self._step() for _ in range(num_updates)]
-        if self.cudagraphs:
+        if not self.cudagraphs:
+            outputs = [self.step() for _ in range(num_updates)]
+        else:  # checked once for the whole call: no host synchronisation between replays
+            outputs = [self._step() for _ in range(num_updates)]
             self._check_finite(outputs)
         stacked = torch.stack([o.select(*(k for k, v in o.items() if v.numel() == 1)) for o in outputs])
         return TensorDict({key: value.float().mean() for key, value in stacked.items()}, batch_size=[])
