@@ -17,7 +17,11 @@ Prints, in one run and side by side:
    float32 and with ``build_autocast_dtype=torch.bfloat16``, interleaved; then the accuracy of the
    bfloat16 path (distance errors, landmark overlap, edges and path costs);
 4. the all-pairs step alone: ours (torch Floyd-Warshall with next-hop table) against scipy's
-   Floyd-Warshall (with predecessors).
+   Floyd-Warshall (with predecessors);
+5. the gradual penalty's graph query of one high-level update (paper sizes: 300 landmarks, the 20% of a
+   1024 batch that are subgoal tests, the 3x256 distance model): the full minimum over landmarks
+   against ``distance_from_graph(at_most=3 x cutoff)`` (16 candidates first), with the far/near
+   decisions compared.
 
 Run ``python benchmarks/bench_planner.py`` (``--quick`` for a smoke run, ``--dense`` to also time
 dense FPS instead of extrapolating it, ``--rebuild-repeats`` for more interleaved rebuilds).
@@ -459,6 +463,43 @@ def bench_apsp(args, graph):
     print(f"{'scipy floyd_warshall (predecessors)':44s}{scipy_time * 1e3:8.1f}ms{1.0:10.2f}x")
 
 
+def bench_penalty_query(args, gen):
+    side = 200.0  # goal units: FPS spreads 300 landmarks about 12 units (120 steps) apart
+    states, goals = points(args.candidates, side, 29, gen)
+    distance = MLPDistance()
+    graph = LandmarkGraph(cutoff=CUTOFF, max_landmarks=args.penalty_landmarks, early_stop=0.0)
+    graph.build(states, goals, distance)
+    k = graph.num_landmarks
+    # tested subgoals: most near explored space (landmark + noise), some anywhere (possibly far)
+    num = args.penalty_subgoals
+    near = (
+        graph.landmark_goals[torch.randint(0, k, (num,), generator=gen)]
+        + torch.randn(num, 2, generator=gen) * 3
+    )
+    anywhere = torch.rand(num, 2, generator=gen) * side * 1.2 - side * 0.1
+    subgoals = torch.where(torch.rand(num, 1, generator=gen) < 0.8, near, anywhere)
+    threshold = 3 * CUTOFF
+    counting = Counting(distance)
+    full = graph.distance_from_graph(subgoals, counting)
+    full_pairs = counting.pairs
+    counting.reset()
+    fast = graph.distance_from_graph(subgoals, counting, at_most=threshold)
+    fast_pairs = counting.pairs
+    same = torch.equal(full > threshold, fast > threshold)
+    t_full = timed(lambda: graph.distance_from_graph(subgoals, distance), max(1, args.repeats // 10))
+    t_fast = timed(
+        lambda: graph.distance_from_graph(subgoals, distance, at_most=threshold), max(1, args.repeats // 10)
+    )
+    print(
+        f"\n5. gradual-penalty query: {num} tested subgoals x {k} landmarks, far = beyond {threshold:.0f} steps "
+        f"({int((full > threshold).sum())} far)"
+    )
+    print(f"   full minimum        {t_full * 1e3:9.1f} ms  {full_pairs:>8} pairs")
+    print(
+        f"   at_most (16 first)  {t_fast * 1e3:9.1f} ms  {fast_pairs:>8} pairs   x{t_full / t_fast:.1f} faster, same far/near decisions: {same}"
+    )
+
+
 def main():
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--envs", type=int, default=16)
@@ -467,7 +508,9 @@ def main():
     parser.add_argument("--repeats", type=int, default=50)
     parser.add_argument("--rebuild-repeats", type=int, default=3, help="interleaved rebuilds (sections 2, 3)")
     parser.add_argument("--train-steps", type=int, default=300, help="regression steps of the critic")
-    parser.add_argument("--sections", default="1234", help="sections to run, e.g. 3 or 234")
+    parser.add_argument("--sections", default="12345", help="sections to run, e.g. 3 or 234")
+    parser.add_argument("--penalty-landmarks", type=int, default=300, help="section 5 (paper: 300)")
+    parser.add_argument("--penalty-subgoals", type=int, default=205, help="section 5 (0.2 x batch 1024)")
     parser.add_argument("--threads", type=int, default=None, help="torch intra-op threads (default: torch's)")
     parser.add_argument("--dense", action="store_true", help="also time dense FPS (slow on CPU)")
     parser.add_argument("--quick", action="store_true", help="small sizes, for a smoke run")
@@ -487,6 +530,8 @@ def main():
         bench_goal_distance(args, gen)
     if "4" in args.sections:
         bench_apsp(args, graph)
+    if "5" in args.sections:
+        bench_penalty_query(args, gen)
 
 
 if __name__ == "__main__":

@@ -259,6 +259,61 @@ def test_distance_from_graph_is_min_over_landmarks():
 
 
 # ----------------------------------------------------------------------------- tracking
+class PairCounter:
+    """Wraps a distance and counts the (state, goal) pairs it evaluates."""
+
+    def __init__(self, distance):
+        self.distance, self.pairs = distance, 0
+
+    def __call__(self, states, goals):
+        out = self.distance(states, goals)
+        self.pairs += out.numel()
+        return out
+
+
+@pytest.mark.parametrize("at_most", [0.5, 1.5, 3.0, 6.0])
+def test_distance_from_graph_at_most_is_exact_relative_to_the_threshold(at_most):
+    gen = torch.Generator().manual_seed(3)
+    points = torch.rand(120, 2, generator=gen) * 20
+    graph = LandmarkGraph(cutoff=3.0)
+    graph.set_landmarks(points, points.clone(), asymmetric)
+    goals = torch.rand(500, 2, generator=gen) * 40 - 10
+    full = graph.distance_from_graph(goals, asymmetric)
+    counter = PairCounter(asymmetric)
+    fast = graph.distance_from_graph(goals, counter, at_most=at_most, candidates=8)
+    for compare in (torch.lt, torch.le, torch.gt, torch.ge):
+        assert torch.equal(compare(fast, at_most), compare(full, at_most))
+    assert (fast >= full - 1e-6).all()  # settled goals get an upper bound of the minimum
+    above = full >= at_most
+    torch.testing.assert_close(fast[above], full[above], rtol=0, atol=0)  # the others get it exactly
+    assert above.any() and (~above).any()
+    unsettled = int(above.sum())  # evaluated from every landmark after the candidate pass
+    assert counter.pairs == 500 * 8 + unsettled * 120
+    # goals next to landmarks (the common case: subgoals in explored space) settle in the candidate pass
+    near = points[torch.randint(0, 120, (500,), generator=gen)] + 0.1 * torch.randn(500, 2, generator=gen)
+    counter.pairs = 0
+    fast = graph.distance_from_graph(near, counter, at_most=at_most, candidates=8)
+    assert counter.pairs == 500 * 8 and (fast < at_most).all()
+
+
+def test_distance_from_graph_at_most_when_the_nearest_landmarks_are_behind_a_wall():
+    # landmarks below the wall of the U-maze, right under goals above it: blocked (inf); the only
+    # finite distances come from landmarks in the right-hand corridor, far away in goal space
+    below = torch.stack([torch.linspace(-1.5, 5.5, 8), torch.full((8,), 1.5)], -1)
+    corridor = torch.tensor([[8.0, 4.0], [8.0, 7.0]])
+    points = torch.cat([below, corridor])
+    graph = LandmarkGraph(cutoff=30.0)
+    states = torch.cat([points, torch.zeros(len(points), 3)], -1)
+    graph.set_landmarks(states, points.clone(), line_of_sight_distance)
+    goals = torch.tensor([[2.0, 6.5], [4.0, 6.5], [1.0, 1.0]])
+    full = graph.distance_from_graph(goals, line_of_sight_distance)
+    fast = graph.distance_from_graph(goals, line_of_sight_distance, at_most=20.0, candidates=2)
+    assert torch.isfinite(full[:2]).all()  # reachable from the corridor landmark only
+    assert torch.equal(fast < 20.0, full < 20.0) and torch.equal(fast[:2], full[:2])
+    with pytest.raises(ValueError, match="candidates"):
+        graph.distance_from_graph(goals, line_of_sight_distance, at_most=1.0, candidates=0)
+
+
 def test_tracking_advances_by_radius_and_by_timeout_then_chases_subgoal():
     planner = line_planner(reach_radius=0.5)
     td = planner(step_td([0.0, 0.0], [5.0, 0.0], True))

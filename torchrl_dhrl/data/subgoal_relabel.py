@@ -56,7 +56,9 @@ class HindsightSubgoalRelabel(Transform):
     Args:
         distance_from_graph (callable, optional): ``distance_from_graph(goals: Tensor[B, goal_dim]) ->
             Tensor[B]``, the minimum over landmarks of the learned distance landmark -> goal (``+inf``
-            when there is no graph), e.g. ``GraphPlanner.distance_from_graph``. Called without gradients
+            when there is no graph), e.g. ``GraphPlanner.distance_from_graph`` or, exact for the ``far``
+            test and much cheaper, ``functools.partial(planner.distance_from_graph,
+            at_most=far_from_graph_threshold)``. Called without gradients
             on the tested subgoals only. Can be set later through the attribute of the same name.
             Defaults to ``None`` (no gradual penalty).
         reward_fn (callable, optional): ``reward_fn(achieved_goal, goal) -> [B, 1]``. Defaults to

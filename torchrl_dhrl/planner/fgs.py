@@ -179,7 +179,7 @@ class FrontierGoalShifting(TensorDictModuleBase):
         if not self.planner.has_graph or goals.shape[0] == 0:
             return goals.clone(), shifted
         weights = self.weights(states)
-        in_graph = self.planner.distance_from_graph(goals) < self.cutoff
+        in_graph = self.planner.distance_from_graph(goals, at_most=self.cutoff) < self.cutoff
         shifted = in_graph & (weights.sum(dim=-1) > 0)
         new_goals = goals.clone()
         rows = shifted.nonzero().squeeze(-1)

@@ -429,10 +429,21 @@ class LandmarkGraph(nn.Module):
         return cost.reshape(*batch, self.num_landmarks)
 
     @torch.no_grad()
-    def distance_from_graph(self, goals: Tensor, distance: DistanceFn) -> Tensor:
+    def distance_from_graph(
+        self, goals: Tensor, distance: DistanceFn, *, at_most: float | None = None, candidates: int = 16
+    ) -> Tensor:
         """``min_k d(landmark_state_k -> goal)`` for goals ``[..., goal_dim]`` -> ``[...]``.
 
         ``inf`` everywhere when there is no graph.
+
+        With ``at_most`` the result only has to be right relative to that threshold, which is all the
+        gradual penalty (``> 3 x cutoff``) and FGS (``< cutoff``) ask: each goal is first evaluated from
+        the ``candidates`` landmarks nearest to it in goal space; a goal with one of them closer than
+        ``at_most`` is settled (its value is that smaller-than-``at_most`` upper bound of the minimum),
+        and only the other goals are evaluated from every landmark (their value is the exact minimum).
+        Comparisons ``<, <=, >, >=`` with ``at_most`` therefore give exactly the answers of the full
+        minimum, for about ``candidates / num_landmarks`` of its cost when most goals are near the graph
+        (the learned distance is evaluated for ``B x candidates`` pairs instead of ``B x K``).
         """
         batch = goals.shape[:-1]
         if not self.has_graph:
@@ -442,10 +453,27 @@ class LandmarkGraph(nn.Module):
                 f"`goals` have {goals.shape[-1]} features but the landmark goals have "
                 f"{self.landmark_goals.shape[-1]}."
             )
+        if candidates < 1:
+            raise ValueError(f"`candidates` must be >= 1, got {candidates}.")
         flat = goals.reshape(-1, goals.shape[-1])
-        # [K, M] = d(landmark_state_k -> goal_m)
-        matrix = pairwise_distances(distance, self.landmark_states, flat, self.chunk_size)
-        return matrix.min(dim=0).values.reshape(batch)
+        num_landmarks = self.landmark_states.shape[0]
+        if at_most is None or candidates >= num_landmarks:
+            # [K, M] = d(landmark_state_k -> goal_m)
+            matrix = pairwise_distances(distance, self.landmark_states, flat, self.chunk_size)
+            return matrix.min(dim=0).values.reshape(batch)
+        # 1) the `candidates` landmarks nearest in goal space (a cheap ordering; exactness does not need it)
+        nearest = (
+            torch.cdist(flat, self.landmark_goals.to(flat.dtype)).topk(candidates, largest=False).indices
+        )
+        states = self.landmark_states[nearest.reshape(-1)]
+        first = paired_distances(distance, states, flat.repeat_interleave(candidates, 0), self.chunk_size)
+        result = first.reshape(-1, candidates).min(dim=-1).values.to(flat.dtype)
+        # 2) goals not settled below the threshold: the exact minimum over every landmark
+        open_rows = (~(result < at_most)).nonzero().squeeze(-1)  # NaN stays open too
+        if open_rows.numel():
+            matrix = pairwise_distances(distance, self.landmark_states, flat[open_rows], self.chunk_size)
+            result[open_rows] = matrix.min(dim=0).values.to(flat.dtype)
+        return result.reshape(batch)
 
     @torch.no_grad()
     def plan(

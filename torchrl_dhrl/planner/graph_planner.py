@@ -282,14 +282,17 @@ class GraphPlanner(Transform):
         self.graph.clear()
         return self
 
-    def distance_from_graph(self, goals: Tensor) -> Tensor:
+    def distance_from_graph(
+        self, goals: Tensor, *, at_most: float | None = None, candidates: int = 16
+    ) -> Tensor:
         """``min_k d(landmark_state_k -> goal)`` for ``goals[..., goal_dim]`` -> ``[...]``.
 
-        ``inf`` everywhere when there is no graph.
+        ``inf`` everywhere when there is no graph. With ``at_most``, exact only relative to that threshold
+        and much cheaper (see :meth:`LandmarkGraph.distance_from_graph`).
 
         Used by the gradual penalty (Algorithm 4) and by frontier-based goal shifting.
         """
-        return self.graph.distance_from_graph(goals, self.distance)
+        return self.graph.distance_from_graph(goals, self.distance, at_most=at_most, candidates=candidates)
 
     def plan(self, states: Tensor, subgoals: Tensor) -> GraphPlan:
         """Plans for ``states[B, obs_dim]`` and ``subgoals[B, goal_dim]`` (see :meth:`LandmarkGraph.plan`)."""

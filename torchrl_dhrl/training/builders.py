@@ -7,6 +7,7 @@ comes from the configuration validated by :func:`~torchrl_dhrl.training.validate
 
 from __future__ import annotations
 
+import functools
 from collections.abc import Mapping
 from dataclasses import dataclass
 from pathlib import Path
@@ -297,8 +298,10 @@ def make_replay_buffers(cfg: Mapping, agent: DHRLAgent, num_envs: int, device: t
         transform=HighLevelTransitionBuilder(reward_fn=reward),
         batch_size=high["batch_size"],
     )
+    far_threshold = high["far_from_graph_factor"] * cfg["planner"]["cutoff"]
     distance_from_graph = (
-        agent.planner.distance_from_graph
+        # exact relative to the threshold, the only thing the penalty reads, at a fraction of the cost
+        functools.partial(agent.planner.distance_from_graph, at_most=far_threshold)
         if high["gradual_penalty"] is not None and cfg["planner"]["enabled"]
         else None
     )
@@ -320,7 +323,7 @@ def make_replay_buffers(cfg: Mapping, agent: DHRLAgent, num_envs: int, device: t
             subgoal_test_threshold=high["subgoal_test_threshold"],
             subgoal_miss_penalty=high["subgoal_miss_penalty"],
             gradual_penalty=high["gradual_penalty"],
-            far_from_graph_threshold=high["far_from_graph_factor"] * cfg["planner"]["cutoff"],
+            far_from_graph_threshold=far_threshold,
         ),
     )
     return low_rb, low_relabel, high_rb, high_relabel
