@@ -312,6 +312,28 @@ class _GoalConditionedTD3Base(LossModule):
         loss = -q1.mean() + self.action_l2 * penalty
         return loss, {"actor_q": q1.detach().mean(), "actor_action_l2": penalty.detach()}
 
+    def _value_entries(self, tensordict: TensorDictBase) -> dict:
+        """The critic loss entries (``loss_*``) and diagnostics of :meth:`loss_terms`."""
+        raise NotImplementedError
+
+    def loss_terms(self, tensordict: TensorDictBase, update_actor: bool) -> TensorDictBase:
+        """:meth:`forward` with the delayed-actor decision given instead of counted.
+
+        Creates no tensor from host data and reads nothing back, so it can be captured in a CUDA graph
+        (one graph per value of ``update_actor``; see :class:`~torchrl_dhrl.training.LossUpdater`).
+        """
+        entries = self._value_entries(tensordict)
+        device = self.action_loc.device
+        loss_actor = self.actor_loss(tensordict)[0] if update_actor else torch.zeros((), device=device)
+        return TensorDict(
+            {
+                **entries,
+                "loss_actor": loss_actor,
+                "actor_updated": torch.full((), update_actor, dtype=torch.bool, device=device),
+            },
+            batch_size=[],
+        )
+
     def _due_actor_update(self) -> bool:
         """Counts a call and says whether the actor is updated on it (every ``actor_update_interval``-th).
 

@@ -5,7 +5,7 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 import torch
-from tensordict import TensorDict, TensorDictBase, TensorDictParams
+from tensordict import TensorDictBase, TensorDictParams
 from tensordict.nn import TensorDictModule
 from tensordict.utils import NestedKey
 
@@ -185,20 +185,6 @@ class HighLevelLoss(_GoalConditionedTD3Base):
         """``loss_qvalue`` and (every ``actor_update_interval``-th call, else 0) ``loss_actor``, plus diagnostics."""
         return self.loss_terms(tensordict, update_actor=self._due_actor_update())
 
-    def loss_terms(self, tensordict: TensorDictBase, update_actor: bool) -> TensorDictBase:
-        """:meth:`forward` with the delayed-actor decision given instead of counted (CUDA-graph safe)."""
+    def _value_entries(self, tensordict: TensorDictBase) -> dict:
         loss_qvalue, metadata = self.value_loss(tensordict)
-        device = self.action_loc.device
-        if update_actor:
-            loss_actor, _ = self.actor_loss(tensordict)
-        else:
-            loss_actor = torch.zeros((), device=device)
-        return TensorDict(
-            {
-                "loss_qvalue": loss_qvalue,
-                "loss_actor": loss_actor,
-                "actor_updated": torch.full((), update_actor, dtype=torch.bool, device=device),
-                **metadata,
-            },
-            batch_size=[],
-        )
+        return {"loss_qvalue": loss_qvalue, **metadata}

@@ -5,7 +5,7 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 import torch
-from tensordict import TensorDict, TensorDictBase, TensorDictParams
+from tensordict import TensorDictBase, TensorDictParams
 from tensordict.nn import TensorDictModule
 from tensordict.utils import NestedKey
 
@@ -294,26 +294,8 @@ class SQGCLoss(_GoalConditionedTD3Base):
         """
         return self.loss_terms(tensordict, update_actor=self._due_actor_update())
 
-    def loss_terms(self, tensordict: TensorDictBase, update_actor: bool) -> TensorDictBase:
-        """:meth:`forward` with the delayed-actor decision given instead of counted.
-
-        Creates no tensor from host data and reads nothing back, so it can be captured in a CUDA graph
-        (one graph per value of ``update_actor``; see :class:`~torchrl_dhrl.training.LossUpdater`).
-        """
-        _, metadata = self.value_loss(tensordict)
-        device = self.action_loc.device
-        if update_actor:
-            loss_actor, _ = self.actor_loss(tensordict)
-        else:
-            loss_actor = torch.zeros((), device=device)
-        return TensorDict(
-            {
-                **metadata,
-                "loss_actor": loss_actor,
-                "actor_updated": torch.full((), update_actor, dtype=torch.bool, device=device),
-            },
-            batch_size=[],
-        )
+    def _value_entries(self, tensordict: TensorDictBase) -> dict:
+        return self.value_loss(tensordict)[1]  # the metadata holds both pairs' losses
 
 
 def _neg(value: float | None) -> float | None:

@@ -119,7 +119,7 @@ class LossUpdater:
         """One update; returns the loss's output (detached) as a TensorDict of scalars."""
         out = self._step()
         if self.cudagraphs:
-            self._check_finite([out])
+            self._check_finite([out], first_update=self.num_updates)
         return out
 
     def _sample(self) -> TensorDictBase:
@@ -129,38 +129,33 @@ class LossUpdater:
     def _step(self) -> TensorDictBase:
         if self.cudagraphs:
             return self._graph_step()
-        sample = self._sample()
-        out = self.loss(sample)
-        losses = [value for key, value in out.items() if key.startswith("loss_")]
-        total = torch.stack(losses).sum()
-        if not torch.isfinite(total):
-            raise NonFiniteLossError(
-                f"{type(self.loss).__name__} produced a non-finite loss at update {self.num_updates}: "
-                + ", ".join(f"{k}={v.item():.4g}" for k, v in out.items() if k.startswith("loss_"))
-            )
+        out = self.loss(self._sample())
+        self._check_finite([out], first_update=self.num_updates + 1)  # before any parameter changes
+        self._optimise(out, update_actor=bool(out.get("actor_updated", True)))
+        self._count_update()
+        return out.detach()
+
+    def _optimise(self, out: TensorDictBase, update_actor: bool) -> None:
+        """Back-propagates the sum of the ``loss_*`` entries and steps the optimisers."""
+        total = torch.stack([value for key, value in out.items() if key.startswith("loss_")]).sum()
         for optimizer in self.optimizers.values():
             optimizer.zero_grad(set_to_none=True)
         total.backward()
         self.optimizers["critic"].step()
-        if bool(out.get("actor_updated", True)):
+        if update_actor:
             self.optimizers["actor"].step()
+
+    def _count_update(self) -> None:
         self.num_updates += 1
         if self.num_updates % self.target_update_interval == 0:
             self.target_updater.step()
-        return out.detach()
 
     def _graph_update(self, update_actor: bool):
         """The captured part of a step: loss terms, backward, Adam steps (no host synchronisation)."""
 
         def update(sample: TensorDictBase) -> TensorDictBase:
             out = self.loss.loss_terms(sample, update_actor=update_actor)
-            total = torch.stack([value for key, value in out.items() if key.startswith("loss_")]).sum()
-            for optimizer in self.optimizers.values():
-                optimizer.zero_grad(set_to_none=True)
-            total.backward()
-            self.optimizers["critic"].step()
-            if update_actor:
-                self.optimizers["actor"].step()
+            self._optimise(out, update_actor)
             return out.detach()
 
         return update
@@ -171,18 +166,17 @@ class LossUpdater:
         if due not in self._graphs:
             self._graphs[due] = CudaGraphModule(self._graph_update(due), warmup=3, in_keys=[], out_keys=[])
         out = self._graphs[due](sample).clone()  # the graph's output buffers are reused by the next replay
-        self.num_updates += 1
-        if self.num_updates % self.target_update_interval == 0:
-            self.target_updater.step()
+        self._count_update()
         return out
 
-    def _check_finite(self, outputs: list[TensorDictBase]) -> None:
+    def _check_finite(self, outputs: list[TensorDictBase], first_update: int) -> None:
         """Raises :class:`NonFiniteLossError` if a ``loss_*`` entry of ``outputs`` is not finite (one sync)."""
         losses = torch.stack([v for out in outputs for k, v in out.items() if k.startswith("loss_")])
         if not bool(torch.isfinite(losses).all()):
+            last = first_update + len(outputs) - 1
+            updates = f"update {first_update}" if last == first_update else f"updates {first_update}-{last}"
             raise NonFiniteLossError(
-                f"{type(self.loss).__name__} produced a non-finite loss within its last {len(outputs)} update(s) "
-                f"(up to update {self.num_updates}): "
+                f"{type(self.loss).__name__} produced a non-finite loss in {updates}: "
                 + ", ".join(f"{k}={v.item():.4g}" for k, v in outputs[-1].items() if k.startswith("loss_"))
             )
 
@@ -193,8 +187,9 @@ class LossUpdater:
         if not self.cudagraphs:
             outputs = [self.step() for _ in range(num_updates)]
         else:  # checked once for the whole call: no host synchronisation between replays
+            first = self.num_updates + 1
             outputs = [self._step() for _ in range(num_updates)]
-            self._check_finite(outputs)
+            self._check_finite(outputs, first_update=first)
         stacked = torch.stack([o.select(*(k for k, v in o.items() if v.numel() == 1)) for o in outputs])
         return TensorDict({key: value.float().mean() for key, value in stacked.items()}, batch_size=[])
 
