@@ -90,7 +90,7 @@ def train(cfg: DictConfig | dict, run_dir: str | Path | None = None) -> dict:
     eval_env = make_environment(cfg, device, eval=True, agent=agent)
     episode_length = train_env.base_env.max_episode_steps
     num_envs = cfg["num_envs"]
-    buffers = make_replay_buffers(cfg, agent, num_envs, device)
+    buffers = make_replay_buffers(cfg, agent, device)
     low_rb, _, high_rb, _ = buffers
     low_updater, high_updater = make_updaters(cfg, agent, buffers)
     collector = make_collector(train_env, agent, episode_length)

@@ -16,10 +16,11 @@ from typing import Any
 import torch
 from tensordict.nn import TensorDictSequential
 from torchrl.collectors import Collector
-from torchrl.data import LazyTensorStorage, TensorDictReplayBuffer
+from torchrl.data import TensorDictReplayBuffer
 from torchrl.envs import Compose, EnvBase, TransformedEnv
 
 from torchrl_dhrl.data import (
+    CompactLazyTensorStorage,
     FutureGoalRelabel,
     HighLevelTransitionBuilder,
     HindsightSubgoalRelabel,
@@ -277,24 +278,26 @@ def make_collector(env: EnvBase, agent: DHRLAgent, episode_length: int) -> Colle
     )
 
 
-def make_replay_buffers(cfg: Mapping, agent: DHRLAgent, num_envs: int, device: torch.device):
-    """The low-level buffer (time-major ``[T, num_envs]`` storage, extended with ``[num_envs, T]`` batches), the high-level one (a transition builder
-    turns low-level batches into one transition per subgoal) and their relabelling steps.
+def make_replay_buffers(cfg: Mapping, agent: DHRLAgent, device: torch.device):
+    """The low-level buffer (time-major ``[T, num_envs]`` storage, extended with ``[num_envs, T]`` batches), the
+    high-level one (a transition builder turns low-level batches into one transition per subgoal) and their
+    relabelling steps. ``low.buffer_size`` and ``high.buffer_size`` count transitions, whatever ``num_envs``.
 
     Returns:
         ``(low_rb, low_relabel, high_rb, high_relabel)``.
     """
     low, high = cfg["low"], cfg["high"]
     reward = SparseGoalReward(low["reward_threshold"])
-    capacity = max(low["buffer_size"] // num_envs, 1)
+    # ``max_size`` counts transitions (elements of the ``[T, num_envs]`` storage), not time steps
     low_rb = TensorDictReplayBuffer(
-        storage=LazyTensorStorage(capacity, ndim=2, device=device), batch_size=low["batch_size"]
+        storage=CompactLazyTensorStorage(low["buffer_size"], ndim=2, device=device),
+        batch_size=low["batch_size"],
     )
     low_relabel = FutureGoalRelabel(
         low_rb, reward, her_ratio=(low["her_ratio"], 1.0), window=low["her_window"], goal_key="waypoint"
     )
     high_rb = TensorDictReplayBuffer(
-        storage=LazyTensorStorage(high["buffer_size"], device=device),
+        storage=CompactLazyTensorStorage(high["buffer_size"], device=device),
         transform=HighLevelTransitionBuilder(reward_fn=reward),
         batch_size=high["batch_size"],
     )
