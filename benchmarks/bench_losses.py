@@ -14,7 +14,11 @@ Compared, per batch size:
   (:class:`~torchrl_dhrl.objectives.HighLevelLoss` on the low-level networks is exactly that);
 * ``td3 (torchrl)`` -- :class:`torchrl.objectives.TD3Loss` (vmap over two ``nn.Linear`` MLPs).
 
-With ``--device cuda`` a fifth variant runs too:
+* ``sqgc (bf16)`` -- the default SQGC update with its forward pass under bfloat16 autocast, as
+  ``LossUpdater(autocast_dtype=torch.bfloat16)`` / the recipe's ``update_dtype=bfloat16`` run it
+  (hidden layers in bf16, output layers, targets, losses and Adam in float32);
+
+With ``--device cuda`` a sixth variant runs too:
 
 * ``sqgc (cudagraph)`` -- the fused SQGC update (critic step; critic + actor step every second call)
   captured in two CUDA graphs with :class:`tensordict.nn.CudaGraphModule` (capturable Adam). It shows
@@ -74,7 +78,8 @@ def _ours(kind: str, device: torch.device):
         loss = HighLevelLoss(actor, critic())
         loss.set_keys(goal="goal", action="action")
     else:
-        loss = SQGCLoss(actor, critic(), critic(), fuse_critics=kind in ("fused", "cudagraph"))
+        fuse = None if kind == "bf16" else kind in ("fused", "cudagraph")  # bf16: the device's default
+        loss = SQGCLoss(actor, critic(), critic(), fuse_critics=fuse)
     loss = loss.to(device)
     optims = make_optimizers(loss)
     SoftUpdate(loss, eps=0.995)
@@ -82,7 +87,8 @@ def _ours(kind: str, device: torch.device):
         return _captured_sqgc_update(loss, optims)
 
     def update(data):
-        out = loss(data)
+        with torch.autocast(device.type, dtype=torch.bfloat16, enabled=kind == "bf16"):
+            out = loss(data)
         total = sum(v for k, v in out.items() if k.startswith("loss_"))
         for opt in optims.values():
             opt.zero_grad(set_to_none=True)
@@ -226,6 +232,7 @@ def main() -> None:
         "sqgc (separate)": lambda: _ours("separate", device),
         "td3 (ours)": lambda: _ours("td3", device),
         "td3 (torchrl)": lambda: _torchrl_td3(device),
+        "sqgc (bf16)": lambda: _ours("bf16", device),
     }
     if device.type == "cuda":
         variants["sqgc (cudagraph)"] = lambda: _ours("cudagraph", device)
@@ -237,7 +244,7 @@ def main() -> None:
     print(
         f"{'batch':>6} "
         + " ".join(f"{name:>16}" for name in variants)
-        + f" {'sqgc/td3(ours)':>15} {'sqgc/td3(trl)':>14}"
+        + f" {'sqgc/td3(ours)':>15} {'sqgc/td3(trl)':>14} {'sqgc/bf16':>10}"
         + (f" {'fused/cudagraph':>16}" if device.type == "cuda" else "")
     )
     for batch_size in args.batch_sizes:
@@ -249,7 +256,8 @@ def main() -> None:
         sqgc = ms[default]
         r_ours, r_trl = sqgc / ms["td3 (ours)"], sqgc / ms["td3 (torchrl)"]
         graph = f" {sqgc / ms['sqgc (cudagraph)']:>16.2f}" if device.type == "cuda" else ""
-        print(f"{batch_size:>6} {row} {r_ours:>15.2f} {r_trl:>14.2f}{graph}")
+        r_bf16 = sqgc / ms["sqgc (bf16)"]
+        print(f"{batch_size:>6} {row} {r_ours:>15.2f} {r_trl:>14.2f} {r_bf16:>10.2f}{graph}")
 
 
 if __name__ == "__main__":

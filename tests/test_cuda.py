@@ -177,15 +177,39 @@ def test_high_level_loss_on_cuda_matches_cpu():
         torch.testing.assert_close(grads_gpu[name], grads_cpu[name], rtol=1e-3, atol=1e-4, msg=name)
 
 
-def _updater_run(cudagraphs, steps=13, nan=False):
+def _updater_run(cudagraphs, steps=13, nan=False, autocast_dtype=None):
     loss = _low_nets().to(CUDA)  # seeds the global RNG: both runs sample the same batches
     rb = TensorDictReplayBuffer(storage=LazyTensorStorage(256, device=CUDA), batch_size=64)
     data = _low_batch(200)
     if nan:
         data["next", "reward"][:] = float("nan")
     rb.extend(data.to(CUDA))
-    updater = LossUpdater(loss, rb, make_optimizers(loss), target_update_interval=3, cudagraphs=cudagraphs)
+    updater = LossUpdater(
+        loss,
+        rb,
+        make_optimizers(loss),
+        target_update_interval=3,
+        cudagraphs=cudagraphs,
+        autocast_dtype=autocast_dtype,
+    )
     return loss, updater, updater.run(steps)
+
+
+def test_bfloat16_updates_on_cuda_track_float32():
+    """``autocast_dtype=torch.bfloat16`` on CUDA: the hidden layers run in bf16, parameters stay float32,
+    and the losses follow the float32 run's (same seeds, same batches)."""
+    _, _, full = _updater_run(False)
+    dtypes = set()
+    loss, updater, mixed = _updater_run(False, autocast_dtype=torch.bfloat16)
+    layer = loss.policy_critic.module.ensemble.layers[0]
+    hook = layer.register_forward_hook(lambda mod, args, out: dtypes.add(out.dtype))
+    updater.step()
+    hook.remove()
+    assert dtypes == {torch.bfloat16}
+    assert all(v.dtype == torch.float32 for v in loss.state_dict().values() if v.is_floating_point())
+    for key in ("loss_policy_qvalue", "loss_graph_qvalue", "policy_q", "graph_q"):
+        assert torch.isfinite(mixed[key])
+        torch.testing.assert_close(mixed[key], full[key], rtol=2e-2, atol=1e-3, msg=key)
 
 
 def test_cudagraph_updates_match_eager_updates():

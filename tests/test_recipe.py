@@ -107,6 +107,43 @@ def test_ablation_switches_run(env, override, tmp_path):
         assert landmarks[-1] >= 2
 
 
+def test_bfloat16_updates_reach_both_updaters(tmp_path, monkeypatch):
+    """``update_dtype=bfloat16``: both levels' updates run under bf16 autocast, losses stay finite and
+    differ from the float32 run's (same seed), and a bf16 run resumes exactly."""
+    from torchrl_dhrl.training import LossUpdater
+
+    seen = []
+    real_step = LossUpdater._step
+
+    def record(self):
+        seen.append((type(self.loss).__name__, self.autocast_dtype, torch.is_autocast_enabled("cpu")))
+        return real_step(self)
+
+    monkeypatch.setattr(LossUpdater, "_step", record)
+    overrides = ("env=PointMaze", *SMOKE, "plots.every_epochs=0", "device=cpu")
+    recipe.train(recipe_config(*overrides, "total_steps=240", "update_dtype=bfloat16"), run_dir=tmp_path / "bf16")
+    assert {(name, dtype) for name, dtype, _ in seen} == {
+        ("SQGCLoss", torch.bfloat16),
+        ("HighLevelLoss", torch.bfloat16),
+    }
+    assert not any(enabled for *_, enabled in seen)  # autocast covers the loss only, not sampling
+    recipe.train(recipe_config(*overrides, "total_steps=240"), run_dir=tmp_path / "fp32")
+    bf, fp = _metrics(tmp_path / "bf16"), _metrics(tmp_path / "fp32")
+    for key in ("low/loss_policy_qvalue", "low/loss_graph_qvalue", "high/loss_qvalue"):
+        assert all(torch.isfinite(torch.tensor(float(r[key]))) for r in bf)
+    assert [r["low/loss_policy_qvalue"] for r in bf] != [r["low/loss_policy_qvalue"] for r in fp]
+    # exact resume in bf16: 120 steps + resume to 240 == 240 straight
+    halves = tmp_path / "halves"
+    recipe.train(recipe_config(*overrides, "total_steps=120", "update_dtype=bfloat16"), run_dir=halves)
+    recipe.train(
+        recipe_config(*overrides, "total_steps=240", "update_dtype=bfloat16", f"resume={halves}"), run_dir=halves
+    )
+    a, b = _flat(load_checkpoint(tmp_path / "bf16" / "checkpoint.pt")["agent"]), _flat(
+        load_checkpoint(halves / "checkpoint.pt")["agent"]
+    )
+    assert a.keys() == b.keys() and all(torch.equal(a[k], b[k]) for k in a)
+
+
 def test_bad_config_fails_before_anything_is_written(tmp_path):
     cfg = recipe_config("env=PointMaze", *SMOKE, "planner.cutoff=-1")
     with pytest.raises(ConfigError, match="planner.cutoff"):

@@ -84,6 +84,13 @@ def test_missing_key():
         validate_config(cfg)
 
 
+@pytest.mark.parametrize("bad", ["float16", "bf16", "float64"])
+def test_update_dtype_is_checked(bad):
+    with pytest.raises(ConfigError, match="update_dtype"):
+        validate_config(recipe_config("env=AntMaze", "device=cpu", f"update_dtype={bad}"))
+    validate_config(recipe_config("env=AntMaze", "device=cpu", "update_dtype=bfloat16"))
+
+
 def test_cudagraphs_need_a_cuda_device():
     with pytest.raises(ConfigError, match="cudagraphs"):
         validate_config(recipe_config("env=AntMaze", "device=cpu", "cudagraphs=true"))

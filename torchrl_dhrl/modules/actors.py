@@ -10,7 +10,14 @@ from torch import nn
 from torchrl.data import Bounded, Composite, TensorSpec
 from torchrl.modules import MLP, Actor
 
-from ._utils import box_loc_scale, check_last_dim, goal_input, register_goal_indices, resolve_box
+from ._utils import (
+    box_loc_scale,
+    check_last_dim,
+    full_precision_output,
+    goal_input,
+    register_goal_indices,
+    resolve_box,
+)
 
 #: Hidden widths of every DHRL network (reference: 3 x 256 ReLU).
 DEFAULT_NUM_CELLS = (256, 256, 256)
@@ -20,7 +27,8 @@ class GoalConditionedActorNet(nn.Module):
     """``a = loc + scale * tanh(MLP(observation ++ goal_input))``, bounded to a box.
 
     The goal is fed relative to the achieved goal (``goal - observation[..., goal_indices]``)
-    when ``relative_goal=True``, as is otherwise.
+    when ``relative_goal=True``, as is otherwise. Inside ``torch.autocast`` the hidden layers
+    run in the autocast dtype and the output layer in the parameters' dtype.
 
     Args:
         observation_dim (int): observation size.
@@ -88,7 +96,14 @@ class GoalConditionedActorNet(nn.Module):
             observation = observation.expand(*shape, self.observation_dim)
             goal = goal.expand(*shape, self.goal_dim)
         x = torch.cat([observation, goal_input(observation, goal, self.goal_indices)], -1)
-        return torch.addcmul(self.loc, self.scale, torch.tanh(self.mlp(x)))
+        return torch.addcmul(self.loc, self.scale, torch.tanh(self._mlp(x)))
+
+    def _mlp(self, x: torch.Tensor) -> torch.Tensor:
+        """The MLP; inside ``torch.autocast`` its output layer runs in the parameters' dtype."""
+        *hidden, last = self.mlp  # torchrl's MLP: a Sequential ending with its output Linear
+        for module in hidden:
+            x = module(x)
+        return full_precision_output(last, x)
 
 
 class _BoxedGoalActor(Actor):

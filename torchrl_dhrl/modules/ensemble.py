@@ -8,6 +8,8 @@ from collections.abc import Sequence
 import torch
 from torch import nn
 
+from ._utils import autocast_enabled
+
 
 class EnsembleLinear(nn.Module):
     """A stack of ``ensemble_size`` independent linear layers evaluated with one batched matmul.
@@ -80,12 +82,29 @@ class EnsembleLinear(nn.Module):
             return torch.baddbmm(bias, x, weight)
         raise ValueError(f"EnsembleLinear expects [N, in] or [E, N, in] inputs, got shape {tuple(x.shape)}.")
 
+    def full_precision(self, x: torch.Tensor) -> torch.Tensor:
+        """:meth:`forward` in the parameters' dtype, also inside ``torch.autocast``.
+
+        For an output layer fed reduced-precision activations: the result is not rounded to the
+        reduced dtype. A single output unit (a critic's) is an elementwise product summed, which on
+        CPUs is several times faster than a batched matmul with one column.
+        """
+        x = x.to(self.weight.dtype)
+        with torch.autocast(x.device.type, enabled=False):
+            if self.weight.shape[-1] == 1 and x.ndim in (2, 3):  # [E, N, in] * [E, 1, in] -> [E, N, 1]
+                product = (x if x.ndim == 3 else x.unsqueeze(0)) * self.weight.transpose(-1, -2)
+                return product.sum(-1, keepdim=True) + self.bias
+            return self(x)
+
     def extra_repr(self) -> str:
         return f"in_features={self.in_features}, out_features={self.out_features}, ensemble_size={self.ensemble_size}"
 
 
 class EnsembleMLP(nn.Module):
     """An ensemble of identical MLPs with stacked weights (one batched matmul per layer).
+
+    Inside ``torch.autocast`` the hidden layers run in the autocast dtype and the output
+    layer in the parameters' dtype, so the outputs are not rounded to the reduced precision.
 
     Args:
         in_features (int): input features.
@@ -152,9 +171,9 @@ class EnsembleMLP(nn.Module):
         else:
             lead = x.shape[:-1]
             h = x.reshape(-1, x.shape[-1])
-        last = len(self.layers) - 1
-        for i, layer in enumerate(self.layers):
-            h = layer(h)
-            if i < last:
-                h = self.activation(h)
+        *hidden, last = self.layers
+        for layer in hidden:
+            h = self.activation(layer(h))
+        # under autocast: hidden layers reduced, the output layer in the parameters' dtype
+        h = last.full_precision(h) if autocast_enabled(h) else last(h)
         return h.reshape(n_members, *lead, self.out_features)

@@ -37,7 +37,7 @@ from torchrl_dhrl.modules import (
 from torchrl_dhrl.objectives import HighLevelLoss, SQGCLoss, make_optimizers
 from torchrl_dhrl.planner import FrontierGoalShifting, GraphPlanner
 
-from .config import BUILD_DTYPES, ConfigError
+from .config import BUILD_DTYPES, UPDATE_DTYPES, ConfigError
 from .goal_shift import GoalShiftOnReset
 from .oracle import LineOfSightDistance
 from .updates import LossUpdater
@@ -351,6 +351,7 @@ def make_updaters(cfg: Mapping, agent: DHRLAgent, buffers) -> tuple[LossUpdater,
                 polyak=c["polyak"],
                 target_update_interval=c["target_update_interval"],
                 cudagraphs=cfg.get("cudagraphs", False),
+                autocast_dtype=UPDATE_DTYPES[cfg.get("update_dtype", "float32")],
             )
         )
     return updaters[0], updaters[1]

@@ -8,10 +8,20 @@ from typing import Any
 
 import torch
 
-__all__ = ["BUILD_DTYPES", "ConfigError", "DISTANCES", "LOGGER_BACKENDS", "resolve_device", "validate_config"]
+__all__ = [
+    "BUILD_DTYPES",
+    "ConfigError",
+    "DISTANCES",
+    "LOGGER_BACKENDS",
+    "UPDATE_DTYPES",
+    "resolve_device",
+    "validate_config",
+]
 
 #: Precisions of the distance evaluations of a graph rebuild (``None``: the networks' own, float32).
 BUILD_DTYPES = {"float32": None, "bfloat16": torch.bfloat16, "float16": torch.float16}
+#: Precisions of the networks' updates (``update_dtype``; ``None``: full precision, float32).
+UPDATE_DTYPES = {"float32": None, "bfloat16": torch.bfloat16}
 #: Graph distances the recipe can plan with.
 DISTANCES = ("learned", "oracle")
 #: Logger back ends (``none`` logs nothing but the progress bar).
@@ -93,6 +103,11 @@ def validate_config(cfg: Mapping, env_names: tuple[str, ...] | None = None) -> N
     device = resolve_device(_get(cfg, "device"))
     if cfg.get("cudagraphs", False) and device.type != "cuda":
         raise ConfigError(f"`cudagraphs=true` needs a CUDA device, but `device` resolves to {device}.")
+    update_dtype = cfg.get("update_dtype", "float32")
+    if update_dtype not in UPDATE_DTYPES:
+        raise ConfigError(f"`update_dtype` must be one of {tuple(UPDATE_DTYPES)}, got {update_dtype!r}.")
+    if update_dtype != "float32" and cfg.get("cudagraphs", False):
+        raise ConfigError(f"`update_dtype={update_dtype}` cannot be combined with `cudagraphs=true` (yet).")
     _number(cfg, "total_steps", low=0, strict=True, integer=True)
     _number(cfg, "num_envs", low=1, integer=True)
     length = _get(cfg, "episode_length")

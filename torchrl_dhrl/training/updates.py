@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import contextlib
 from collections.abc import Callable, Mapping
 
 import torch
@@ -10,7 +11,10 @@ from tensordict.nn import CudaGraphModule
 from torchrl.data import ReplayBuffer
 from torchrl.objectives import LossModule, SoftUpdate
 
-__all__ = ["LossUpdater", "NonFiniteLossError"]
+__all__ = ["AUTOCAST_DTYPES", "LossUpdater", "NonFiniteLossError"]
+
+#: ``autocast_dtype`` values of :class:`LossUpdater` (``None``: full precision).
+AUTOCAST_DTYPES = (None, torch.bfloat16)
 
 
 class NonFiniteLossError(RuntimeError):
@@ -42,6 +46,14 @@ class LossUpdater:
     the steps of that call when it raises (the recipe stops without saving them, keeping its last good
     checkpoint).
 
+    With ``autocast_dtype=torch.bfloat16`` the loss's forward pass runs under ``torch.autocast``
+    on the loss's device (mixed precision): the hidden layers of every actor and critic multiply
+    in bfloat16, their output layers, the TD targets, the losses, the backward pass's accumulated
+    gradients and the Adam steps stay in float32 (the parameters' dtype). bfloat16 has float32's
+    exponent range, so no loss scaling is needed. On a CPU with bfloat16 matrix instructions
+    (AVX512-BF16 / AMX) an SQGC update at batch 1024 is about 1.7x faster
+    (``benchmarks/bench_losses.py``); the price is 8-bit-mantissa hidden activations.
+
     Args:
         loss (LossModule): the loss, returning ``loss_*`` entries and a bool ``actor_updated``.
         replay_buffer (ReplayBuffer): the buffer to sample from (its ``batch_size`` is used).
@@ -53,6 +65,8 @@ class LossUpdater:
         polyak (float): Polyak coefficient of the target networks. Defaults to ``0.995``.
         target_update_interval (int): steps between target updates. Defaults to ``10``.
         cudagraphs (bool): replay the update as CUDA graphs (see above). Defaults to ``False``.
+        autocast_dtype (torch.dtype, optional): ``torch.bfloat16`` for mixed-precision updates
+            (see above); ``None`` (default) for full precision. Not combined with ``cudagraphs``.
 
     Examples:
         >>> import torch
@@ -85,6 +99,7 @@ class LossUpdater:
         polyak: float = 0.995,
         target_update_interval: int = 10,
         cudagraphs: bool = False,
+        autocast_dtype: torch.dtype | None = None,
     ) -> None:
         if set(optimizers) != {"actor", "critic"}:
             raise ValueError(f"`optimizers` must have keys 'actor' and 'critic', got {sorted(optimizers)}.")
@@ -92,7 +107,15 @@ class LossUpdater:
             raise ValueError(f"`polyak` must be in [0, 1], got {polyak}.")
         if target_update_interval < 1:
             raise ValueError(f"`target_update_interval` must be >= 1, got {target_update_interval}.")
+        if autocast_dtype not in AUTOCAST_DTYPES:
+            raise ValueError(
+                f"`autocast_dtype` must be None or torch.bfloat16, got {autocast_dtype!r} (float16 would "
+                "need loss scaling)."
+            )
+        if autocast_dtype is not None and cudagraphs:
+            raise ValueError("`autocast_dtype` is not supported together with `cudagraphs=True`.")
         self.loss = loss
+        self.autocast_dtype = autocast_dtype
         self.replay_buffer = replay_buffer
         self.optimizers = dict(optimizers)
         self.relabel = relabel
@@ -129,11 +152,20 @@ class LossUpdater:
     def _step(self) -> TensorDictBase:
         if self.cudagraphs:
             return self._graph_step()
-        out = self.loss(self._sample())
+        sample = self._sample()
+        with self._autocast():
+            out = self.loss(sample)
         self._check_finite([out], first_update=self.num_updates + 1)  # before any parameter changes
         self._optimise(out, update_actor=bool(out.get("actor_updated", True)))
         self._count_update()
         return out.detach()
+
+    def _autocast(self):
+        """``torch.autocast`` on the loss's device when ``autocast_dtype`` is set, else a no-op."""
+        if self.autocast_dtype is None:
+            return contextlib.nullcontext()
+        device = next(self.loss.parameters()).device
+        return torch.autocast(device.type, dtype=self.autocast_dtype)
 
     def _optimise(self, out: TensorDictBase, update_actor: bool) -> None:
         """Back-propagates the sum of the ``loss_*`` entries and steps the optimisers."""

@@ -1,0 +1,164 @@
+"""Mixed-precision (bfloat16 autocast) updates: the networks' output layers stay in float32, the hidden
+layers really run reduced, and a bf16 update stays close to the float32 one."""
+
+import pytest
+import torch
+from tensordict import TensorDict
+from torchrl.data import LazyTensorStorage, TensorDictReplayBuffer
+
+from torchrl_dhrl.modules import EnsembleMLP, GoalConditionedActorNet, GoalConditionedCritic, LowLevelActor
+from torchrl_dhrl.objectives import SQGCLoss, make_optimizers
+from torchrl_dhrl.training import LossUpdater
+
+OBS, GOAL, ACT, AMAX = 9, 2, 4, 3.0
+bf16 = torch.autocast("cpu", dtype=torch.bfloat16)
+
+
+def _record_dtypes(modules):
+    """Forward hooks recording each module's output dtype (returns the log and the handles)."""
+    log = {}
+    handles = [
+        m.register_forward_hook(lambda mod, args, out, name=name: log.setdefault(name, set()).add(out.dtype))
+        for name, m in modules.items()
+    ]
+    return log, handles
+
+
+def test_ensemble_hidden_layers_reduced_output_layer_full_precision():
+    torch.manual_seed(0)
+    mlp = EnsembleMLP(7, 1, ensemble_size=2, num_cells=(64, 64))
+    x = torch.randn(300, 7)
+    ref = mlp(x)
+    log, handles = _record_dtypes({"hidden": mlp.layers[0]})
+    with bf16:
+        out = mlp(x)
+        hidden = mlp.activation(mlp.layers[1](mlp.activation(mlp.layers[0](x))))
+    for h in handles:
+        h.remove()
+    assert log == {"hidden": {torch.bfloat16}} and hidden.dtype == torch.bfloat16
+    assert out.dtype == torch.float32 and out.shape == ref.shape
+    # the output layer on those bf16 activations, in float64: matched closely, and not rounded to bf16
+    last = mlp.layers[-1]
+    exact = torch.baddbmm(last.bias.double(), hidden.double(), last.weight.double())
+    torch.testing.assert_close(out.double(), exact, rtol=1e-3, atol=1e-4)
+    assert (out == out.bfloat16().float()).float().mean() < 0.2
+    assert not torch.equal(out, ref)  # really reduced
+    torch.testing.assert_close(out, ref, rtol=0.05, atol=0.02)
+    assert torch.equal(mlp(x), ref)  # outside autocast: unchanged
+
+
+def test_actor_output_layer_full_precision_under_autocast():
+    torch.manual_seed(0)
+    net = GoalConditionedActorNet(OBS, GOAL, -torch.ones(ACT), torch.ones(ACT), goal_indices=[0, 1])
+    obs, goal = torch.randn(200, OBS), torch.randn(200, GOAL)
+    ref = net(obs, goal)
+    assert torch.equal(ref, torch.tanh(net.mlp(torch.cat([obs, goal - obs[:, :2]], -1))))  # same as the MLP
+    log, handles = _record_dtypes({"hidden": net.mlp[0], "out": net.mlp[-1]})
+    with bf16:
+        out = net(obs, goal)
+    for h in handles:
+        h.remove()
+    assert log == {"hidden": {torch.bfloat16}, "out": {torch.float32}}
+    assert out.dtype == torch.float32
+    assert not torch.equal(out, ref)
+    torch.testing.assert_close(out, ref, rtol=0.05, atol=0.02)
+
+
+def _sqgc_setup(seed=0, cells=(64, 64)):
+    torch.manual_seed(seed)
+    actor = LowLevelActor(OBS, GOAL, action_max=AMAX, action_dim=ACT, goal_key="goal", num_cells=cells)
+    critics = [
+        GoalConditionedCritic(OBS, GOAL, action_max=AMAX, action_dim=ACT, goal_key="goal", num_cells=cells)
+        for _ in range(2)
+    ]
+    loss = SQGCLoss(actor, *critics, target_noise_std=0.0)
+    n = 256
+    gen = torch.Generator().manual_seed(123)
+    data = TensorDict(
+        {
+            "observation": torch.randn(n, OBS, generator=gen),
+            "action": (torch.rand(n, ACT, generator=gen) * 2 - 1) * AMAX,
+            "goal": torch.randn(n, GOAL, generator=gen),
+            "graph_goal": torch.randn(n, GOAL, generator=gen),
+            ("next", "observation"): torch.randn(n, OBS, generator=gen),
+            ("next", "reward"): -(torch.rand(n, 1, generator=gen) > 0.3).float(),
+            ("next", "graph_reward"): -(torch.rand(n, 1, generator=gen) > 0.5).float(),
+        },
+        [n],
+    )
+    rb = TensorDictReplayBuffer(storage=LazyTensorStorage(n), batch_size=64)
+    rb.extend(data)
+    return loss, rb
+
+
+def _train(autocast_dtype, steps=6, seed=0):
+    loss, rb = _sqgc_setup(seed)
+    updater = LossUpdater(loss, rb, make_optimizers(loss), target_update_interval=3, autocast_dtype=autocast_dtype)
+    torch.manual_seed(7)  # same samples for every run
+    outs = [updater.step() for _ in range(steps)]
+    return loss, outs
+
+
+def test_bfloat16_updates_run_reduced_and_stay_close_to_float32():
+    loss32, outs32 = _train(None)
+    loss16, rb16 = _sqgc_setup()
+    # hidden matmuls of the critics and the actor really run in bf16 inside the updater's step
+    log, handles = _record_dtypes(
+        {
+            "critic_hidden": loss16.policy_critic.module.ensemble.layers[0],
+            "actor_hidden": loss16.actor_network.module.mlp[0],
+        }
+    )
+    updater = LossUpdater(
+        loss16, rb16, make_optimizers(loss16), target_update_interval=3, autocast_dtype=torch.bfloat16
+    )
+    torch.manual_seed(7)
+    outs16 = [updater.step() for _ in range(6)]
+    for h in handles:
+        h.remove()
+    assert log == {
+        "critic_hidden": {torch.bfloat16},
+        "actor_hidden": {torch.bfloat16},
+    }
+    # parameters and Adam state stay float32, and the bf16 steps move the weights like float32's
+    # (Adam's step is about lr per weight whatever the gradient, so compare the update directions)
+    init = _sqgc_setup()[0].state_dict()
+    p32, p16 = loss32.state_dict(), loss16.state_dict()
+    assert p32.keys() == p16.keys()
+    compared = 0
+    for key, start in init.items():
+        if not start.is_floating_point():
+            continue
+        assert p16[key].dtype == torch.float32, key
+        step32, step16 = (p32[key] - start).flatten(), (p16[key] - start).flatten()
+        if "target" in key or step32.norm() == 0:
+            continue
+        compared += 1
+        assert torch.nn.functional.cosine_similarity(step16, step32, 0) > 0.97, key
+        assert (step16 - step32).norm() < 0.3 * step32.norm(), key
+        assert not torch.equal(step16, step32), key  # really reduced
+    assert compared >= 12  # actor and both critics, every layer
+    for opt in updater.optimizers.values():
+        for state in opt.state.values():
+            assert state["exp_avg"].dtype == torch.float32
+    for o32, o16 in zip(outs32, outs16, strict=True):
+        for key in ("loss_policy_qvalue", "loss_graph_qvalue", "policy_q", "graph_q"):
+            assert torch.isfinite(o16[key])
+            torch.testing.assert_close(o16[key], o32[key], rtol=5e-3, atol=1e-4, msg=key)
+
+
+def test_bfloat16_updates_are_deterministic():
+    """Same seed, same bf16 steps, bit for bit (what an exact resume relies on)."""
+    a, _ = _train(torch.bfloat16, steps=4)
+    b, _ = _train(torch.bfloat16, steps=4)
+    for key, value in a.state_dict().items():
+        assert torch.equal(value, b.state_dict()[key]), key
+
+
+@pytest.mark.parametrize("bad", [torch.float16, torch.float32, "bfloat16"])
+def test_autocast_dtype_is_validated(bad):
+    loss, rb = _sqgc_setup()
+    with pytest.raises(ValueError, match="autocast_dtype"):
+        LossUpdater(loss, rb, make_optimizers(loss), autocast_dtype=bad)
+    with pytest.raises(ValueError, match="not supported together with `cudagraphs"):
+        LossUpdater(loss, rb, make_optimizers(loss), autocast_dtype=torch.bfloat16, cudagraphs=True)
