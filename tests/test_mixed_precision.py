@@ -91,31 +91,28 @@ def _sqgc_setup(seed=0, cells=(64, 64)):
     return loss, rb
 
 
-def _train(autocast_dtype, steps=6, seed=0):
+def _train(autocast_dtype, steps=6, seed=0, watch=None):
+    """``steps`` updates on fixed samples; ``watch(loss)`` names modules whose output dtypes are logged."""
     loss, rb = _sqgc_setup(seed)
+    log, handles = _record_dtypes(watch(loss) if watch else {})
     updater = LossUpdater(loss, rb, make_optimizers(loss), target_update_interval=3, autocast_dtype=autocast_dtype)
     torch.manual_seed(7)  # same samples for every run
     outs = [updater.step() for _ in range(steps)]
-    return loss, outs
+    for h in handles:
+        h.remove()
+    return loss, outs, updater, log
 
 
 def test_bfloat16_updates_run_reduced_and_stay_close_to_float32():
-    loss32, outs32 = _train(None)
-    loss16, rb16 = _sqgc_setup()
+    loss32, outs32, _, _ = _train(None)
     # hidden matmuls of the critics and the actor really run in bf16 inside the updater's step
-    log, handles = _record_dtypes(
-        {
-            "critic_hidden": loss16.policy_critic.module.ensemble.layers[0],
-            "actor_hidden": loss16.actor_network.module.mlp[0],
-        }
+    loss16, outs16, updater, log = _train(
+        torch.bfloat16,
+        watch=lambda loss: {
+            "critic_hidden": loss.policy_critic.module.ensemble.layers[0],
+            "actor_hidden": loss.actor_network.module.mlp[0],
+        },
     )
-    updater = LossUpdater(
-        loss16, rb16, make_optimizers(loss16), target_update_interval=3, autocast_dtype=torch.bfloat16
-    )
-    torch.manual_seed(7)
-    outs16 = [updater.step() for _ in range(6)]
-    for h in handles:
-        h.remove()
     assert log == {
         "critic_hidden": {torch.bfloat16},
         "actor_hidden": {torch.bfloat16},
@@ -149,8 +146,8 @@ def test_bfloat16_updates_run_reduced_and_stay_close_to_float32():
 
 def test_bfloat16_updates_are_deterministic():
     """Same seed, same bf16 steps, bit for bit (what an exact resume relies on)."""
-    a, _ = _train(torch.bfloat16, steps=4)
-    b, _ = _train(torch.bfloat16, steps=4)
+    a = _train(torch.bfloat16, steps=4)[0]
+    b = _train(torch.bfloat16, steps=4)[0]
     for key, value in a.state_dict().items():
         assert torch.equal(value, b.state_dict()[key]), key
 
