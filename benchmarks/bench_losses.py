@@ -51,14 +51,15 @@ OBS, GOAL, ACT, AMAX, GAMMA = 29, 2, 8, 30.0, 0.99
 CELLS = (256, 256, 256)
 
 
-def _batch(n: int) -> TensorDict:
+def sqgc_batch(n: int, obs: int = OBS, goal: int = GOAL, act: int = ACT, amax: float = AMAX) -> TensorDict:
+    """A random ``SQGCLoss`` input batch of ``n`` transitions (also used by ``bench_threads.py``)."""
     return TensorDict(
         {
-            "observation": torch.randn(n, OBS),
-            "action": (torch.rand(n, ACT) * 2 - 1) * AMAX,
-            "goal": torch.randn(n, GOAL),
-            "graph_goal": torch.randn(n, GOAL),
-            ("next", "observation"): torch.randn(n, OBS),
+            "observation": torch.randn(n, obs),
+            "action": (torch.rand(n, act) * 2 - 1) * amax,
+            "goal": torch.randn(n, goal),
+            "graph_goal": torch.randn(n, goal),
+            ("next", "observation"): torch.randn(n, obs),
             ("next", "reward"): -torch.ones(n, 1),
             ("next", "graph_reward"): -torch.ones(n, 1),
             ("next", "done"): torch.zeros(n, 1, dtype=torch.bool),
@@ -248,7 +249,7 @@ def main() -> None:
         + (f" {'fused/cudagraph':>16}" if device.type == "cuda" else "")
     )
     for batch_size in args.batch_sizes:
-        data = _batch(batch_size).to(device)
+        data = sqgc_batch(batch_size).to(device)
         ms = _time_interleaved(
             {name: make() for name, make in variants.items()}, data, args.iters, args.repeats, device
         )

@@ -5,6 +5,7 @@ from __future__ import annotations
 from typing import Any
 
 import gymnasium as gym
+import mujoco
 import numpy as np
 from gymnasium import spaces
 
@@ -104,6 +105,44 @@ class GymGoalEnv(gym.Env):
     def simulation(self) -> GoalSimulation:
         """The underlying simulation core (one env)."""
         return self._sim
+
+    @property
+    def model(self) -> mujoco.MjModel:
+        """The live :class:`mujoco.MjModel` of the scene, where Gymnasium's MuJoCo envs keep theirs.
+
+        Renderers, viewers and tools written for ``gymnasium.envs.mujoco`` envs (``env.unwrapped.model``)
+        work with it. It is the simulation's own model, not a copy: read it; writing to it changes the
+        physics of every later step.
+
+        Examples:
+            >>> import gymnasium as gym, mujoco
+            >>> import torchrl_dhrl.envs  # registers the dhrl/ ids
+            >>> env = gym.make("dhrl/PointMaze-v0").unwrapped
+            >>> isinstance(env.model, mujoco.MjModel), env.model is env.simulation.model
+            (True, True)
+        """
+        return self._sim.model
+
+    @property
+    def data(self) -> mujoco.MjData:
+        """The live :class:`mujoco.MjData` of the env (``qpos``, ``qvel``, ``time``, contacts, ...).
+
+        As Gymnasium's MuJoCo envs' ``env.unwrapped.data``: the very object :meth:`reset` and :meth:`step`
+        advance, so it always holds the current state. Read it; writing to it bypasses the env's
+        bookkeeping (observations, goals and step counts are not updated until the next step).
+
+        Examples:
+            >>> import gymnasium as gym
+            >>> import torchrl_dhrl.envs  # registers the dhrl/ ids
+            >>> env = gym.make("dhrl/PointMaze-v0")
+            >>> _ = env.reset(seed=0)
+            >>> data = env.unwrapped.data
+            >>> before = data.time
+            >>> _ = env.step(env.action_space.sample())
+            >>> data.time > before, data is env.unwrapped.simulation.datas[0]
+            (True, True)
+        """
+        return self._sim.datas[0]
 
     def _get_obs(self) -> dict[str, np.ndarray]:
         sim = self._sim

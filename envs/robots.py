@@ -1,9 +1,10 @@
 """The two robot arms of the DHRL arm tasks, built programmatically with :mod:`dm_control.mjcf`.
 
-Both arms are written from public kinematic facts, no XML file is involved:
+Both arms are written from published facts, no XML file is involved:
 
-* :class:`PR2Arm`: the 7-DoF arm of Reacher3D with the PR2 arm's published link lengths and joint order
-  (shoulder pan, shoulder lift, upper-arm roll, elbow flex, forearm roll, wrist flex, wrist roll), torque
+* :class:`PR2Arm`: the 7-DoF arm of Reacher3D with the PR2 arm's link lengths and joint order (shoulder
+  pan, shoulder lift, upper-arm roll, elbow flex, forearm roll, wrist flex, wrist roll), and the link
+  shapes, joint damping and integrator of the reference Reacher3D model (so the same dynamics); torque
   motors with ``ctrlrange -20..20``, no gravity;
 * :class:`UR3Arm`: the 6-DoF Universal Robots UR3 of UR3Obstacle, whose body frames are the frames of the
   published standard Denavit-Hartenberg table, with position servos.
@@ -30,6 +31,23 @@ __all__ = ["PR2Arm", "UR3Arm", "UR3_DH"]
 
 _ARM_RGBA = (0.75, 0.75, 0.8, 1.0)
 _JOINT_RGBA = (0.25, 0.35, 0.6, 1.0)
+_LENS_RGBA = (0.1, 0.1, 0.1, 1.0)
+
+# Link shapes of the PR2-like arm (m), those of the reference Reacher3D model; every geom has the density
+# PR2Arm.density, so these fix the masses and inertias. Shoulder: a column along the pan axis (z from,
+# z to, radius) and a head on its top, two spheres with lenses at x = -+x, y (x, y, radius).
+_PR2_COLUMN = (-0.4, 0.2, 0.1)
+_PR2_HEAD = ((0.06, 0.05, 0.05), (0.06, 0.09, 0.03))
+# Per flex/roll pair (shoulder lift / upper-arm roll, elbow flex / forearm roll, wrist flex / wrist roll):
+# the housing of the flex joint across the link (along y) and the collar of the roll joint along it (x),
+# ``(half-length, radius)`` each, and the radius of the link capsule that follows (upper arm, forearm).
+_PR2_HOUSINGS = ((0.1, 0.1), (0.02, 0.06), (0.02, 0.01))
+_PR2_COLLARS = ((0.1, 0.02), (0.1, 0.02), (0.02, 0.01))
+_PR2_LINK_RADII = (0.06, 0.05)
+# Hand, on the wrist roll: a palm across it (capsule along z at x: x, half-length, radius) and two fingers
+# with knuckles at (x, +-y), each a splayed phalanx (dx, +-dy) and a straight one (dx, 0), of one radius.
+_PR2_PALM = (0.05, 0.02, 0.05)
+_PR2_FINGERS = (0.07691, 0.03, 0.09137, 0.00495, 0.01)
 
 
 def _new_arm_model(name: str, damping: float, armature: float, collides: bool) -> mjcf.RootElement:
@@ -47,15 +65,17 @@ def _new_arm_model(name: str, damping: float, armature: float, collides: bool) -
     return root
 
 
-def _capsule(body: mjcf.Element, name: str, start, end, radius: float, mass: float, rgba=None) -> None:
-    extra = {} if rgba is None else {"rgba": rgba}
+def _capsule(body: mjcf.Element, name: str, start, end, radius: float, mass=None, rgba=None) -> None:
+    """A capsule from ``start`` to ``end``; its mass is ``mass``, or its volume times the geom density."""
+    extra = {} if mass is None else {"mass": mass}
+    if rgba is not None:
+        extra["rgba"] = rgba
     body.add(
         "geom",
         name=name,
         type="capsule",
         fromto=tuple(float(v) for v in (*start, *end)),
         size=[radius],
-        mass=mass,
         **extra,
     )
 
@@ -68,41 +88,51 @@ def _joint_range(limit) -> dict:
 class PR2Arm(MotorControl):
     """The 7-DoF PR2-like arm of Reacher3D: torque motors, no gravity, no contacts.
 
-    Link lengths are the PR2 arm's published ones: 0.1 m from the shoulder pan axis to the shoulder lift
-    axis, 0.4 m upper arm (shoulder lift to elbow flex), 0.321 m forearm (elbow flex to wrist flex) and
-    0.18 m from the wrist flex axis to the fingertip (the PR2 gripper tool frame). Joints, in ``qpos``
-    order: shoulder pan (about z), shoulder lift (y), upper-arm roll (x, along the upper arm), elbow flex
-    (y), forearm roll (x), wrist flex (y), wrist roll (x). At zero angles the arm points along the base's
-    x axis. Ranges are the PR2 right arm's, except the shoulder pan's 3-radian span, which is centred on
-    the base's forward direction; the two forearm/wrist rolls are continuous.
+    Kinematics: the PR2 arm's link lengths, 0.1 m from the shoulder pan axis to the shoulder lift axis,
+    0.4 m upper arm (shoulder lift to elbow flex) and 0.321 m forearm (elbow flex to wrist flex); the
+    fingertip site, the achieved goal, lies 0.16828 m beyond the wrist flex axis, between the two finger
+    joints (the reference's end-effector point). Joints, in ``qpos`` order: shoulder pan (about z), shoulder
+    lift (y), upper-arm roll (x, along the upper arm), elbow flex (y), forearm roll (x), wrist flex (y),
+    wrist roll (x), one body each (``<joint>_link``). At zero angles the arm is stretched along the base's
+    x axis. Ranges are the PR2 right arm's; the forearm and wrist rolls are continuous.
 
-    Every link is a capsule; the arm collides with nothing (Reacher3D has no obstacles and no gravity).
-    Actions are the 7 joint torques, clipped to ``[-ctrl_limit, ctrl_limit]``.
+    Dynamics: those of the reference Reacher3D model. Every geom is a capsule or sphere of density 1000
+    (kg/m^3): a 0.6 m shoulder column of radius 0.1 with a head on top, housings at the flex joints and
+    collars at the roll joints, the upper arm and forearm capsules and a hand with palm and two fingers;
+    46.2 kg in all, joint-space inertia 3.57 (shoulder pan) and 2.30 (shoulder lift) kg m^2 at the zero
+    posture. Joint damping is 10 on the two shoulder joints, 1 on the elbow and 0.1 on the rolls and the
+    wrist flex; armature 0.04; RK4 integration, 0.01 s steps, two per env step. Under a full +20 torque on
+    every joint the fingertip moves about 0.017 m per env step after 5 steps (the elbow and wrist, straight
+    at the start, press on their limits; the light rolls spin up to ~40 rad/s); once released, the damped
+    shoulder halves its speed in about 9 env steps, while the rolls, damped by only 0.1, keep the hand
+    moving for tens of steps. Joint limits are MuJoCo's default soft limits: thrown at a limit by random
+    torques, the light upper-arm roll and wrist flex overshoot it by up to ~0.3 rad, as in the reference.
+    The arm collides with nothing (Reacher3D has no obstacles and no gravity). Actions are the 7 joint
+    torques, clipped to ``[-ctrl_limit, ctrl_limit]``. Episodes start at the zero posture, at rest, without
+    noise: the fingertip at ``(0.989, -0.188, 0)``, 1.08 m from the goal mean.
 
     Args:
         shoulder_offset (float): pan axis to lift axis. Defaults to ``0.1``.
         upper_arm (float): upper arm length. Defaults to ``0.4``.
         forearm (float): forearm length. Defaults to ``0.321``.
-        hand (float): wrist flex axis to fingertip. Defaults to ``0.18``.
+        hand (float): wrist flex axis to the fingertip site. Defaults to ``0.16828``.
         joint_ranges (tuple): ``(low, high)`` per joint in radians, ``None`` for a continuous joint.
-        link_masses (tuple of float): masses of the shoulder, upper arm, forearm and hand links (kg).
-            Defaults to ``(4.0, 2.0, 1.2, 0.4)``.
-        link_radii (tuple of float): capsule radii of the same links. Defaults to
-            ``(0.1, 0.06, 0.05, 0.035)``.
-        damping (float): joint damping. Defaults to ``1``.
-        armature (float): joint armature. Defaults to ``0.05``.
+            Defaults to the PR2 right arm's.
+        damping (tuple of float): joint damping per joint (N m s / rad). Defaults to
+            ``(10, 10, 0.1, 1, 0.1, 0.1, 0.1)``.
+        armature (float): joint armature (kg m^2). Defaults to ``0.04``.
+        density (float): density of every geom (kg/m^3). Defaults to ``1000`` (MuJoCo's default).
         ctrl_limit (float): motors accept torques in ``[-ctrl_limit, ctrl_limit]``. Defaults to ``20``.
         base_pos (tuple of float): world position of the shoulder (pan axis). Defaults to
-            ``(0, -0.3, 0)``.
-        base_yaw (float): heading of the arm's forward axis in the world. Defaults to ``pi / 2`` (+y).
-        init_qpos (tuple of float): reset posture before noise. Defaults to an upright posture with the elbow
-            and wrist bent, which puts the fingertip at about ``(0, 0.04, 0.41)``, 0.47 from the goal mean.
+            ``(0, -0.188, 0)``.
+        base_yaw (float): heading of the arm's forward axis in the world. Defaults to ``0`` (+x).
+        init_qpos (tuple of float): reset posture before noise. Defaults to zeros (the stretched arm).
         qpos_noise (float): reset noise ``U(-qpos_noise, qpos_noise)`` on every joint angle. Defaults to
-            ``0.1``.
-        qvel_noise (float): reset noise ``N(0, qvel_noise)`` on every joint velocity. Defaults to ``0.1``.
+            ``0`` (the reference resets without noise).
+        qvel_noise (float): reset noise ``N(0, qvel_noise)`` on every joint velocity. Defaults to ``0``.
         timestep (float): MuJoCo timestep. Defaults to ``0.01``.
         frame_skip (int): physics steps per env step. Defaults to ``2``.
-        integrator (str): MuJoCo integrator. Defaults to ``"Euler"`` (damping integrated implicitly).
+        integrator (str): MuJoCo integrator. Defaults to ``"RK4"``.
 
     Examples:
         >>> from torchrl_dhrl.envs import PR2Arm
@@ -111,34 +141,35 @@ class PR2Arm(MotorControl):
         (7, [20.0, 20.0], 'pr2/fingertip')
         >>> [j.name for j in arm.build_mjcf().find_all("joint")][:3]
         ['shoulder_pan', 'shoulder_lift', 'upper_arm_roll']
+        >>> arm.damping[:4], arm.integrator
+        ((10.0, 10.0, 0.1, 1.0), 'RK4')
     """
 
     shoulder_offset: float = 0.1
     upper_arm: float = 0.4
     forearm: float = 0.321
-    hand: float = 0.18
+    hand: float = 0.16828
     joint_ranges: tuple = (
-        (-1.5, 1.5),
+        (-2.2854, 1.714602),
         (-0.5236, 1.3963),
         (-3.9, 0.8),
         (-2.3213, 0.0),
         None,
-        (-2.0944, 0.0),
+        (-2.094, 0.0),
         None,
     )
-    link_masses: tuple[float, float, float, float] = (4.0, 2.0, 1.2, 0.4)
-    link_radii: tuple[float, float, float, float] = (0.1, 0.06, 0.05, 0.035)
-    damping: float = 1.0
-    armature: float = 0.05
+    damping: tuple[float, ...] = (10.0, 10.0, 0.1, 1.0, 0.1, 0.1, 0.1)
+    armature: float = 0.04
+    density: float = 1000.0
     ctrl_limit: float = 20.0
-    base_pos: tuple[float, float, float] = (0.0, -0.3, 0.0)
-    base_yaw: float = np.pi / 2
-    init_qpos: tuple[float, ...] = (0.0, 0.0, 0.0, -1.6, 0.0, -1.0, 0.0)
-    qpos_noise: float = 0.1
-    qvel_noise: float = 0.1
+    base_pos: tuple[float, float, float] = (0.0, -0.188, 0.0)
+    base_yaw: float = 0.0
+    init_qpos: tuple[float, ...] = (0.0,) * 7
+    qpos_noise: float = 0.0
+    qvel_noise: float = 0.0
     timestep: float = 0.01
     frame_skip: int = 2
-    integrator: str = "Euler"
+    integrator: str = "RK4"
 
     #: Joint names in ``qpos`` order.
     joint_names = (
@@ -166,33 +197,79 @@ class PR2Arm(MotorControl):
         return f"{self.model_name}/fingertip"
 
     def build_mjcf(self) -> mjcf.RootElement:
-        """Builds the arm: shoulder, upper arm, forearm and hand bodies, two hinges each (pan alone)."""
-        root = _new_arm_model(self.model_name, self.damping, self.armature, collides=False)
-        joints = dict(zip(self.joint_names, self.joint_ranges, strict=True))
-        (m_shoulder, m_upper, m_fore, m_hand), (r_shoulder, r_upper, r_fore, r_hand) = (
-            self.link_masses,
-            self.link_radii,
-        )
+        """Builds the arm: the shoulder pan body, a flex body and a roll body at each of the shoulder lift,
+        the elbow and the wrist (the hand rolls with the wrist), and one motor per joint."""
+        root = _new_arm_model(self.model_name, 0.0, self.armature, collides=False)
+        root.default.geom.density = self.density
+        ranges = dict(zip(self.joint_names, self.joint_ranges, strict=True))
+        damping = dict(zip(self.joint_names, self.damping, strict=True))
+
+        def link(parent: mjcf.Element, joint: str, axis, pos=(0.0, 0.0, 0.0), **frame) -> mjcf.Element:
+            body = parent.add("body", name=f"{joint}_link", pos=pos, **frame)
+            body.add("joint", name=joint, axis=axis, damping=damping[joint], **_joint_range(ranges[joint]))
+            return body
+
         yaw = self.base_yaw
-        base = root.worldbody.add(
-            "body", name="shoulder", pos=self.base_pos, quat=(np.cos(yaw / 2), 0.0, 0.0, np.sin(yaw / 2))
+        shoulder = link(
+            root.worldbody,
+            "shoulder_pan",
+            (0, 0, 1),
+            self.base_pos,
+            quat=(np.cos(yaw / 2), 0.0, 0.0, np.sin(yaw / 2)),
         )
-        base.add("joint", name="shoulder_pan", axis=(0, 0, 1), **_joint_range(joints["shoulder_pan"]))
-        _capsule(base, "shoulder_geom", (0, 0, -0.1), (0, 0, 0.1), r_shoulder, m_shoulder, _JOINT_RGBA)
-        links = (
-            ("upper_arm", self.shoulder_offset, ("shoulder_lift", "upper_arm_roll"), self.upper_arm),
-            ("forearm", self.upper_arm, ("elbow_flex", "forearm_roll"), self.forearm),
-            ("hand", self.forearm, ("wrist_flex", "wrist_roll"), self.hand),
+        z_low, z_high, column_radius = _PR2_COLUMN
+        _capsule(shoulder, "column", (0, 0, z_low), (0, 0, z_high), column_radius, rgba=_JOINT_RGBA)
+        for side, sign in (("l", -1.0), ("r", 1.0)):
+            for part, (x, y, radius), rgba in zip(
+                ("head", "lens"), _PR2_HEAD, (_ARM_RGBA, _LENS_RGBA), strict=True
+            ):
+                shoulder.add(
+                    "geom",
+                    name=f"{part}_{side}",
+                    type="sphere",
+                    pos=(sign * x, y, z_high),
+                    size=[radius],
+                    rgba=rgba,
+                )
+        pairs = zip(
+            self.joint_names[1::2],
+            self.joint_names[2::2],
+            (self.shoulder_offset, self.upper_arm, self.forearm),
+            _PR2_HOUSINGS,
+            _PR2_COLLARS,
+            (
+                ("upper_arm", self.upper_arm, _PR2_LINK_RADII[0]),
+                ("forearm", self.forearm, _PR2_LINK_RADII[1]),
+                None,
+            ),
+            strict=True,
         )
-        parent = base
-        for (name, offset, (flex, roll), length), mass, radius in zip(
-            links, (m_upper, m_fore, m_hand), (r_upper, r_fore, r_hand), strict=True
-        ):
-            body = parent.add("body", name=name, pos=(offset, 0.0, 0.0))
-            body.add("joint", name=flex, axis=(0, 1, 0), **_joint_range(joints[flex]))
-            body.add("joint", name=roll, axis=(1, 0, 0), **_joint_range(joints[roll]))
-            _capsule(body, f"{name}_geom", (0, 0, 0), (length, 0, 0), radius, mass)
-            parent = body
+        parent = shoulder
+        for flex, roll, offset, (housing, housing_radius), (collar, collar_radius), segment in pairs:
+            flex_body = link(parent, flex, (0, 1, 0), (offset, 0.0, 0.0))
+            _capsule(
+                flex_body,
+                f"{flex}_housing",
+                (0, -housing, 0),
+                (0, housing, 0),
+                housing_radius,
+                rgba=_JOINT_RGBA,
+            )
+            parent = link(flex_body, roll, (1, 0, 0))
+            _capsule(
+                parent, f"{roll}_collar", (-collar, 0, 0), (collar, 0, 0), collar_radius, rgba=_JOINT_RGBA
+            )
+            if segment is not None:
+                name, length, radius = segment
+                _capsule(parent, name, (0, 0, 0), (length, 0, 0), radius)
+        palm_x, palm_half, palm_radius = _PR2_PALM
+        _capsule(parent, "palm", (palm_x, 0, -palm_half), (palm_x, 0, palm_half), palm_radius)
+        knuckle_x, knuckle_y, phalanx, splay, finger_radius = _PR2_FINGERS
+        for side, sign in (("l", 1.0), ("r", -1.0)):
+            knuckle = np.array((knuckle_x, sign * knuckle_y, 0.0))
+            tip = knuckle + (phalanx, sign * splay, 0.0)
+            _capsule(parent, f"finger_{side}", knuckle, tip, finger_radius)
+            _capsule(parent, f"finger_tip_{side}", tip, tip + (phalanx, 0.0, 0.0), finger_radius)
         parent.add("site", name="fingertip", pos=(self.hand, 0.0, 0.0), size=[0.02], rgba=(0.1, 0.8, 0.1, 1))
         for name in self.joint_names:
             root.actuator.add(

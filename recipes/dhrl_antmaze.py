@@ -24,6 +24,7 @@ from __future__ import annotations
 
 import csv
 import math
+import os
 import random
 import signal
 import sys
@@ -35,12 +36,17 @@ import numpy as np
 import torch
 import tqdm
 from omegaconf import DictConfig, OmegaConf
+from omegaconf.errors import OmegaConfBaseException
 from torchrl.data import RandomSampler
 
 from torchrl_dhrl.training import (
     LOW_LEVEL_KEYS,
+    CheckpointError,
+    ConfigError,
     ModuleTimer,
     NonFiniteLossError,
+    check_known_keys,
+    check_resume_config,
     checkpoint_file,
     evaluate,
     get_rng_state,
@@ -51,13 +57,34 @@ from torchrl_dhrl.training import (
     make_logger,
     make_replay_buffers,
     make_updaters,
+    maze_epoch_diagnostics,
     plot_episode,
     plot_success_curve,
     record_video,
     resolve_device,
     save_checkpoint,
     set_rng_state,
+    set_threads,
     validate_config,
+)
+
+#: The configuration directory; ``config.yaml`` there is the schema of every configuration key.
+CONFIG_DIR = Path(__file__).resolve().parent / "config"
+#: The entries of a checkpoint written by :func:`train`, checked before resuming from one.
+CHECKPOINT_KEYS = (
+    "config",
+    "agent",
+    "low_updater",
+    "high_updater",
+    "low_rb",
+    "high_rb",
+    "train_env",
+    "eval_env",
+    "collector",
+    "carrier",
+    "counters",
+    "history",
+    "rng",
 )
 
 #: The paper's DHRL success rates (Table 2): env -> {env steps: success}.
@@ -71,14 +98,150 @@ PAPER_SUCCESS = {
 }
 
 
-def train(cfg: DictConfig | dict, run_dir: str | Path | None = None) -> dict:
-    """Trains DHRL as configured; returns the last evaluation's metrics and the run directory."""
-    cfg = OmegaConf.to_container(cfg, resolve=True) if isinstance(cfg, DictConfig) else dict(cfg)
+def config_schema() -> dict:
+    """The keys a configuration may hold: ``config/config.yaml`` as written (its defaults list aside).
+
+    Read from the file on every call, so keys added there are known at once; env and preset files may
+    only set keys that it defines.
+    """
+    schema = OmegaConf.to_container(OmegaConf.load(CONFIG_DIR / "config.yaml"), resolve=False)
+    schema.pop("defaults", None)
+    schema.pop("hydra", None)
+    return schema
+
+
+def start_up(cfg: DictConfig | dict, run_dir: str | Path | None = None):
+    """Checks everything that can be checked before a run builds or writes anything, then prepares it.
+
+    In order: the keys (only those of ``config/config.yaml``, see :func:`config_schema`), their values
+    (:func:`~torchrl_dhrl.training.validate_config`), the device, the checkpoint to ``resume`` (readable,
+    with every entry of :data:`CHECKPOINT_KEYS`, and trained with the same configuration up to
+    :data:`~torchrl_dhrl.training.RESUME_MUTABLE_KEYS`), the run directory (not a file; no checkpoint of
+    another run in it, which the run would overwrite) and, with ``plots.video=true``, MuJoCo's offscreen
+    rendering. Only then it sets the thread count (``threads``, printed as one line) and creates the run
+    directory.
+
+    Args:
+        cfg (DictConfig or dict): the composed configuration.
+        run_dir (str or Path, optional): where the run writes; defaults to ``cfg["run_dir"]``, else the
+            current directory.
+
+    Returns:
+        ``(cfg, device, run_dir, resume, state)``: the configuration as a plain dict, the
+        :class:`torch.device`, the run directory, the checkpoint file to resume (or ``None``) and its
+        loaded state (or ``None``).
+
+    Raises:
+        ConfigError: naming the key, the value and what is accepted; nothing has been built or written.
+    """
+    if isinstance(cfg, DictConfig):
+        try:
+            cfg = OmegaConf.to_container(cfg, resolve=True)
+        except OmegaConfBaseException as err:
+            raise ConfigError(f"The configuration does not resolve: {' '.join(str(err).split())}") from err
+    else:
+        cfg = dict(cfg)
+    check_known_keys(cfg, config_schema(), source="recipes/config/config.yaml")
     validate_config(cfg)
     device = resolve_device(cfg["device"])
-    run_dir = Path(run_dir or cfg["run_dir"] or ".").resolve()
+    run_dir = Path(run_dir or cfg["run_dir"] or ".").expanduser().resolve()
+    resume = state = None
+    notes: list[str] = []
+    if cfg["resume"]:
+        resume = checkpoint_file(Path(cfg["resume"]).expanduser()).resolve()
+        what = f"`resume={cfg['resume']}`"
+        try:
+            state = load_checkpoint(resume, map_location=device, required_keys=CHECKPOINT_KEYS)
+        except FileNotFoundError as err:
+            raise ConfigError(
+                f"{what}: no checkpoint at {str(resume)!r} (a checkpoint.pt or its run directory)."
+            ) from err
+        except CheckpointError as err:
+            raise ConfigError(f"{what}: {err}") from err
+        if not isinstance(state["config"], dict):
+            raise ConfigError(f"{what}: {str(resume)!r} holds no configuration under 'config'.")
+        notes = check_resume_config(state["config"], cfg, what=f"{what} ({resume})")
+        notes = [note for note in notes if not note.startswith("resume:")]  # resume itself always changes
+    _check_run_dir(run_dir, resume)
+    if cfg["plots"]["video"]:
+        _check_offscreen_rendering()
+    print(set_threads(cfg["threads"]))
+    if notes:
+        print(f"Resuming {resume} with: {'; '.join(notes)}.")
     run_dir.mkdir(parents=True, exist_ok=True)
-    resume = checkpoint_file(cfg["resume"]) if cfg["resume"] else None
+    return cfg, device, run_dir, resume, state
+
+
+def _check_run_dir(run_dir: Path, resume: Path | None) -> None:
+    """``run_dir`` must be (or become) a directory, and must not hold another run's checkpoint."""
+    for path in (run_dir, *run_dir.parents):
+        if path.exists():
+            if not path.is_dir():
+                raise ConfigError(f"`run_dir` {str(run_dir)!r}: {str(path)!r} is a file, not a directory.")
+            if not os.access(path, os.W_OK | os.X_OK):
+                raise ConfigError(f"`run_dir` {str(run_dir)!r}: {str(path)!r} is not writable.")
+            break
+    existing = run_dir / "checkpoint.pt"
+    if existing.exists() and (resume is None or resume != existing.resolve()):
+        raise ConfigError(
+            f"`run_dir` {str(run_dir)!r} already holds a checkpoint.pt, which this run would overwrite: "
+            f"continue that run with resume={run_dir}, or choose another run_dir."
+        )
+
+
+def _check_offscreen_rendering() -> None:
+    """``plots.video=true`` renders at the very end: fail now if MuJoCo cannot render offscreen."""
+    import mujoco
+
+    try:
+        mujoco.Renderer(mujoco.MjModel.from_xml_string("<mujoco/>"), 16, 16).close()
+    except Exception as err:  # mujoco.FatalError, EGL/OSMesa errors
+        raise ConfigError(
+            f"`plots.video=true` needs MuJoCo offscreen rendering, which fails here ({type(err).__name__}: "
+            f"{' '.join(str(err).split())[:120]}); set MUJOCO_GL=egl or osmesa, or plots.video=false."
+        ) from err
+
+
+def _remove_unused_output_dir(output_dir: Path) -> None:
+    """Removes Hydra's output directory of a run stopped at start-up, when it holds only what Hydra wrote
+    there (``.hydra/*.yaml`` and an empty job log), and its parents that this leaves empty (within the
+    current directory). A directory holding anything else is left as it is."""
+    from hydra.core.hydra_config import HydraConfig
+
+    hydra_cfg = HydraConfig.get()
+    if not output_dir.is_dir():
+        return
+    expected = {output_dir / f"{hydra_cfg.job.name}.log"}
+    if hydra_cfg.output_subdir is not None:
+        expected |= {
+            output_dir / hydra_cfg.output_subdir / f for f in ("config.yaml", "hydra.yaml", "overrides.yaml")
+        }
+    files = [p for p in output_dir.rglob("*") if not p.is_dir()]
+    if any(p not in expected for p in files) or any(p.suffix == ".log" and p.stat().st_size for p in files):
+        return
+    for path in files:
+        path.unlink()
+    dirs = sorted((p for p in output_dir.rglob("*") if p.is_dir()), key=lambda p: len(p.parts), reverse=True)
+    cwd = Path.cwd().resolve()
+    try:
+        for path in dirs:
+            path.rmdir()
+        output_dir.rmdir()
+        parent = output_dir.resolve().parent
+        while parent != cwd and cwd in parent.parents and not any(parent.iterdir()):
+            parent.rmdir()
+            parent = parent.parent
+    except OSError:  # not empty after all (another process writing): keep the rest
+        pass
+
+
+def train(cfg: DictConfig | dict, run_dir: str | Path | None = None) -> dict:
+    """Trains DHRL as configured; returns the last evaluation's metrics and the run directory.
+
+    Before anything is built or written, :func:`start_up` checks the configuration, the checkpoint to
+    resume and the run directory, and raises :class:`~torchrl_dhrl.training.ConfigError` on any problem.
+    """
+    cfg, device, run_dir, resume, state = start_up(cfg, run_dir)
     torch.manual_seed(cfg["seed"])
     np.random.seed(cfg["seed"])
     random.seed(cfg["seed"])
@@ -96,8 +259,7 @@ def train(cfg: DictConfig | dict, run_dir: str | Path | None = None) -> dict:
     collector = make_collector(train_env, agent, episode_length)
     counters = {"env_steps": 0, "episodes": 0, "epochs": 0, "graph_builds": 0, "wall_s": 0.0}
     history: list[dict] = []
-    if resume is not None:
-        state = load_checkpoint(resume, map_location=device)
+    if state is not None:  # loaded and checked by start_up
         agent.load_state_dict(state["agent"])
         low_updater.load_state_dict(state["low_updater"])
         high_updater.load_state_dict(state["high_updater"])
@@ -136,8 +298,7 @@ def train(cfg: DictConfig | dict, run_dir: str | Path | None = None) -> dict:
     logger = make_logger(cfg, run_dir)
     warmup_end = schedule["warmup_episodes"]
     graph_start = warmup_end + schedule["graph_start_epoch"] * schedule["epoch_episodes"]
-    uniform_prob = cfg["low"]["uniform_prob"]
-    agent.exploration.uniform_prob = 1.0 if counters["episodes"] < warmup_end else uniform_prob
+    _set_phase(cfg, agent, counters["episodes"])
     bar = tqdm.tqdm(
         total=cfg["total_steps"], initial=counters["env_steps"], unit="step", disable=not cfg["progress"]
     )
@@ -158,21 +319,23 @@ def train(cfg: DictConfig | dict, run_dir: str | Path | None = None) -> dict:
             # ---- store: low-level [num_envs, T] batches (time-major storage); the builder cuts high-level ones
             low_rb.extend(batch.select(*LOW_LEVEL_KEYS))
             high_rb.extend(batch)
+            if counters["episodes"] < warmup_end and not schedule["train_during_warmup"]:
+                # the reference trains nothing on the random warm-up and does not catch up afterwards
+                counters["untrained_steps"] = counters.get("untrained_steps", 0) + batch.numel()
             counters["env_steps"] += batch.numel()
             counters["episodes"] += num_envs
             # ---- learn: low_updates_per_step SQGC updates per env step, a high-level one every 10
             start = time.perf_counter()
-            n_low = (
-                math.floor(counters["env_steps"] * schedule["low_updates_per_step"]) - low_updater.num_updates
-            )
+            trained_steps = counters["env_steps"] - counters.get("untrained_steps", 0)
+            n_low = math.floor(trained_steps * schedule["low_updates_per_step"]) - low_updater.num_updates
             low_out = low_updater.run(n_low)
-            n_high = counters["env_steps"] // schedule["high_update_interval"] - high_updater.num_updates
+            n_high = trained_steps // schedule["high_update_interval"] - high_updater.num_updates
             high_out = high_updater.run(n_high) if len(high_rb) else None
             timer["update"] += time.perf_counter() - start
             bar.update(batch.numel())
             # ---- phase: random warm-up, then the policies
-            agent.exploration.uniform_prob = 1.0 if counters["episodes"] < warmup_end else uniform_prob
-            epoch = counters["episodes"] // schedule["epoch_episodes"]
+            _set_phase(cfg, agent, counters["episodes"])
+            epoch = epoch_of(counters["episodes"], warmup_end, schedule["epoch_episodes"])
             counters["wall_s"] = wall_before + time.perf_counter() - wall_start
             if epoch > counters["epochs"]:
                 counters["epochs"] = epoch
@@ -224,6 +387,31 @@ def train(cfg: DictConfig | dict, run_dir: str | Path | None = None) -> dict:
     return summary
 
 
+def epoch_of(episodes: int, warmup_episodes: int, epoch_episodes: int) -> int:
+    """The number of epochs completed after ``episodes`` training episodes.
+
+    As in the reference, epochs of ``epoch_episodes`` start when the warm-up ends; the warm-up itself
+    is cut into epochs of the same length (evaluated too, for the curve), the last one possibly
+    shorter. For example with 200 warm-up episodes and 15 per epoch, epochs end after 15, 30, ...,
+    195, 200, 215, 230, ... episodes.
+
+    Examples:
+        >>> [epoch_of(e, 200, 15) for e in (194, 195, 199, 200, 214, 215)]
+        [12, 13, 13, 14, 14, 15]
+    """
+    if episodes < warmup_episodes:
+        return episodes // epoch_episodes
+    return -(-warmup_episodes // epoch_episodes) + (episodes - warmup_episodes) // epoch_episodes
+
+
+def _set_phase(cfg: dict, agent, episodes: int) -> None:
+    """Random warm-up (uniform actions; uniform subgoals unless ``high.warmup_subgoals=policy``), then the policies."""
+    warmup = episodes < cfg["schedule"]["warmup_episodes"]
+    agent.exploration.uniform_prob = 1.0 if warmup else cfg["low"]["uniform_prob"]
+    uniform_subgoals = warmup and cfg["high"]["warmup_subgoals"] == "uniform"
+    agent.high_policy.exploration.uniform_prob = 1.0 if uniform_subgoals else 0.0
+
+
 def _end_of_epoch(
     cfg, agent, low_rb, eval_env, episode_length, counters, graph_start, timer, run_dir
 ) -> dict:
@@ -253,10 +441,17 @@ def _end_of_epoch(
         metrics["eval/success"] = result.success
         metrics["eval/any_success"] = result.any_success
         metrics["eval/final_distance"] = result.final_distance
+        metrics["eval/last10_success"] = result.last_steps_success
+        metrics["eval/final_speed"] = result.final_speed
         rollout = result.rollout
         metrics["graph/mean_path_landmarks"] = rollout["planner", "path_length"].float().mean().item()
         start_state, goal = rollout[0, 0]["observation"], rollout[0, 0]["desired_goal"]
         metrics["graph/learned_distance_start_goal"] = agent.planner.distance(start_state, goal).item()
+        # subgoals and graph against the maze's true geometry (diag/...; nothing for the arms)
+        diag = maze_epoch_diagnostics(
+            cfg["env_name"], planner, rollout, agent.high_policy.actor, margin=cfg["planner"]["oracle_margin"]
+        )
+        metrics.update(diag)
         every = cfg["plots"]["every_epochs"]
         if every and (epoch // schedule["eval_every_epochs"]) % every == 0:
             plot_episode(
@@ -317,10 +512,23 @@ def _raise_keyboard_interrupt_on_sigterm() -> None:
 
 @hydra.main(config_path="config", config_name="config", version_base="1.3")
 def main(cfg: DictConfig) -> None:
+    """The command line: :func:`train` in Hydra's output directory (or ``run_dir``).
+
+    A configuration error prints one line to stderr (``<script>: configuration error: <key, value, what is
+    accepted>``) and exits with status 2, without a traceback (``HYDRA_FULL_ERROR=1`` shows it) and without
+    leaving Hydra's new output directory behind. Ctrl-C (or SIGTERM) checkpoints and exits with 130.
+    """
     from hydra.core.hydra_config import HydraConfig
 
+    output_dir = Path(HydraConfig.get().runtime.output_dir)
     try:
-        train(cfg, run_dir=cfg.run_dir or HydraConfig.get().runtime.output_dir)
+        train(cfg, run_dir=cfg.run_dir or output_dir)
+    except ConfigError as err:
+        _remove_unused_output_dir(output_dir)
+        if os.environ.get("HYDRA_FULL_ERROR") == "1":
+            raise
+        print(f"{Path(sys.argv[0]).name}: configuration error: {' '.join(str(err).split())}", file=sys.stderr)
+        sys.exit(2)
     except KeyboardInterrupt:
         sys.exit(130)
 

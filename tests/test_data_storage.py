@@ -79,8 +79,11 @@ def test_full_buffer_saves_everything_and_plain_states_load():
     _fill(plain, 2)
     restored = _buffer(CompactLazyTensorStorage, 3000, 2)
     restored.load_state_dict(plain.state_dict())
-    torch.testing.assert_close(restored.storage._storage, plain.storage._storage)
-    assert len(restored) == 60
+    rows = (
+        len(plain) // plain.storage._storage.shape[1]
+    )  # the written rows (the rest is uninitialised memory)
+    torch.testing.assert_close(restored.storage._storage[:rows], plain.storage._storage[:rows])
+    assert rows == 20 and len(restored) == 60
 
 
 def test_empty_buffer_round_trips():

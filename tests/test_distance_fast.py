@@ -8,9 +8,12 @@ from torchrl_dhrl.modules import GoalConditionedCritic, GoalDistance, LowLevelAc
 from torchrl_dhrl.modules.distance import DEFAULT_CPU_CHUNK_SIZE
 
 OBS, GOAL, ACT = 9, 2, 4
-#: Tolerances of the reduced-precision path against float32 on the network below (measured:
-#: bfloat16 median ~0.1%, max ~0.6%; float16 about 8x smaller).
-BF16_MEDIAN_REL, BF16_MAX_REL = 0.005, 0.02
+#: Tolerances of the reduced-precision path against float32 on the network below: the error is about
+#: absolute (bfloat16 rounding of the hidden activations, times the output weights), up to 0.28 steps
+#: (measured, both twin members; p99 0.16-0.17), so relative to the distance it is small for the
+#: pessimistic member (median 0.06%, max 0.7%) and larger for the optimistic one, whose distances reach
+#: below 1 step here (median 0.12%, max 11% at a distance of 0.5). float16 is about 8x more accurate.
+BF16_MEDIAN_REL, BF16_ABS, BF16_REL = 0.005, 0.3, 0.02
 
 
 def trained_like(seed=0, width=64):
@@ -38,16 +41,17 @@ def relative_error(value, reference):
     return (value - reference).abs() / reference.abs().clamp_min(1.0)
 
 
+@pytest.mark.parametrize("twin", ["optimistic", "pessimistic"])
 @pytest.mark.parametrize("dtype", [torch.bfloat16, torch.float16])
-def test_autocast_is_close_to_float32_and_really_reduced(dtype):
+def test_autocast_is_close_to_float32_and_really_reduced(dtype, twin):
     actor, critic = trained_like()
     states, goals = pairs(4000)
-    ref = GoalDistance(actor, critic)(states, goals)
+    ref = GoalDistance(actor, critic, twin=twin)(states, goals)
     assert 5.0 < ref.median() < 120.0 and ref.std() > 5.0  # a spread of distances, as trained
-    fast = GoalDistance(actor, critic, autocast_dtype=dtype)(states, goals)
+    fast = GoalDistance(actor, critic, autocast_dtype=dtype, twin=twin)(states, goals)
     assert fast.dtype == torch.float32 and fast.shape == ref.shape
-    rel = relative_error(fast, ref)
-    assert rel.median() < BF16_MEDIAN_REL and rel.max() < BF16_MAX_REL
+    assert relative_error(fast, ref).median() < BF16_MEDIAN_REL
+    assert ((fast - ref).abs() <= BF16_ABS + BF16_REL * ref).all()
     assert (fast != ref).float().mean() > 0.5  # the networks really ran in reduced precision
 
 
@@ -81,11 +85,11 @@ def test_with_autocast_copies_and_shares_the_networks():
     assert fast.actor is actor and fast.critic is critic and fast.max_distance == 100.0
     assert fast.with_autocast(None).autocast_dtype is None
     states, goals = pairs(300)
-    torch.testing.assert_close(fast(states, goals), distance(states, goals), rtol=0.02, atol=0.05)
+    torch.testing.assert_close(fast(states, goals), distance(states, goals), rtol=BF16_REL, atol=BF16_ABS)
     # it follows training: an in-place update of the shared critic changes both
     with torch.no_grad():
         critic.module.ensemble.layers[-1].bias.add_(5.0)
-    torch.testing.assert_close(fast(states, goals), distance(states, goals), rtol=0.02, atol=0.05)
+    torch.testing.assert_close(fast(states, goals), distance(states, goals), rtol=BF16_REL, atol=BF16_ABS)
 
 
 @pytest.mark.parametrize("bad", [torch.float32, torch.float64, torch.int8, "bfloat16"])

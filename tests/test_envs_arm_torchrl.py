@@ -183,19 +183,24 @@ def test_explicit_goals_and_errors():
     assert isinstance(make_env("dhrl/Reacher3D-v0"), GoalEnv)
 
 
-def test_reacher_reset_noise():
-    """Joint angles: the start posture + U(-0.1, 0.1); joint velocities N(0, 0.1)."""
+def test_reacher_reset_is_noise_free():
+    """As in the reference: every episode starts at the zero posture, at rest (no qpos or qvel noise)."""
     spec = get_arm_spec("Reacher3D")
+    assert spec.agent.init_qpos == (0.0,) * 7 and spec.agent.qpos_noise == spec.agent.qvel_noise == 0.0
     sim = GoalSimulation("Reacher3D", 300, seed=0)
     sim.reset()
-    noise = sim.observation[:, :7] - np.array(spec.agent.init_qpos)
-    assert np.abs(noise).max() <= 0.1 and noise.std() == pytest.approx(0.2 / np.sqrt(12), rel=0.06)
-    assert sim.observation[:, 10:].std() == pytest.approx(0.1, rel=0.06)
+    assert not sim.observation[:, :7].any() and not sim.observation[:, 10:].any()
+
+
+# How far a limited joint may pass its range in a random episode. Reacher3D keeps the reference model's soft
+# joint limits (MuJoCo's default solref/solimp): its light upper-arm roll and wrist flex (about 0.05 kg m^2
+# of joint-space inertia) overshoot by up to ~0.3 rad when random +-20 N m torques throw them at a limit.
+LIMIT_SLACK = {"Reacher3D": 0.4, "UR3Obstacle": 0.05}
 
 
 @pytest.mark.parametrize("name", ARM_NAMES)
 def test_random_rollout_is_stable(name):
-    """A full episode of uniformly random actions: finite, joints within their limits, the arm moves."""
+    """A full episode of uniformly random actions: finite, joints within their (soft) limits, the arm moves."""
     spec = get_arm_spec(name)
     env = make_env(name, num_envs=4, seed=0)
     torch.manual_seed(0)
@@ -207,7 +212,8 @@ def test_random_rollout_is_stable(name):
     qpos = np.array([d.qpos for d in env.simulation.datas])
     limited = model.jnt_limited.astype(bool)
     low, high = model.jnt_range[limited].T
-    assert ((qpos[:, limited] > low - 0.05) & (qpos[:, limited] < high + 0.05)).all()
+    slack = LIMIT_SLACK[name]
+    assert ((qpos[:, limited] > low - slack) & (qpos[:, limited] < high + slack)).all()
 
 
 @pytest.mark.skipif(not torch.cuda.is_available(), reason="needs a CUDA device")

@@ -114,3 +114,25 @@ def test_gym_and_torchrl_share_the_simulation():
         assert obs["observation"].dtype == np.float64 and td["observation"].dtype == torch.float32
         np.testing.assert_allclose(td["observation"][0].numpy(), obs["observation"], rtol=1e-6, atol=1e-6)
         assert float(td["reward"]) == reward and bool(td["is_success"]) == info["is_success"]
+
+
+@pytest.mark.parametrize("gym_id", ["dhrl/PointMaze-v0", "dhrl/Reacher3D-v0"])
+def test_model_and_data_are_the_live_mujoco_objects(gym_id):
+    """As Gymnasium's MuJoCo envs: ``env.unwrapped.model`` / ``.data``, the objects the env steps."""
+    env = gym.make(gym_id)
+    base = env.unwrapped
+    assert isinstance(base.model, mujoco.MjModel) and isinstance(base.data, mujoco.MjData)
+    assert base.model is base.simulation.model and base.data is base.simulation.datas[0]
+    obs, _ = env.reset(seed=0)
+    data = base.data
+    if gym_id == "dhrl/PointMaze-v0":  # observation = qpos ++ qvel
+        np.testing.assert_array_equal(obs["observation"], np.concatenate([data.qpos, data.qvel]))
+    qpos, time = data.qpos.copy(), data.time
+    for _ in range(3):
+        obs, *_ = env.step(env.action_space.high)
+    assert base.data is data  # the same object, advanced in place
+    assert data.time > time and not np.array_equal(data.qpos, qpos)
+    if gym_id == "dhrl/PointMaze-v0":
+        np.testing.assert_array_equal(obs["observation"][: base.model.nq], data.qpos)
+    env.reset(seed=1)
+    assert base.data is data and data.time == 0.0  # reset rewinds the same MjData

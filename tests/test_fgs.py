@@ -39,13 +39,24 @@ def sample_landmarks(fgs, num, seed=0):
     return np.bincount(ids.numpy(), minlength=len(POINTS))
 
 
-def test_shifts_only_goals_inside_the_graph(planner):
-    fgs = FrontierGoalShifting(planner, noise=0.0, generator=torch.Generator().manual_seed(0))
+@pytest.mark.parametrize(
+    "trigger,expected",
+    [
+        # the reference's: a path start -> goal in the cutoff-expanded graph; (20.5, 1) is next to the
+        # island {20, 21}, which the start cannot reach
+        ("reachable", [True, False, False, False]),
+        # the paper's: min_v d(v -> g) < cutoff (0.36, 7.1, 1.1, 1.6), reachable or not
+        ("near_graph", [True, False, True, False]),
+    ],
+)
+def test_shifts_only_goals_inside_the_graph(planner, trigger, expected):
+    fgs = FrontierGoalShifting(
+        planner, noise=0.0, trigger=trigger, generator=torch.Generator().manual_seed(0)
+    )
     starts = torch.zeros(4, 2)
     goals = torch.tensor([[2.2, 0.3], [10.0, 10.0], [20.5, 1.0], [5.0, 1.6]])
     new_goals, shifted = fgs.shift(starts, goals)
-    # in graph: min_v d(v -> g) < cutoff (0.36, 7.1, 1.1, 1.6)
-    assert shifted.tolist() == [True, False, True, False]
+    assert shifted.tolist() == expected
     assert torch.equal(new_goals[~shifted], goals[~shifted])
     empty = FrontierGoalShifting(GraphPlanner(euclidean, 2, cutoff=1.5))
     same, none = empty.shift(starts, goals)
@@ -59,6 +70,25 @@ def test_shifts_only_goals_inside_the_graph(planner):
     planner.distance = walled
     _, shifted = FrontierGoalShifting(planner).shift(torch.tensor([[50.0, 50.0]]), goals[:1])
     assert not shifted.any()
+
+
+def test_reachable_trigger_on_a_hand_made_graph(planner):
+    """Each edge kind of the expanded graph on its own: start -> landmark -> goal, start -> goal directly."""
+    fgs = FrontierGoalShifting(planner, trigger="reachable")
+    near = FrontierGoalShifting(planner, trigger="near_graph")
+    starts = torch.tensor([[0.0, 0.0], [10.0, 10.0], [10.0, 10.0], [3.0, 1.2], [20.0, 1.0], [0.0, 0.0]])
+    goals = torch.tensor([[5.0, 1.4], [10.5, 10.5], [5.0, 0.0], [-1.0, 0.0], [21.0, 1.4], [21.0, 0.0]])
+    # 0: via the chain 0..5 and landmark 5 (1.4 < 1.5); 1: start -> goal directly (0.71), no landmark near;
+    # 2: the start reaches no landmark within the cutoff (no fallback edge in this test);
+    # 3: start within 1.25 of landmark 3, goal 1.0 from landmark 0; 4: the island from inside;
+    # 5: the island from the chain: no path
+    assert fgs.covered(starts, goals).tolist() == [True, True, False, True, True, False]
+    assert near.covered(starts, goals).tolist() == [True, False, True, True, True, True]
+    # shift needs a positive weight too: start (10, 10) has fallback-connected landmarks, so row 1 shifts
+    _, shifted = fgs.shift(starts, goals)
+    assert shifted.tolist() == [True, True, False, True, True, False]
+    with pytest.raises(ValueError, match="trigger"):
+        FrontierGoalShifting(planner, trigger="always")
 
 
 @pytest.mark.parametrize(

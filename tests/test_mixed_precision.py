@@ -95,7 +95,9 @@ def _train(autocast_dtype, steps=6, seed=0, watch=None):
     """``steps`` updates on fixed samples; ``watch(loss)`` names modules whose output dtypes are logged."""
     loss, rb = _sqgc_setup(seed)
     log, handles = _record_dtypes(watch(loss) if watch else {})
-    updater = LossUpdater(loss, rb, make_optimizers(loss), target_update_interval=3, autocast_dtype=autocast_dtype)
+    updater = LossUpdater(
+        loss, rb, make_optimizers(loss), target_update_interval=3, autocast_dtype=autocast_dtype
+    )
     torch.manual_seed(7)  # same samples for every run
     outs = [updater.step() for _ in range(steps)]
     for h in handles:

@@ -109,18 +109,38 @@ def test_q_distance_round_trip_and_guards():
         q_to_distance(q, 1.0)
 
 
-def test_goal_distance_equals_manual_eq1_with_graph_critics():
+@pytest.mark.parametrize("twin", ["optimistic", "pessimistic"])
+def test_goal_distance_equals_manual_eq1_with_graph_critics(twin):
     actor, critic = _actor(), _critic()
-    distance = GoalDistance(actor, critic)
+    distance = GoalDistance(actor, critic, twin=twin)
     states, goals = torch.randn(20, OBS) * 3, torch.randn(20, GOAL) * 3
     got = distance(states, goals)
     with torch.no_grad():
         td = TensorDict({"observation": states, "waypoint": goals}, [20])
         td = actor(td)  # the actor's own deterministic action
-        q_min = critic(td)["state_action_value"].min(-1).values.double().numpy()
-    expected = np.maximum(np.log(1 + (1 - GAMMA) * q_min) / np.log(GAMMA), 0.0)
+        q = critic(td)["state_action_value"].double().numpy()
+    # each member's Eq. (1) distance separately, then the reference's min(dist1, dist2) or the max
+    dist = np.maximum(np.log(1 + (1 - GAMMA) * q) / np.log(GAMMA), 0.0)
+    expected = dist.min(-1) if twin == "optimistic" else dist.max(-1)
     np.testing.assert_allclose(got.numpy(), expected, rtol=1e-4, atol=1e-4)
     assert not got.requires_grad
+
+
+def test_goal_distance_twin_choice_on_a_hand_made_twin():
+    """A twin whose members output fixed, different distances: the optimistic choice is the smaller."""
+    actor, critic = _actor(), _critic()
+    with torch.no_grad():  # zero hidden->output weights: each member outputs softplus(bias)
+        out = critic.module.ensemble.layers[-1]
+        out.weight.zero_()
+        out.bias.copy_(torch.tensor([3.0, 12.0]).reshape(out.bias.shape))
+    states, goals = torch.randn(6, OBS), torch.randn(6, GOAL)
+    soft = torch.nn.functional.softplus(torch.tensor([3.0, 12.0]))
+    optimistic = GoalDistance(actor, critic)(states, goals)
+    pessimistic = GoalDistance(actor, critic, twin="pessimistic")(states, goals)
+    torch.testing.assert_close(optimistic, soft[0].expand(6), rtol=1e-4, atol=1e-4)
+    torch.testing.assert_close(pessimistic, soft[1].expand(6), rtol=1e-4, atol=1e-4)
+    with pytest.raises(ValueError, match="twin"):
+        GoalDistance(actor, critic, twin="mean")
 
 
 def test_goal_distance_broadcasts_n_by_m_and_chunking_is_identical():

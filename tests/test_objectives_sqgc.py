@@ -256,15 +256,18 @@ def test_leading_batch_dims_and_custom_keys():
     assert ("her", "goal") in loss.in_keys
 
 
-def test_target_noise_is_absolute_and_unclipped_by_default():
+def test_target_noise_is_absolute_unclipped_and_unclamped_by_default():
     actor, pc, gc = _nets()
     data = _batch()
     torch.manual_seed(0)
     noisy = SQGCLoss(actor, pc, gc, target_noise_std=0.5)(data)
     clean = SQGCLoss(actor, pc, gc, target_noise_std=0.0)(data)
     assert noisy["policy_target"] != clean["policy_target"]
-    loss = SQGCLoss(actor, pc, gc, target_noise_std=100.0)
+    loss = SQGCLoss(actor, pc, gc, target_noise_std=100.0)  # the reference: pi' + noise, left outside the box
     a = loss._target_action(data["next", "observation"], data["goal"])
+    assert (a.abs() > AMAX).float().mean() > 0.9
+    clamped = SQGCLoss(actor, pc, gc, target_noise_std=100.0, target_action_clamp=True)
+    a = clamped._target_action(data["next", "observation"], data["goal"])
     assert (a.abs() <= AMAX).all() and (a.abs() == AMAX).float().mean() > 0.9  # clamped to the action box
 
 

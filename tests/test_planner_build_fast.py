@@ -136,17 +136,21 @@ def _trained_like_distance(obs_dim=5):
     return GoalDistance(actor, critic)
 
 
-def test_goal_distance_graph_in_bfloat16_is_close_to_float32():
+@pytest.mark.parametrize("twin", ["optimistic", "pessimistic"])
+def test_goal_distance_graph_in_bfloat16_is_close_to_float32(twin):
     distance = _trained_like_distance()
+    distance.twin = twin
     states, goals = candidates(800, seed=3)
     options = {"cutoff": 15.0, "max_landmarks": 60, "early_stop": 0.0}
     ref = GraphPlanner(distance, 2, **options).build(states, goals)
     fast = GraphPlanner(distance, 2, build_autocast_dtype=torch.bfloat16, **options).build(states, goals)
-    # FPS may part ways at a near-tie, but most landmarks and the coverage agree
+    # FPS may part ways at a near-tie, but the coverage agrees. With the pessimistic member of this network
+    # the two runs share most landmarks too; with the optimistic one they part at the 3rd landmark (measured:
+    # a near-tie), after which only 44 of 60 coincide while the coverage radius stays within 1%.
     shared = len(
         {tuple(g) for g in ref.landmark_goals.tolist()} & {tuple(g) for g in fast.landmark_goals.tolist()}
     )
-    assert shared >= 0.8 * ref.num_landmarks
+    assert shared >= (0.8 if twin == "pessimistic" else 0.5) * ref.num_landmarks
     assert fast.graph.coverage_radius.item() == pytest.approx(ref.graph.coverage_radius.item(), rel=0.1)
     # on the same landmarks, the bfloat16 matrix is within 2% of the float32 one
     same = LandmarkGraph(cutoff=15.0, build_autocast_dtype=torch.bfloat16)
@@ -158,9 +162,14 @@ def test_goal_distance_graph_in_bfloat16_is_close_to_float32():
     assert (same.landmark_distances[off_diag] != ref_matrix).any()
     # plans on the bfloat16-built graph cost about the same (measured: median 0.04%); an edge whose
     # length sits at the cutoff may flip, which changes a few routes by more
-    plan_ref = ref.plan(states[:64], goals[-64:])
-    plan_fast = fast.plan(states[:64], goals[-64:])
-    both = torch.isfinite(plan_ref.cost) & torch.isfinite(plan_fast.cost)
-    assert both.float().mean() > 0.9
-    rel_cost = (plan_fast.cost[both] - plan_ref.cost[both]).abs() / plan_ref.cost[both].clamp_min(1.0)
-    assert rel_cost.median() < 0.005 and (rel_cost < 0.01).float().mean() > 0.8
+    # (compared on the graphs FPS built when they share most landmarks, and on the same landmarks always)
+    plans = [
+        (ref.graph.plan(states[:64], goals[-64:], distance), same.plan(states[:64], goals[-64:], distance))
+    ]
+    if twin == "pessimistic":
+        plans.append((ref.plan(states[:64], goals[-64:]), fast.plan(states[:64], goals[-64:])))
+    for plan_ref, plan_fast in plans:
+        both = torch.isfinite(plan_ref.cost) & torch.isfinite(plan_fast.cost)
+        assert both.float().mean() > 0.9
+        rel_cost = (plan_fast.cost[both] - plan_ref.cost[both]).abs() / plan_ref.cost[both].clamp_min(1.0)
+        assert rel_cost.median() < 0.005 and (rel_cost < 0.01).float().mean() > 0.8

@@ -10,8 +10,10 @@ from tensordict import TensorDictBase, is_tensor_collection
 from tensordict.utils import NestedKey
 from torchrl.data.replay_buffers import ReplayBuffer
 from torchrl.data.replay_buffers.storages import Storage, TensorStorage
-from torchrl.envs.transforms import Transform
+from torchrl.envs import EnvBase
+from torchrl.envs.transforms import Compose, Transform
 
+from torchrl_dhrl._unregistered import UnregisteredAttributes
 from torchrl_dhrl.data.rewards import SparseGoalReward
 
 __all__ = ["FutureGoalRelabel"]
@@ -34,7 +36,39 @@ def _unravel_key(key: NestedKey) -> NestedKey:
     raise TypeError(f"Expected a NestedKey (str or tuple of str), got {key!r}.")
 
 
-class FutureGoalRelabel(Transform):
+class _SampleTransform:
+    """Mixin of the replay-buffer transforms of :mod:`torchrl_dhrl.data`: refuses to go in an environment.
+
+    TorchRL calls ``set_container`` as soon as a transform is put in a
+    :class:`~torchrl.envs.TransformedEnv` (directly, through ``append_transform`` or inside a
+    :class:`~torchrl.envs.Compose` attached to one), before any spec or data goes through it; the
+    clear error is raised there instead of a spec ``KeyError`` or a missing-entry error at the
+    first reset or step. ``_usage`` completes the message with how the transform is meant to be used.
+    """
+
+    _usage = "apply it to replay-buffer samples"
+
+    def _not_an_env_transform(self) -> RuntimeError:
+        return RuntimeError(
+            f"{type(self).__name__} is not an environment transform: {self._usage}, not inside an "
+            "environment (TransformedEnv, env.append_transform)."
+        )
+
+    def set_container(self, container) -> None:
+        super().set_container(container)
+        env = container
+        while isinstance(env, Compose):  # a Compose not (yet) attached to an env ends the walk with None
+            ref = env.__dict__.get("_container")
+            env = ref() if ref is not None else None
+        if isinstance(env, EnvBase):
+            self.reset_parent()
+            raise self._not_an_env_transform()
+
+    def _call(self, next_tensordict: TensorDictBase) -> TensorDictBase:
+        raise self._not_an_env_transform()
+
+
+class FutureGoalRelabel(UnregisteredAttributes, _SampleTransform, Transform):
     """Relabels the goals of sampled transitions with future achieved goals of the same episode.
 
     This is the hindsight step of DHRL (and of its reference implementation) for both levels. For each
@@ -95,7 +129,8 @@ class FutureGoalRelabel(Transform):
             hold TensorDicts with ``achieved_goal_key`` and the markers.
         reward_fn (callable, optional): ``reward_fn(achieved_goal, goal) -> reward`` on tensors of shape
             ``[B, goal_dim]``, returning ``[B, 1]`` or ``[B]``. Defaults to
-            :class:`~torchrl_dhrl.data.SparseGoalReward` with threshold ``0.5`` (``-1`` / ``0``).
+            :class:`~torchrl_dhrl.data.SparseGoalReward` with threshold ``0.5`` (``-1`` / ``0``). An
+            ``nn.Module`` is kept as a plain attribute, not a submodule (not in ``state_dict()``).
 
     Keyword Args:
         her_ratio (float or sequence of float, optional): relabelling probability of each output, in
@@ -155,6 +190,10 @@ class FutureGoalRelabel(Transform):
         >>> sample["next", "graph_reward"].shape
         torch.Size([16, 1])
     """
+
+    #: ``reward_fn`` may be an ``nn.Module``: a plain attribute, not a submodule (not in ``state_dict()``)
+    _unregistered = ("reward_fn",)
+    _usage = "it relabels replay-buffer samples; apply it to the output of rb.sample()"
 
     def __init__(
         self,
@@ -428,12 +467,6 @@ class FutureGoalRelabel(Transform):
                     )
                 tensordict.set(self.reward_keys[i], reward.reshape(*batch_size, 1))
         return tensordict
-
-    def _call(self, next_tensordict: TensorDictBase) -> TensorDictBase:
-        raise RuntimeError(
-            "FutureGoalRelabel is a replay-buffer sample transform: apply it to rb.sample() outputs, not "
-            "inside an environment."
-        )
 
     def _inv_call(self, tensordict: TensorDictBase) -> TensorDictBase:
         return tensordict

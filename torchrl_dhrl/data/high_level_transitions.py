@@ -10,7 +10,8 @@ from tensordict import TensorDict, TensorDictBase, is_tensor_collection
 from tensordict.utils import NestedKey
 from torchrl.envs.transforms import Transform
 
-from torchrl_dhrl.data.future_goals import _next, _unravel_key
+from torchrl_dhrl._unregistered import UnregisteredAttributes
+from torchrl_dhrl.data.future_goals import _next, _SampleTransform, _unravel_key
 from torchrl_dhrl.data.rewards import SparseGoalReward
 
 __all__ = ["HighLevelTransitionBuilder"]
@@ -37,7 +38,7 @@ def _stable_sort_by(
     return records[order]
 
 
-class HighLevelTransitionBuilder(Transform):
+class HighLevelTransitionBuilder(UnregisteredAttributes, _SampleTransform, Transform):
     """Cuts collected low-level trajectories into high-level transitions, one per subgoal.
 
     The high-level actor issues a subgoal every ``c_h`` steps and flags that step with ``new_subgoal``.
@@ -100,7 +101,8 @@ class HighLevelTransitionBuilder(Transform):
             to detect resets when present (it is not copied: the high-level counter is
             ``segment_index``); ``None`` to ignore. Defaults to ``"step_count"``.
         reward_fn (callable, optional): ``reward_fn(achieved_goal, goal) -> [M, 1]``. Defaults to
-            :class:`~torchrl_dhrl.data.SparseGoalReward` with threshold ``0.5``.
+            :class:`~torchrl_dhrl.data.SparseGoalReward` with threshold ``0.5``. An ``nn.Module`` is
+            kept as a plain attribute, not a submodule (not in ``state_dict()``).
         reward_key (NestedKey, optional): where the reward is written. Defaults to ``("next", "reward")``.
         episode_id_key, segment_index_key, segment_length_key (NestedKey, optional): where the episode id,
             segment index and segment length are written. Default to ``"episode_id"``,
@@ -138,6 +140,13 @@ class HighLevelTransitionBuilder(Transform):
         >>> transitions["next", "done"].squeeze(-1)
         tensor([False, False,  True])
     """
+
+    #: ``reward_fn`` may be an ``nn.Module``: a plain attribute, not a submodule
+    _unregistered = ("reward_fn",)
+    _usage = (
+        "it cuts collected trajectories; call build(batch) or pass it as a replay buffer's transform "
+        "(rb.extend)"
+    )
 
     def __init__(
         self,
@@ -421,12 +430,6 @@ class HighLevelTransitionBuilder(Transform):
 
     def forward(self, tensordict: TensorDictBase) -> TensorDictBase:
         return tensordict
-
-    def _call(self, next_tensordict: TensorDictBase) -> TensorDictBase:
-        raise RuntimeError(
-            "HighLevelTransitionBuilder works on collected trajectories (build() / replay-buffer extend), "
-            "not inside an environment."
-        )
 
     def __repr__(self) -> str:
         return (

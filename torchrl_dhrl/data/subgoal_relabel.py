@@ -9,7 +9,8 @@ from tensordict import TensorDictBase, is_tensor_collection
 from tensordict.utils import NestedKey
 from torchrl.envs.transforms import Transform
 
-from torchrl_dhrl.data.future_goals import _unravel_key
+from torchrl_dhrl._unregistered import UnregisteredAttributes
+from torchrl_dhrl.data.future_goals import _SampleTransform, _unravel_key
 from torchrl_dhrl.data.rewards import SparseGoalReward
 
 __all__ = ["HindsightSubgoalRelabel"]
@@ -17,7 +18,7 @@ __all__ = ["HindsightSubgoalRelabel"]
 DistanceFromGraph = Callable[[torch.Tensor], torch.Tensor]
 
 
-class HindsightSubgoalRelabel(Transform):
+class HindsightSubgoalRelabel(UnregisteredAttributes, _SampleTransform, Transform):
     """Relabels high-level samples: hindsight subgoals (HAC) or subgoal testing with penalties.
 
     Applied to high-level transitions ``(s_t, g, sg_t, s_{t+c})`` after their goals were relabelled (see
@@ -60,9 +61,12 @@ class HindsightSubgoalRelabel(Transform):
             test and much cheaper, ``functools.partial(planner.distance_from_graph,
             at_most=far_from_graph_threshold)``. Called without gradients
             on the tested subgoals only. Can be set later through the attribute of the same name.
-            Defaults to ``None`` (no gradual penalty).
+            Any callable, an ``nn.Module`` included: it is kept as a plain attribute, not a
+            submodule (not in ``state_dict()``, not moved by ``.to()``). Defaults to ``None`` (no
+            gradual penalty).
         reward_fn (callable, optional): ``reward_fn(achieved_goal, goal) -> [B, 1]``. Defaults to
-            :class:`~torchrl_dhrl.data.SparseGoalReward` with threshold ``0.5``.
+            :class:`~torchrl_dhrl.data.SparseGoalReward` with threshold ``0.5``. An ``nn.Module`` is
+            kept as a plain attribute too.
 
     Keyword Args:
         subgoal_test_ratio (float, optional): probability that a sample is a subgoal test. Defaults to
@@ -111,6 +115,10 @@ class HindsightSubgoalRelabel(Transform):
         >>> out["next", "reward"][out["subgoal_test"].squeeze(-1)].unique()
         tensor([-5.])
     """
+
+    #: callables (possibly ``nn.Module`` s) kept as plain attributes, never registered as submodules
+    _unregistered = ("distance_from_graph", "reward_fn")
+    _usage = "it relabels replay-buffer samples; apply it to the output of rb.sample()"
 
     def __init__(
         self,
@@ -180,13 +188,6 @@ class HindsightSubgoalRelabel(Transform):
             raise TypeError(f"distance_from_graph must be callable or None, got {type(value).__name__}.")
         self.__dict__["_distance_from_graph"] = value
 
-    def __setattr__(self, name: str, value) -> None:
-        if name == "distance_from_graph":
-            # through the property, so that a callable nn.Module is never registered as a submodule
-            object.__setattr__(self, name, value)
-        else:
-            super().__setattr__(name, value)
-
     def _far_from_graph(self, subgoals: torch.Tensor) -> torch.Tensor:
         with torch.no_grad():
             distance = self.distance_from_graph(subgoals)
@@ -247,11 +248,6 @@ class HindsightSubgoalRelabel(Transform):
         if self.subgoal_test_key is not None:
             tensordict.set(self.subgoal_test_key, tested.reshape(*batch_size, 1))
         return tensordict
-
-    def _call(self, next_tensordict: TensorDictBase) -> TensorDictBase:
-        raise RuntimeError(
-            "HindsightSubgoalRelabel relabels replay-buffer samples; it is not an environment transform."
-        )
 
     def _inv_call(self, tensordict: TensorDictBase) -> TensorDictBase:
         return tensordict

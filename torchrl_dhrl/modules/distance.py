@@ -22,6 +22,10 @@ DEFAULT_CHUNK_SIZE = 65536
 DEFAULT_CPU_CHUNK_SIZE = 4096
 #: Reduced-precision dtypes accepted by ``autocast_dtype``.
 AUTOCAST_DTYPES = (torch.bfloat16, torch.float16)
+#: Which member of the twin graph critic gives the distance (``twin`` of :class:`GoalDistance`):
+#: ``"optimistic"`` the smaller distance (the larger Q; the reference implementation's
+#: ``min(dist1, dist2)``), ``"pessimistic"`` the larger distance (the smaller Q, TD3's reading).
+TWIN_CHOICES = ("optimistic", "pessimistic")
 
 
 def _run_actor(actor: TensorDictModuleBase, states: torch.Tensor, goals: torch.Tensor) -> torch.Tensor:
@@ -54,11 +58,13 @@ def _autocast(device: torch.device, dtype: torch.dtype | None):
 
 
 class GoalDistance:
-    """``Dist(s -> g) = log_gamma(1 + (1 - gamma) min_k Q_k(s, pi(s, g) | g))``, clamped to ``>= 0``.
+    """``Dist(s -> g) = log_gamma(1 + (1 - gamma) max_k Q_k(s, pi(s, g) | g))``, clamped to ``>= 0``.
 
     Eq. (1) of DHRL evaluated with the *graph* critics at the actor's own deterministic,
-    noise-free action (effectively a value function), taking the pessimistic member of the
-    twin (the minimum Q, i.e. the largest distance). This is the distance contract shared by
+    noise-free action (effectively a value function). By default (``twin="optimistic"``) the
+    distance is the smaller of the twin's two distances (the larger Q), as in the reference
+    implementation (``min(dist1, dist2)``); ``twin="pessimistic"`` takes the larger distance
+    (the smaller Q, as TD3 does for its targets). This is the distance contract shared by
     the planner, farthest point sampling, FGS and the gradual penalty::
 
         distance(states: Tensor[..., obs_dim], goals: Tensor[..., goal_dim]) -> Tensor[...]
@@ -77,9 +83,11 @@ class GoalDistance:
     ``torch.autocast`` on the parameters' device, while their output layers and the
     conversion to a distance stay in the parameters' dtype, so the distance is not rounded to
     the reduced dtype. On a CPU with bfloat16 matrix units this is 2-3.5x faster per pair; the
-    cost is a small relative error from the rounding of the inputs and hidden activations
-    (bfloat16, 3x256 trained-like twin critic: 0.1% median, 0.4% p99, 0.6% max; see
-    ``benchmarks/bench_planner.py``). Meant for graph building
+    cost is a small error from the rounding of the inputs and hidden activations, close to
+    absolute (a few tenths of a step at most in ``tests/test_distance_fast.py``), so small
+    distances see the largest relative errors (bfloat16, 3x256 trained-like twin critic,
+    pessimistic member: 0.1% median, 0.4% p99, 0.6% max; see ``benchmarks/bench_planner.py``).
+    Meant for graph building
     (:class:`~torchrl_dhrl.planner.GraphPlanner`'s ``build_autocast_dtype``); float16 is about
     8x more accurate than bfloat16 but needs activations below 65504 (and is slow on most CPUs).
 
@@ -99,6 +107,8 @@ class GoalDistance:
         autocast_dtype (torch.dtype, optional): ``torch.bfloat16`` or ``torch.float16`` to run
             the networks under ``torch.autocast`` (see above). Defaults to ``None`` (full
             precision). :meth:`with_autocast` gives a copy with another setting.
+        twin (str): ``"optimistic"`` (the smaller distance of the twin, the reference's) or
+            ``"pessimistic"`` (the larger one). Defaults to ``"optimistic"``.
 
     Examples:
         >>> import torch
@@ -123,8 +133,11 @@ class GoalDistance:
         actor_params: TensorDictBase | None = None,
         critic_params: TensorDictBase | None = None,
         autocast_dtype: torch.dtype | None = None,
+        twin: str = "optimistic",
     ) -> None:
         check_positional_keys(actor, 2, "actor")
+        if twin not in TWIN_CHOICES:
+            raise ValueError(f"`twin` must be one of {TWIN_CHOICES}, got {twin!r}.")
         if not isinstance(critic, GoalConditionedCritic):
             raise TypeError(f"`critic` must be a GoalConditionedCritic, got {type(critic).__name__}.")
         if chunk_size is not None and (
@@ -143,6 +156,7 @@ class GoalDistance:
         self.actor_params = actor_params
         self.critic_params = critic_params
         self.autocast_dtype = self._check_autocast_dtype(autocast_dtype)
+        self.twin = twin
 
     @staticmethod
     def _check_autocast_dtype(dtype: torch.dtype | None) -> torch.dtype | None:
@@ -201,7 +215,8 @@ class GoalDistance:
         # Under autocast the critic's output layer runs in full precision (EnsembleMLP), so the
         # raw output -- the distance itself with the distance parameterisation -- is not rounded.
         q = self.critic.module(states, goals, action)
-        return q_to_distance(q.min(-1).values, self.gamma, self.max_distance)
+        member = q.max(-1) if self.twin == "optimistic" else q.min(-1)
+        return q_to_distance(member.values, self.gamma, self.max_distance)
 
     def __call__(self, states: torch.Tensor, goals: torch.Tensor) -> torch.Tensor:
         check_last_dim("states", states, self.observation_dim)

@@ -72,6 +72,7 @@ class _GoalConditionedTD3Base(LossModule):
         action_l2: float,
         target_noise_std: float,
         target_noise_clip: float | None,
+        target_action_clamp: bool,
         actor_update_interval: int,
         use_terminated: bool,
         loss_function: str,
@@ -121,6 +122,7 @@ class _GoalConditionedTD3Base(LossModule):
         self.action_l2 = float(action_l2)
         self.target_noise_std = float(target_noise_std)
         self.target_noise_clip = target_noise_clip
+        self.target_action_clamp = bool(target_action_clamp)
         self.actor_update_interval = actor_update_interval
         self.use_terminated = use_terminated
         self.loss_function = loss_function
@@ -210,13 +212,15 @@ class _GoalConditionedTD3Base(LossModule):
             return run_positional(self.actor_network, observation, goal)
 
     def _target_action(self, next_observation: torch.Tensor, goal: torch.Tensor) -> torch.Tensor:
-        """``pi'(s', g) + noise``, clamped to the action box (no gradient)."""
+        """``pi'(s', g) + noise`` (no gradient), clamped to the action box if ``target_action_clamp``."""
         action = self._actor(self.target_actor_network_params, next_observation, goal)
         if self.target_noise_std > 0:
             noise = torch.randn_like(action) * self.target_noise_std
             if self.target_noise_clip is not None:
                 noise = noise.clamp(-self.target_noise_clip, self.target_noise_clip)
             action = action + noise
+        if not self.target_action_clamp:  # the reference: pi' is inside the box, the noise may leave it
+            return action
         low, high = self.action_loc - self.action_scale, self.action_loc + self.action_scale
         return torch.maximum(torch.minimum(action, high), low)
 

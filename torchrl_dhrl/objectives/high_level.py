@@ -56,6 +56,8 @@ class HighLevelLoss(_GoalConditionedTD3Base):
         target_noise_std (float): std of the target-policy noise in goal units.
             Defaults to ``0.05``.
         target_noise_clip (float, optional): clip of that noise. Defaults to ``None``.
+        target_action_clamp (bool): clamp the noisy target action to the action box. Defaults
+            to ``False``, as the reference (whose target actions may leave the box by the noise).
         actor_update_interval (int): TD3 actor delay. Defaults to ``2``.
         use_terminated (bool): mask the bootstrap with ``terminated``. Defaults to ``False``.
         loss_function (str): ``"l2"`` (default), ``"l1"`` or ``"smooth_l1"``.
@@ -119,6 +121,7 @@ class HighLevelLoss(_GoalConditionedTD3Base):
         action_l2: float = 0.01,
         target_noise_std: float = 0.05,
         target_noise_clip: float | None = None,
+        target_action_clamp: bool = False,
         actor_update_interval: int = 2,
         use_terminated: bool = False,
         loss_function: str = "l2",
@@ -133,6 +136,7 @@ class HighLevelLoss(_GoalConditionedTD3Base):
             action_l2=action_l2,
             target_noise_std=target_noise_std,
             target_noise_clip=target_noise_clip,
+            target_action_clamp=target_action_clamp,
             actor_update_interval=actor_update_interval,
             use_terminated=use_terminated,
             loss_function=loss_function,

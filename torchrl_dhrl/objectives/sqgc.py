@@ -83,6 +83,8 @@ class SQGCLoss(_GoalConditionedTD3Base):
         target_noise_std (float): std of the target-policy noise, in action units
             (reference 0.05, unclipped). Defaults to ``0.05``.
         target_noise_clip (float, optional): clip of that noise; ``None`` (default) for none.
+        target_action_clamp (bool): clamp the noisy target action to the action box. Defaults
+            to ``False``, as the reference (whose target actions may leave the box by the noise).
         actor_update_interval (int): the actor is updated every this many calls of
             :meth:`forward` (TD3 delay). Defaults to ``2``.
         use_terminated (bool): mask the bootstrap with ``terminated``. Defaults to ``False``.
@@ -186,6 +188,7 @@ class SQGCLoss(_GoalConditionedTD3Base):
         action_l2: float = 0.01,
         target_noise_std: float = 0.05,
         target_noise_clip: float | None = None,
+        target_action_clamp: bool = False,
         actor_update_interval: int = 2,
         use_terminated: bool = False,
         sqgc: bool = True,
@@ -205,6 +208,7 @@ class SQGCLoss(_GoalConditionedTD3Base):
             action_l2=action_l2,
             target_noise_std=target_noise_std,
             target_noise_clip=target_noise_clip,
+            target_action_clamp=target_action_clamp,
             actor_update_interval=actor_update_interval,
             use_terminated=use_terminated,
             loss_function=loss_function,

@@ -10,18 +10,32 @@ from tensordict.nn import TensorDictModuleBase
 from tensordict.utils import NestedKey, unravel_key
 from torch import Tensor
 
+from torchrl_dhrl._unregistered import UnregisteredAttributes
+
+from ._distance import paired_distances, pairwise_distances
 from .graph_planner import GraphPlanner
 
 FGS_WEIGHTINGS = ("path_length", "softmax", "reference")
+#: When a goal counts as "already covered by the graph" (``trigger`` of :class:`FrontierGoalShifting`).
+FGS_TRIGGERS = ("reachable", "near_graph")
 
 
-class FrontierGoalShifting(TensorDictModuleBase):
+class FrontierGoalShifting(UnregisteredAttributes, TensorDictModuleBase):
     """Moves training goals that the graph already covers to its frontier (DHRL Algorithm 5).
 
     Called by the recipe at the start of training episodes, batched over envs. For each env,
-    when the goal ``g`` is already inside the graph (``min_v d(v -> g) < cutoff``, with ``v`` the
-    landmark states), the goal is replaced by a landmark sampled toward the rim of the graph,
-    plus uniform noise ``U(-noise, noise)`` per axis. Landmark weights come from the graph
+    when the goal ``g`` is already covered by the graph, the goal is replaced by a landmark
+    sampled toward the rim of the graph, plus uniform noise ``U(-noise, noise)`` per axis.
+    "Covered" is decided by ``trigger``:
+
+    - ``"reachable"`` (default, the reference implementation's test): the graph expanded with the
+      start ``s`` and the goal has a path ``s -> g``. The expansion adds edges ``s -> v`` for the
+      landmarks with ``d(s -> v) < cutoff`` (no fallback), ``v -> g`` for ``d(v -> g) < cutoff``
+      and ``s -> g`` when ``d(s -> g) < cutoff``.
+    - ``"near_graph"`` (the paper's Algorithm 5): ``min_v d(v -> g) < cutoff`` over the landmark
+      states ``v``, whether or not the start can reach those landmarks.
+
+    Landmark weights come from the graph
     distance ``c_v`` from the episode's start state to each landmark (the planner's start
     connection rules plus the all-pairs table, :meth:`LandmarkGraph.reach_costs`):
 
@@ -53,6 +67,8 @@ class FrontierGoalShifting(TensorDictModuleBase):
         temperature (float, optional): softmax temperature in steps. Defaults to the cutoff.
         unreachable_weight (float): weight of unreachable landmarks for ``"reference"``.
             Defaults to ``5000.0``.
+        trigger (str): ``"reachable"`` or ``"near_graph"`` (see above). Defaults to
+            ``"reachable"``.
         cutoff (float, optional): "goal is in the graph" threshold. Defaults to the planner's.
         low (float or Tensor, optional): lower bound to clamp shifted goals to.
         high (float or Tensor, optional): upper bound to clamp shifted goals to.
@@ -85,6 +101,9 @@ class FrontierGoalShifting(TensorDictModuleBase):
         [20.0, 20.0]
     """
 
+    #: the planner is a plain attribute, not a submodule (it owns the graph buffers)
+    _unregistered = ("planner",)
+
     def __init__(
         self,
         planner: GraphPlanner,
@@ -93,6 +112,7 @@ class FrontierGoalShifting(TensorDictModuleBase):
         weighting: str = "path_length",
         temperature: float | None = None,
         unreachable_weight: float = 5000.0,
+        trigger: str = "reachable",
         cutoff: float | None = None,
         low: float | Tensor | None = None,
         high: float | Tensor | None = None,
@@ -103,10 +123,11 @@ class FrontierGoalShifting(TensorDictModuleBase):
         shifted_key: NestedKey = "goal_shifted",
     ) -> None:
         super().__init__()
-        if not isinstance(planner, GraphPlanner):
-            raise TypeError(f"`planner` must be a GraphPlanner, got {type(planner).__name__}.")
+        self.planner = planner
         if weighting not in FGS_WEIGHTINGS:
             raise ValueError(f"`weighting` must be one of {FGS_WEIGHTINGS}, got {weighting!r}.")
+        if trigger not in FGS_TRIGGERS:
+            raise ValueError(f"`trigger` must be one of {FGS_TRIGGERS}, got {trigger!r}.")
         for name, value in (("noise", noise), ("unreachable_weight", unreachable_weight)):
             if isinstance(value, bool) or not isinstance(value, (int, float)) or not value >= 0:
                 raise ValueError(f"`{name}` must be a number >= 0, got {value!r}.")
@@ -114,9 +135,9 @@ class FrontierGoalShifting(TensorDictModuleBase):
             raise ValueError(f"`temperature` must be > 0, got {temperature!r}.")
         if cutoff is not None and not cutoff > 0:
             raise ValueError(f"`cutoff` must be > 0, got {cutoff!r}.")
-        self.__dict__["_planner"] = planner  # not a submodule: the planner owns the graph buffers
         self.noise = float(noise)
         self.weighting = weighting
+        self.trigger = trigger
         self._temperature = temperature
         self.unreachable_weight = float(unreachable_weight)
         self._cutoff = cutoff
@@ -132,8 +153,17 @@ class FrontierGoalShifting(TensorDictModuleBase):
 
     @property
     def planner(self) -> GraphPlanner:
-        """The planner whose graph defines the frontier."""
+        """The planner whose graph, distance and cutoff define the frontier (not a submodule).
+
+        Assigning another :class:`GraphPlanner` takes effect at the next call.
+        """
         return self.__dict__["_planner"]
+
+    @planner.setter
+    def planner(self, value: GraphPlanner) -> None:
+        if not isinstance(value, GraphPlanner):
+            raise TypeError(f"`planner` must be a GraphPlanner, got {type(value).__name__}.")
+        self.__dict__["_planner"] = value
 
     @property
     def cutoff(self) -> float:
@@ -159,6 +189,28 @@ class FrontierGoalShifting(TensorDictModuleBase):
         return torch.softmax(logits, dim=-1).nan_to_num(0.0)
 
     @torch.no_grad()
+    def covered(self, states: Tensor, goals: Tensor) -> Tensor:
+        """``[B]`` bool: which goals the graph already covers from ``states`` (see ``trigger``).
+
+        ``states`` are ``[B, obs_dim]``, ``goals`` ``[B, goal_dim]``; all ``False`` without a graph.
+        """
+        planner = self.planner
+        if not planner.has_graph:
+            return torch.zeros(goals.shape[0], dtype=torch.bool, device=goals.device)
+        cutoff = self.cutoff
+        if self.trigger == "near_graph":
+            return planner.distance_from_graph(goals, at_most=cutoff) < cutoff
+        graph, distance = planner.graph, planner.distance
+        # start -> landmark edges of the expanded graph: within the cutoff only
+        to_landmarks = pairwise_distances(distance, states, graph.landmark_goals, graph.chunk_size)
+        start_cost = torch.where(to_landmarks < cutoff, to_landmarks, torch.full_like(to_landmarks, math.inf))
+        reach, _ = graph._reach(start_cost)  # [B, K] through the all-pairs table
+        to_goal = pairwise_distances(distance, graph.landmark_states, goals, graph.chunk_size)  # [K, B]
+        via_graph = (torch.isfinite(reach) & (to_goal.transpose(0, 1).to(reach.device) < cutoff)).any(-1)
+        direct = paired_distances(distance, states, goals, graph.chunk_size).to(via_graph.device) < cutoff
+        return (via_graph | direct).to(goals.device)
+
+    @torch.no_grad()
     def shift(self, states: Tensor, goals: Tensor) -> tuple[Tensor, Tensor]:
         """Shifts the goals that the graph already covers.
 
@@ -179,8 +231,7 @@ class FrontierGoalShifting(TensorDictModuleBase):
         if not self.planner.has_graph or goals.shape[0] == 0:
             return goals.clone(), shifted
         weights = self.weights(states)
-        in_graph = self.planner.distance_from_graph(goals, at_most=self.cutoff) < self.cutoff
-        shifted = in_graph & (weights.sum(dim=-1) > 0)
+        shifted = self.covered(states, goals) & (weights.sum(dim=-1) > 0).to(goals.device)
         new_goals = goals.clone()
         rows = shifted.nonzero().squeeze(-1)
         if rows.numel():

@@ -9,6 +9,8 @@ from typing import NamedTuple
 import torch
 from torch import Tensor, nn
 
+from torchrl_dhrl._unregistered import UnregisteredAttributes
+
 from ._distance import (
     DEFAULT_CHUNK_SIZE,
     DistanceFn,
@@ -19,7 +21,7 @@ from ._distance import (
     pairwise_distances,
 )
 from .fps import DEFAULT_LAZY_BATCH, FPS_STRATEGIES, ProxyFn, farthest_point_sampling, resolve_proxy
-from .shortest_paths import floyd_warshall, reconstruct_paths
+from .shortest_paths import count_hops, floyd_warshall, reconstruct_paths
 
 #: Buffers whose shapes follow the number of landmarks (resized when a state dict is loaded).
 _GRAPH_BUFFERS = (
@@ -69,7 +71,7 @@ def _check_positive(name: str, value: float, allow_zero: bool = False) -> float:
     return float(value)
 
 
-class LandmarkGraph(nn.Module):
+class LandmarkGraph(UnregisteredAttributes, nn.Module):
     """Directed landmark graph with precomputed all-pairs shortest paths (the graph level of DHRL).
 
     :meth:`build` selects landmarks among candidate states by farthest point sampling with the
@@ -110,7 +112,8 @@ class LandmarkGraph(nn.Module):
             :func:`~torchrl_dhrl.planner.farthest_point_sampling`). Defaults to ``"lazy"``.
         fps_proxy (str, callable or None): the evaluation-order heuristic of lazy FPS (``"goal"``:
             Euclidean distance between goals; ``None``: none). Changes the cost, never the
-            landmarks. Defaults to ``"goal"``.
+            landmarks. A callable (an ``nn.Module`` included) is a plain attribute, not a
+            submodule. Defaults to ``"goal"``.
         fps_lazy_batch (int): candidates refreshed per round of lazy FPS. Defaults to ``64``.
         build_autocast_dtype (torch.dtype, optional): ``torch.bfloat16`` or ``torch.float16`` to
             evaluate the distances of :meth:`build` and :meth:`set_landmarks` in reduced precision,
@@ -136,6 +139,9 @@ class LandmarkGraph(nn.Module):
         >>> [round(x, 1) for x in graph.landmark_goals[plan.path[0, : plan.length[0]]][:, 0].tolist()]
         [0.0, 1.2, 2.5, 3.7, 5.0]
     """
+
+    #: a callable proxy (possibly an ``nn.Module``) is a plain attribute, never a submodule
+    _unregistered = ("fps_proxy",)
 
     def __init__(
         self,
@@ -614,6 +620,13 @@ class LandmarkGraph(nn.Module):
         super()._load_from_state_dict(
             state_dict, prefix, local_metadata, strict, missing_keys, unexpected_keys, error_msgs
         )
+        # hop counts are derived from the next-hop table: recount them, so that a checkpoint written
+        # before they were (whose counts could disagree with the table after ties) plans full paths
+        if prefix + "next_hop" in state_dict and self.next_hop.shape == self.hop_counts.shape:
+            try:
+                self.hop_counts = count_hops(self.next_hop)
+            except ValueError as err:
+                error_msgs.append(f"{prefix}next_hop: {err}")
 
     def extra_repr(self) -> str:
         return (

@@ -12,6 +12,8 @@ from torchrl.data import Composite, Unbounded
 from torchrl.envs import TensorDictPrimer
 from torchrl.envs.transforms import Transform
 
+from torchrl_dhrl._unregistered import UnregisteredAttributes
+
 from ._distance import DEFAULT_CHUNK_SIZE, DistanceFn, check_supports_autocast
 from .fps import DEFAULT_LAZY_BATCH, ProxyFn
 from .graph import GraphPlan, LandmarkGraph
@@ -20,7 +22,7 @@ from .graph import GraphPlan, LandmarkGraph
 STATE_ENTRIES = ("path", "path_length", "budgets", "index", "steps", "truncated", "has_plan", "graph_version")
 
 
-class GraphPlanner(Transform):
+class GraphPlanner(UnregisteredAttributes, Transform):
     """Plans waypoints from the current state to the subgoal on a landmark graph and tracks them.
 
     The graph level of DHRL (Lee et al., 2022, Section 4.1 and Algorithm 3). Each call reads the
@@ -74,7 +76,10 @@ class GraphPlanner(Transform):
     Args:
         distance (callable): the temporal distance ``distance(states[..., obs_dim],
             goals[..., goal_dim]) -> steps[...]``, e.g. the learned graph-critic distance or an
-            oracle. It is not registered as a submodule (its parameters belong to the learner).
+            oracle; any callable, an ``nn.Module`` included. It is not registered as a submodule
+            (its parameters belong to the learner): it is not part of ``state_dict()`` or
+            ``parameters()``, ``.to()`` does not move it, and assigning ``planner.distance``
+            replaces it for the next build and query.
         goal_dim (int): the size of goals, subgoals and waypoints.
 
     Keyword Args:
@@ -134,6 +139,9 @@ class GraphPlanner(Transform):
         >>> [round(x, 1) for x in planner.planned_path(td, 0)[:, 0].tolist()]  # landmarks, then the subgoal
         [0.0, 1.2, 2.5, 3.7, 5.0, 5.0]
     """
+
+    #: plain attributes, never registered as submodules (see ``torchrl_dhrl._unregistered``)
+    _unregistered = ("distance",)
 
     def __init__(
         self,
@@ -213,7 +221,11 @@ class GraphPlanner(Transform):
     # ------------------------------------------------------------------ distance and graph
     @property
     def distance(self) -> DistanceFn:
-        """The temporal distance used to build and query the graph (not a registered submodule)."""
+        """The temporal distance used to build and query the graph (not a registered submodule).
+
+        Any callable ``distance(states, goals) -> steps``, an ``nn.Module`` included; assigning a new
+        one takes effect at the next :meth:`build` or query.
+        """
         return self.__dict__["_distance"]
 
     @distance.setter
@@ -222,7 +234,8 @@ class GraphPlanner(Transform):
             raise TypeError(
                 f"`distance` must be callable (states, goals) -> steps, got {type(value).__name__}."
             )
-        # stored outside nn.Module registration: the learner owns (and checkpoints) its parameters
+        # stored outside nn.Module registration (`_unregistered` routes assignments of an nn.Module
+        # here too): the learner owns (and checkpoints) its parameters
         self.__dict__["_distance"] = value
 
     @property

@@ -17,7 +17,7 @@ class ShortestPaths(NamedTuple):
         next_hop (Tensor): ``[N, N]`` int64, the node following ``i`` on that path
             (``next_hop[i, i] = i``; ``-1`` when unreachable).
         hop_counts (Tensor): ``[N, N]`` int64, the number of edges on that path (``0`` when
-            unreachable or ``i == j``).
+            unreachable or ``i == j``), counted on ``next_hop`` itself (:func:`count_hops`).
     """
 
     distances: Tensor
@@ -46,10 +46,12 @@ def floyd_warshall(weights: Tensor) -> ShortestPaths:
     diagonal is treated as ``0``. The algorithm runs ``N`` relaxation rounds, each a handful of
     ``N x N`` tensor operations, so it runs unchanged on CPU and GPU (``O(N)`` kernel launches,
     ``O(N^3)`` work). A path is only replaced by a *strictly* shorter one, which keeps the
-    next-hop table acyclic even with zero-weight edges.
+    next-hop table acyclic, also with zero-weight edges and under float rounding (ties, large
+    weights): following ``next_hop`` from ``i`` always reaches ``j`` along existing edges.
 
-    The next-hop and hop-count tables are packed into one integer tensor (next hop in the high
-    bits, hop count in the low bits) so that a single masked update moves both.
+    The hop counts are read off the final next-hop table (:func:`count_hops`), so they always
+    match the paths that :func:`reconstruct_paths` follows, even where a sub-path was later
+    replaced by one that is shorter only by rounding.
 
     Args:
         weights (Tensor): ``[N, N]`` non-negative float edge weights, ``inf`` for missing edges.
@@ -73,40 +75,76 @@ def floyd_warshall(weights: Tensor) -> ShortestPaths:
     if n == 0:
         empty = torch.empty(0, 0, dtype=torch.int64, device=device)
         return ShortestPaths(dist, empty, empty.clone())
-    # int32 packing (next << 16 | hops) while both fit in 15 bits, int64 (next << 32 | hops) beyond.
-    if n < 2**15:
-        dtype, shift = torch.int32, 16
-    else:
-        dtype, shift = torch.int64, 32
-    low_mask = (1 << shift) - 1
+    dtype = torch.int32 if n < 2**31 else torch.int64
     arange = torch.arange(n, device=device, dtype=dtype)
     finite = torch.isfinite(dist)
-    # Unreachable pairs start with next hop 0 (masked to -1 at the end) so that every packed value
-    # stays in [0, 2**31) and differences of packed values never overflow.
+    # Unreachable pairs start with next hop 0 (masked to -1 at the end): a pair only takes a next
+    # hop from a finite path, so the placeholder is never followed.
     nxt = torch.where(finite, arange.expand(n, n), torch.zeros((), dtype=dtype, device=device))
     nxt.diagonal().copy_(arange)
-    hops = finite.to(dtype)
-    hops.diagonal().zero_()
-    packed = (nxt << shift) | hops
 
     cand = torch.empty_like(dist)
     better = torch.empty(n, n, dtype=dtype, device=device)
-    update = torch.empty_like(packed)
+    update = torch.empty_like(nxt)
     for k in range(n):
         torch.add(dist[:, k : k + 1], dist[k : k + 1, :], out=cand)
         torch.lt(cand, dist, out=better)
         torch.minimum(dist, cand, out=dist)
-        # packed[i, j] <- packed[i, k] + hops[k, j] where the path through k is strictly better:
-        # the next hop of i -> j becomes that of i -> k, the hop count adds up.
-        torch.add(packed[:, k : k + 1], (packed[k] & low_mask).unsqueeze(0), out=update)
-        update.sub_(packed).mul_(better)
-        packed.add_(update)
-    next_hop = (packed >> shift).to(torch.int64)
-    hop_counts = (packed & low_mask).to(torch.int64)
-    unreachable = torch.isinf(dist)
-    next_hop.masked_fill_(unreachable, -1)
-    hop_counts.masked_fill_(unreachable, 0)
-    return ShortestPaths(dist, next_hop, hop_counts)
+        # nxt[i, j] <- nxt[i, k] where the path through k is strictly better
+        torch.sub(nxt[:, k : k + 1], nxt, out=update)
+        update.mul_(better)
+        nxt.add_(update)
+    next_hop = nxt.to(torch.int64)
+    next_hop.masked_fill_(torch.isinf(dist), -1)
+    return ShortestPaths(dist, next_hop, count_hops(next_hop))
+
+
+@torch.no_grad()
+def count_hops(next_hop: Tensor) -> Tensor:
+    """Number of edges of every path of a next-hop table, by pointer jumping.
+
+    Row ``i``, column ``j`` of the result is the number of steps ``i -> next_hop[i, j] -> ... -> j``.
+    All pairs are followed at once, doubling the jump length each round (``ceil(log2(N))`` rounds
+    of two ``[N, N]`` gathers, no per-node loop), so the count always agrees with the table, which
+    is what :func:`reconstruct_paths` and :class:`~torchrl_dhrl.planner.LandmarkGraph` rely on.
+
+    Args:
+        next_hop (Tensor): ``[N, N]`` int64 next-hop table (``next_hop[j, j] = j``, ``-1`` for
+            unreachable pairs), e.g. from :func:`floyd_warshall`.
+
+    Returns:
+        Tensor: ``[N, N]`` int64 hop counts (``0`` on the diagonal and for unreachable pairs).
+
+    Raises:
+        ValueError: if the table has a cycle (some path never reaches its target) or an
+            out-of-range entry.
+
+    Examples:
+        >>> import torch
+        >>> next_hop = torch.tensor([[0, 1, 1], [-1, 1, 2], [-1, -1, 2]])
+        >>> count_hops(next_hop).tolist()
+        [[0, 1, 2], [0, 0, 1], [0, 0, 0]]
+    """
+    if next_hop.ndim != 2 or next_hop.shape[0] != next_hop.shape[1]:
+        raise ValueError(f"`next_hop` must be a square [N, N] table, got shape {tuple(next_hop.shape)}.")
+    n = next_hop.shape[0]
+    if n == 0:
+        return torch.zeros(0, 0, dtype=torch.int64, device=next_hop.device)
+    next_hop = next_hop.to(torch.int64)
+    targets = torch.arange(n, device=next_hop.device).expand(n, n)
+    if bool(((next_hop < -1) | (next_hop >= n)).any()) or not torch.equal(next_hop.diagonal(), targets[0]):
+        raise ValueError(f"`next_hop` entries must lie in [-1, {n}) with `next_hop[j, j] = j`.")
+    reachable = next_hop >= 0
+    # jump[i, j]: the node 2**t steps after i on the way to j (capped at j); hops: those steps
+    jump = torch.where(reachable, next_hop, targets)
+    hops = reachable.to(torch.int64)
+    hops.fill_diagonal_(0)
+    for _ in range(max(n - 2, 0).bit_length()):  # 2**rounds >= n - 1, the longest simple path
+        hops.add_(hops.gather(0, jump))
+        jump = jump.gather(0, jump)
+    if not torch.equal(jump, targets):
+        raise ValueError("`next_hop` has a cycle: some path never reaches its target.")
+    return hops
 
 
 @torch.no_grad()
@@ -117,7 +155,9 @@ def reconstruct_paths(
 
     Args:
         next_hop (Tensor): ``[N, N]`` next-hop table from :func:`floyd_warshall`.
-        hop_counts (Tensor): ``[N, N]`` hop counts from :func:`floyd_warshall`.
+        hop_counts (Tensor): ``[N, N]`` hop counts from :func:`floyd_warshall` (or
+            :func:`count_hops` of ``next_hop``); they set the path lengths, so they must match
+            ``next_hop``.
         sources (Tensor): ``[B]`` int64 start nodes.
         targets (Tensor): ``[B]`` int64 end nodes. Rows whose target is unreachable from their
             source get an empty path.

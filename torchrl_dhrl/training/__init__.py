@@ -12,8 +12,25 @@ from .builders import (
     make_replay_buffers,
     make_updaters,
 )
-from .checkpoint import checkpoint_file, get_rng_state, load_checkpoint, save_checkpoint, set_rng_state
-from .config import DISTANCES, LOGGER_BACKENDS, ConfigError, resolve_device, validate_config
+from .checkpoint import (
+    CheckpointError,
+    checkpoint_file,
+    get_rng_state,
+    load_checkpoint,
+    save_checkpoint,
+    set_rng_state,
+)
+from .config import (
+    DISTANCES,
+    LOGGER_BACKENDS,
+    RESUME_MUTABLE_KEYS,
+    SEED_MAX,
+    ConfigError,
+    check_known_keys,
+    check_resume_config,
+    resolve_device,
+    validate_config,
+)
 from .diagnostics import (
     ReachResult,
     low_level_reach_test,
@@ -24,27 +41,55 @@ from .diagnostics import (
 )
 from .evaluation import EvaluationResult, ModuleTimer, evaluate, record_video
 from .goal_shift import GoalShiftOnReset
+from .maze_diagnostics import (
+    GraphDiagnosis,
+    MazeGeometry,
+    feasibility_fractions,
+    graph_diagnosis_from_checkpoint,
+    graph_quality,
+    grid_moves,
+    grid_shortest_paths,
+    landmark_coverage,
+    maze_epoch_diagnostics,
+    spearman_correlation,
+    start_subgoal,
+)
 from .oracle import LineOfSightDistance
-from .plots import graph_path_to_goal, plot_episode, plot_success_curve
+from .plots import graph_path_to_goal, plot_distance_scatter, plot_episode, plot_success_curve
+from .threads import available_cpus, resolve_threads, set_threads
 from .updates import LossUpdater, NonFiniteLossError
 
 __all__ = [
+    "CheckpointError",
     "ConfigError",
     "DHRLAgent",
     "DISTANCES",
     "EvaluationResult",
     "GoalShiftOnReset",
+    "GraphDiagnosis",
     "LOGGER_BACKENDS",
     "LOW_LEVEL_KEYS",
     "LineOfSightDistance",
     "LossUpdater",
+    "MazeGeometry",
     "ModuleTimer",
     "NonFiniteLossError",
+    "RESUME_MUTABLE_KEYS",
     "ReachResult",
+    "SEED_MAX",
+    "available_cpus",
+    "check_known_keys",
+    "check_resume_config",
     "checkpoint_file",
     "evaluate",
+    "feasibility_fractions",
     "get_rng_state",
+    "graph_diagnosis_from_checkpoint",
     "graph_path_to_goal",
+    "graph_quality",
+    "grid_moves",
+    "grid_shortest_paths",
+    "landmark_coverage",
     "load_checkpoint",
     "low_level_reach_test",
     "make_agent",
@@ -54,14 +99,20 @@ __all__ = [
     "make_logger",
     "make_replay_buffers",
     "make_updaters",
+    "maze_epoch_diagnostics",
+    "plot_distance_scatter",
     "plot_episode",
     "plot_success_curve",
     "reach_offsets",
     "reach_test_from_checkpoint",
     "record_video",
     "resolve_device",
+    "resolve_threads",
     "save_checkpoint",
     "set_rng_state",
+    "set_threads",
+    "spearman_correlation",
+    "start_subgoal",
     "summarize_reach",
     "validate_config",
     "visible_offsets",

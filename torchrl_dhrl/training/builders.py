@@ -107,7 +107,7 @@ def _goal_indices(cfg: Mapping) -> tuple[int, ...] | None:
 def make_graph_distance(cfg: Mapping, sqgc_loss: SQGCLoss):
     """The planner's distance: the learned graph critics (Eq. 1) or the line-of-sight oracle."""
     if cfg["planner"]["distance"] == "learned":
-        return GoalDistance.from_loss(sqgc_loss)
+        return GoalDistance.from_loss(sqgc_loss, twin=cfg["planner"]["twin"])
     indices = _goal_indices(cfg)
     if indices is None:
         raise ConfigError(
@@ -159,12 +159,15 @@ def make_agent(cfg: Mapping, env: EnvBase, device: torch.device) -> DHRLAgent:
         action_spec, sigma=low["action_noise"], uniform_prob=low["uniform_prob"]
     ).to(device)
 
+    # the reference's low-level critics see the absolute goal even where the actor sees the relative one
+    relative_critic = low["critic_goal"] == "relative"
+
     def critic() -> GoalConditionedCritic:
         return GoalConditionedCritic(
             obs_dim,
             goal_dim,
             action_spec,
-            relative_goal=relative,
+            relative_goal=relative_critic,
             gamma=low["gamma"],
             goal_key="goal",
             **common,
@@ -177,6 +180,7 @@ def make_agent(cfg: Mapping, env: EnvBase, device: torch.device) -> DHRLAgent:
         clip_return=low["clip_return"],
         action_l2=low["action_l2"],
         target_noise_std=low["target_noise"],
+        target_action_clamp=low["target_action_clamp"],
         actor_update_interval=low["actor_update_interval"],
         sqgc=low["sqgc"],
     )
@@ -208,6 +212,7 @@ def make_agent(cfg: Mapping, env: EnvBase, device: torch.device) -> DHRLAgent:
         clip_return=high["clip_return"],
         action_l2=high["action_l2"],
         target_noise_std=high["target_noise"],
+        target_action_clamp=high["target_action_clamp"],
         actor_update_interval=high["actor_update_interval"],
     )
     planner_cfg = cfg["planner"]
@@ -251,7 +256,10 @@ def make_environment(
     transforms = [agent.high_policy.make_primer(), agent.planner.make_primer()]
     if cfg["fgs"]["enabled"] and not eval:
         fgs = FrontierGoalShifting(
-            agent.planner, noise=cfg["fgs"]["noise"], weighting=cfg["fgs"]["weighting"]
+            agent.planner,
+            noise=cfg["fgs"]["noise"],
+            weighting=cfg["fgs"]["weighting"],
+            trigger=cfg["fgs"]["trigger"],
         )
         transforms.append(GoalShiftOnReset(fgs))
     return TransformedEnv(env, Compose(*transforms))
@@ -352,6 +360,7 @@ def make_updaters(cfg: Mapping, agent: DHRLAgent, buffers) -> tuple[LossUpdater,
                 target_update_interval=c["target_update_interval"],
                 cudagraphs=cfg.get("cudagraphs", False),
                 autocast_dtype=UPDATE_DTYPES[cfg.get("update_dtype", "float32")],
+                actor_after_critic_step=c["actor_after_critic_step"],
             )
         )
     return updaters[0], updaters[1]

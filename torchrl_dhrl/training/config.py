@@ -2,18 +2,29 @@
 
 from __future__ import annotations
 
+import difflib
+import fnmatch
 import importlib.util
 from collections.abc import Mapping
 from typing import Any
 
 import torch
 
+from torchrl_dhrl.modules.distance import TWIN_CHOICES
+from torchrl_dhrl.planner.fgs import FGS_TRIGGERS, FGS_WEIGHTINGS
+
 __all__ = [
     "BUILD_DTYPES",
+    "CHOICES",
     "ConfigError",
     "DISTANCES",
     "LOGGER_BACKENDS",
+    "RESUME_MUTABLE_KEYS",
+    "SEED_MAX",
+    "SWITCHES",
     "UPDATE_DTYPES",
+    "check_known_keys",
+    "check_resume_config",
     "resolve_device",
     "validate_config",
 ]
@@ -26,6 +37,46 @@ UPDATE_DTYPES = {"float32": None, "bfloat16": torch.bfloat16}
 DISTANCES = ("learned", "oracle")
 #: Logger back ends (``none`` logs nothing but the progress bar).
 LOGGER_BACKENDS = ("csv", "wandb", "tensorboard", "none")
+#: The largest ``seed`` (NumPy's global generator takes seeds in ``[0, 2**32 - 1]``).
+SEED_MAX = 2**32 - 1
+#: Keys that may differ between a checkpoint's configuration and the one resuming it, as
+#: :func:`fnmatch.fnmatchcase` patterns over dotted keys: how long the run goes on, where and how it
+#: writes (paths, progress bar, logger, pictures, checkpoint period) and how it computes (device,
+#: threads, CUDA graphs, update precision). Every other key defines the experiment (environment,
+#: seed, networks, buffers, schedule, planner) and must match; see :func:`check_resume_config`.
+RESUME_MUTABLE_KEYS = (
+    "total_steps",
+    "progress",
+    "run_dir",
+    "resume",
+    "device",
+    "threads",
+    "cudagraphs",
+    "update_dtype",
+    "logger.*",
+    "plots.*",
+    "checkpoint.*",
+)
+#: Keys with a fixed set of values (the first is the default; see docs/faithfulness.md).
+CHOICES = {
+    "low.critic_goal": ("absolute", "relative"),
+    "high.warmup_subgoals": ("uniform", "policy"),
+    "planner.twin": TWIN_CHOICES,
+    "fgs.trigger": FGS_TRIGGERS,
+    "fgs.weighting": FGS_WEIGHTINGS,
+}
+#: Boolean switches (see docs/faithfulness.md).
+SWITCHES = (
+    "schedule.train_during_warmup",
+    "low.sqgc",
+    "low.relative_goal",
+    "low.target_action_clamp",
+    "high.target_action_clamp",
+    "low.actor_after_critic_step",
+    "high.actor_after_critic_step",
+    "fgs.enabled",
+    "planner.enabled",
+)
 
 
 class ConfigError(ValueError):
@@ -58,24 +109,281 @@ def _fraction(cfg: Mapping, path: str) -> float:
     return value
 
 
+def _vector(cfg: Mapping, path: str) -> list[float]:
+    value = _get(cfg, path)
+    if not isinstance(value, (list, tuple)) or any(
+        isinstance(v, bool) or not isinstance(v, (int, float)) for v in value
+    ):
+        raise ConfigError(f"`{path}` must be a list of numbers, got {value!r}.")
+    return list(value)
+
+
+def _check_run_keys(cfg: Mapping) -> None:
+    """Types of the keys that only steer the run (threads, paths, switches, logger names)."""
+    threads = _get(cfg, "threads")
+    if threads is not None:
+        if isinstance(threads, bool) or not isinstance(threads, int) or threads < 1:
+            raise ConfigError(
+                f"`threads` must be null (from the available cores) or an integer >= 1, got {threads!r}."
+            )
+    for path in ("run_dir", "resume"):
+        value = _get(cfg, path)
+        if value is not None and (not isinstance(value, str) or not value):
+            raise ConfigError(f"`{path}` must be null or a path, got {value!r}.")
+    for path in ("progress", "plots.video") + (("cudagraphs",) if "cudagraphs" in cfg else ()):
+        if not isinstance(_get(cfg, path), bool):
+            raise ConfigError(f"`{path}` must be true or false, got {_get(cfg, path)!r}.")
+    if not isinstance(_get(cfg, "logger.project"), str):
+        raise ConfigError(f"`logger.project` must be a string, got {_get(cfg, 'logger.project')!r}.")
+    if _get(cfg, "logger.exp_name") is not None and not isinstance(_get(cfg, "logger.exp_name"), str):
+        raise ConfigError(
+            f"`logger.exp_name` must be null (dhrl_<env>_seed<seed>) or a string, got {_get(cfg, 'logger.exp_name')!r}."
+        )
+
+
+def _check_against_env(cfg: Mapping, name: str) -> None:
+    """Sizes that must agree with the environment's spec (read without building it) and with each other."""
+    from torchrl_dhrl.envs import ENVS
+
+    spec = ENVS.get(name)
+    if spec is None:  # a name outside torchrl_dhrl.envs (``env_names`` given): nothing to compare with
+        return
+    goal_dim, obs_dim = spec.goal_dim, spec.obs_dim
+    indices = _get(cfg, "goal_indices")
+    if indices is not None:
+        if (
+            not isinstance(indices, (list, tuple))
+            or len(indices) != goal_dim
+            or len(set(indices)) != goal_dim
+            or any(isinstance(i, bool) or not isinstance(i, int) or not 0 <= i < obs_dim for i in indices)
+        ):
+            raise ConfigError(
+                f"`goal_indices` must be null or {goal_dim} distinct indices in [0, {obs_dim}) (where {name}'s "
+                f"{goal_dim}-D achieved goal sits in its {obs_dim}-D observation), got {indices!r}."
+            )
+    for path in ("high.subgoal_low", "high.subgoal_high"):
+        if len(_get(cfg, path)) != goal_dim:
+            raise ConfigError(
+                f"`{path}` must have {goal_dim} entries ({name}'s goal space is {goal_dim}-D), got {_get(cfg, path)!r}."
+            )
+    episode = _get(cfg, "episode_length") or spec.episode_length
+    c_h = _get(cfg, "high.c_h")
+    if c_h > episode:
+        raise ConfigError(
+            f"`high.c_h` ({c_h}) must be <= the episode length ({episode}): a subgoal lasts c_h env steps."
+        )
+    batch = _get(cfg, "num_envs") * episode
+    if _get(cfg, "total_steps") < batch:
+        raise ConfigError(
+            f"`total_steps` ({_get(cfg, 'total_steps')}) must be >= one collector batch, num_envs x episode_length "
+            f"= {_get(cfg, 'num_envs')} x {episode} = {batch} env steps (the collector yields whole episodes)."
+        )
+    for level in ("low", "high"):
+        size, buffer = _get(cfg, f"{level}.batch_size"), _get(cfg, f"{level}.buffer_size")
+        if size > buffer:
+            raise ConfigError(
+                f"`{level}.batch_size` ({size}) must be <= `{level}.buffer_size` ({buffer}), the transitions it samples from."
+            )
+
+
+_DEVICES = "'auto', 'cpu', 'cuda' or 'cuda:N' (N < the number of visible CUDA devices)"
+
+
 def resolve_device(device: str | torch.device | None) -> torch.device:
     """``"auto"`` (or ``None``) -> CUDA when available, else CPU; anything else is checked.
+
+    Only the devices the recipe runs on are accepted: ``"cpu"``, ``"cuda"`` and ``"cuda:N"`` with ``N``
+    below :func:`torch.cuda.device_count`. Other PyTorch devices (``"mps"``, ``"meta"``, ``"xpu"``, ...)
+    raise :class:`ConfigError` here rather than deep inside TorchRL's specs or the replay buffers.
+
+    Args:
+        device (str, torch.device or None): the ``device`` configuration value.
+
+    Returns:
+        the :class:`torch.device` to build everything on.
+
+    Raises:
+        ConfigError: naming ``device``, the value and the accepted ones.
 
     Examples:
         >>> resolve_device("cpu")
         device(type='cpu')
+        >>> try:
+        ...     resolve_device("mps")
+        ... except ConfigError as err:
+        ...     print(err)
+        `device` must be 'auto', 'cpu', 'cuda' or 'cuda:N' (...), got 'mps' (the recipe runs on CPU and CUDA only).
     """
     if device is None or str(device) == "auto":
         return torch.device("cuda" if torch.cuda.is_available() else "cpu")
+    if not isinstance(device, (str, torch.device)):
+        raise ConfigError(f"`device` must be {_DEVICES}, got {device!r}.")
     try:
-        device = torch.device(device)
+        resolved = torch.device(device)
     except RuntimeError as err:
-        raise ConfigError(f"`device` must be 'auto', 'cpu', 'cuda' or 'cuda:N', got {device!r}.") from err
-    if device.type == "cuda" and not torch.cuda.is_available():
+        raise ConfigError(f"`device` must be {_DEVICES}, got {device!r}.") from err
+    if resolved.type not in ("cpu", "cuda"):
         raise ConfigError(
-            "`device` asks for CUDA but torch.cuda.is_available() is False; use device=auto or cpu."
+            f"`device` must be {_DEVICES}, got {device!r} (the recipe runs on CPU and CUDA only)."
         )
-    return device
+    if resolved.type == "cuda":
+        if not torch.cuda.is_available():
+            raise ConfigError(
+                f"`device={device}` asks for CUDA but torch.cuda.is_available() is False; use device=auto or cpu."
+            )
+        count = torch.cuda.device_count()
+        if resolved.index is not None and resolved.index >= count:
+            raise ConfigError(
+                f"`device={device}`: only {count} CUDA device(s) are visible; use cuda:0"
+                + (f" to cuda:{count - 1}." if count > 1 else ".")
+            )
+    return resolved
+
+
+def _flatten(cfg: Mapping, prefix: str = "") -> dict[str, Any]:
+    out: dict[str, Any] = {}
+    for key, value in cfg.items():
+        if isinstance(value, Mapping) and value:
+            out.update(_flatten(value, f"{prefix}{key}."))
+        else:
+            out[f"{prefix}{key}"] = value
+    return out
+
+
+def _unknown_keys(cfg: Mapping, schema: Mapping, prefix: str = "") -> list[str]:
+    unknown = []
+    for key, value in cfg.items():
+        path = f"{prefix}{key}"
+        if key not in schema:
+            unknown.append(path)
+        elif isinstance(schema[key], Mapping):
+            if not isinstance(value, Mapping):
+                keys = list(schema[key])
+                listed = ", ".join(keys[:4]) + (", ..." if len(keys) > 4 else "")
+                raise ConfigError(
+                    f"`{path}` is a group of keys ({listed}); set one of them "
+                    f"(e.g. `{path}.{keys[0] if keys else 'key'}=...`), got {value!r}."
+                )
+            unknown += _unknown_keys(value, schema[key], f"{path}.")
+    return unknown
+
+
+def check_known_keys(cfg: Mapping, schema: Mapping, *, source: str = "config.yaml") -> None:
+    """Rejects configuration keys that the schema does not define, nested ones included.
+
+    Hydra lets ``+key=value`` (and ``++key=value``) add keys to the composed configuration; nothing
+    reads them, so a misspelt ``+planner.cutof=10`` would otherwise be ignored without a word. The
+    schema is the default configuration (the recipe passes ``recipes/config/config.yaml`` as loaded
+    by OmegaConf), so keys added there are known at once. A schema value that is not a mapping (a
+    number, a list, ``null``) accepts any value; :func:`validate_config` checks the values.
+
+    Args:
+        cfg (Mapping): the configuration to check, as plain containers.
+        schema (Mapping): the configuration that defines the keys.
+
+    Keyword Args:
+        source (str): how the message names the schema. Defaults to ``"config.yaml"``.
+
+    Raises:
+        ConfigError: naming every unknown key (with the closest known one, if any), or a group of keys
+            (e.g. ``low``) set to a plain value.
+
+    Examples:
+        >>> schema = {"seed": 0, "low": {"gamma": 0.99, "hidden": [256]}}
+        >>> check_known_keys({"seed": 3, "low": {"gamma": 0.9}}, schema)
+        >>> try:
+        ...     check_known_keys({"seed": 3, "low": {"gama": 0.9}}, schema)
+        ... except ConfigError as err:
+        ...     print(err)
+        Unknown configuration key `low.gama` (not in config.yaml; did you mean `low.gamma`?). Keys cannot be added with `+key=value`: set existing ones with `key=value`.
+    """
+    unknown = _unknown_keys(cfg, schema)
+    if not unknown:
+        return
+    known = list(_flatten(schema))
+    names = []
+    for key in unknown:
+        close = difflib.get_close_matches(key, known, n=1, cutoff=0.75)
+        names.append((f"`{key}`", f"did you mean `{close[0]}`?" if close else ""))
+    if len(names) == 1:
+        name, hint = names[0]
+        head = f"Unknown configuration key {name} (not in {source}{'; ' + hint if hint else ''})"
+    else:
+        listed = ", ".join(f"{name} ({hint})" if hint else name for name, hint in names)
+        head = f"Unknown configuration keys {listed} (not in {source})"
+    raise ConfigError(f"{head}. Keys cannot be added with `+key=value`: set existing ones with `key=value`.")
+
+
+def _short(value: Any, width: int = 40) -> str:
+    text = repr(value)
+    return text if len(text) <= width else text[: width - 3] + "..."
+
+
+def check_resume_config(
+    saved: Mapping,
+    current: Mapping,
+    *,
+    mutable: tuple[str, ...] = RESUME_MUTABLE_KEYS,
+    what: str = "the checkpoint",
+) -> list[str]:
+    """Compares a checkpoint's configuration with the one resuming it.
+
+    Keys matching a pattern of ``mutable`` (:data:`RESUME_MUTABLE_KEYS` by default: run length, outputs,
+    logging, device and speed settings) may differ; any other key that both configurations hold must
+    have the same value, or the resumed run would not be the one that was checkpointed (and would often
+    fail loading it, e.g. other network sizes). Keys only one side holds (a checkpoint written before a
+    key existed, or after one was removed) are not an error: the current value is used and reported.
+
+    Args:
+        saved (Mapping): the configuration stored in the checkpoint (under ``"config"``).
+        current (Mapping): the configuration of the resuming run.
+
+    Keyword Args:
+        mutable (tuple of str): patterns of the keys that may differ. Defaults to
+            :data:`RESUME_MUTABLE_KEYS`.
+        what (str): how the error message names the checkpoint. Defaults to ``"the checkpoint"``.
+
+    Returns:
+        one ``"key: old -> new"`` note per allowed difference (empty when nothing differs).
+
+    Raises:
+        ConfigError: listing every key that differs but may not, with both values, and the keys that may.
+
+    Examples:
+        >>> saved = {"seed": 0, "total_steps": 480, "low": {"hidden": [32, 32]}}
+        >>> check_resume_config(saved, {"seed": 0, "total_steps": 960, "low": {"hidden": [32, 32]}})
+        ['total_steps: 480 -> 960']
+        >>> try:
+        ...     check_resume_config(saved, {"seed": 0, "total_steps": 960, "low": {"hidden": [64]}})
+        ... except ConfigError as err:
+        ...     print(str(err)[:88])
+        The checkpoint was trained with another configuration: low.hidden [32, 32] -> [64] ...
+    """
+    old, new = _flatten(saved), _flatten(current)
+    allowed, forbidden = [], []
+    for key in sorted(old.keys() & new.keys()):
+        if old[key] == new[key]:
+            continue
+        change = f"{key} {_short(old[key])} -> {_short(new[key])}"
+        if any(fnmatch.fnmatchcase(key, pattern) for pattern in mutable):
+            allowed.append(change.replace(" ", ": ", 1))
+        else:
+            forbidden.append(change)
+    if forbidden:
+        listed = "; ".join(forbidden[:6]) + (f"; and {len(forbidden) - 6} more" if len(forbidden) > 6 else "")
+        raise ConfigError(
+            f"{what[:1].upper()}{what[1:]} was trained with another configuration: {listed} "
+            f"(saved -> now). On resume only {', '.join(mutable)} may change; set the others back, or start "
+            "a new run without `resume`."
+        )
+    allowed += [
+        f"{key}: not in the checkpoint, {_short(new[key])} now" for key in sorted(new.keys() - old.keys())
+    ]
+    allowed += [
+        f"{key}: {_short(old[key])} in the checkpoint, no longer a key"
+        for key in sorted(old.keys() - new.keys())
+    ]
+    return allowed
 
 
 def validate_config(cfg: Mapping, env_names: tuple[str, ...] | None = None) -> None:
@@ -99,7 +407,10 @@ def validate_config(cfg: Mapping, env_names: tuple[str, ...] | None = None) -> N
     name = _get(cfg, "env_name")
     if name not in env_names:
         raise ConfigError(f"Unknown env_name {name!r}; choose one of: {', '.join(env_names)}.")
-    _number(cfg, "seed", integer=True)
+    seed = _number(cfg, "seed", integer=True)
+    if not 0 <= seed <= SEED_MAX:
+        raise ConfigError(f"`seed` must be an integer in [0, 2**32 - 1] (NumPy's seed range), got {seed}.")
+    _check_run_keys(cfg)
     device = resolve_device(_get(cfg, "device"))
     if cfg.get("cudagraphs", False) and device.type != "cuda":
         raise ConfigError(f"`cudagraphs=true` needs a CUDA device, but `device` resolves to {device}.")
@@ -121,10 +432,22 @@ def validate_config(cfg: Mapping, env_names: tuple[str, ...] | None = None) -> N
     for key in ("graph_rebuild_epochs", "eval_every_epochs", "high_update_interval"):
         _number(cfg, f"schedule.{key}", low=1, integer=True)
     _number(cfg, "schedule.low_updates_per_step", low=0.0)
+    for path in SWITCHES:
+        if not isinstance(_get(cfg, path), bool):
+            raise ConfigError(f"`{path}` must be true or false, got {_get(cfg, path)!r}.")
+    for path, choices in CHOICES.items():
+        if _get(cfg, path) not in choices:
+            raise ConfigError(f"`{path}` must be one of {choices}, got {_get(cfg, path)!r}.")
+    if _get(cfg, "low.critic_goal") == "relative" and _get(cfg, "goal_indices") is None:
+        raise ConfigError(f"low.critic_goal=relative needs goal_indices, which {name} does not provide.")
 
     for level in ("low", "high"):
         hidden = _get(cfg, f"{level}.hidden")
-        if not hidden or any(isinstance(h, bool) or not isinstance(h, int) or h < 1 for h in hidden):
+        if (
+            not isinstance(hidden, (list, tuple))
+            or not hidden
+            or any(isinstance(h, bool) or not isinstance(h, int) or h < 1 for h in hidden)
+        ):
             raise ConfigError(
                 f"`{level}.hidden` must be a non-empty list of positive integers, got {hidden!r}."
             )
@@ -141,13 +464,15 @@ def validate_config(cfg: Mapping, env_names: tuple[str, ...] | None = None) -> N
         _number(cfg, f"{level}.target_update_interval", low=1, integer=True)
         _number(cfg, f"{level}.actor_update_interval", low=1, integer=True)
     _number(cfg, "low.action_noise", low=0.0)
+    _number(cfg, "high.action_l2", low=0.0)
+    _number(cfg, "low.action_l2", low=0.0)
     _fraction(cfg, "low.uniform_prob")
     _number(cfg, "low.reward_threshold", low=0.0, strict=True)
 
     c_h = _get(cfg, "high.c_h")
     if isinstance(c_h, bool) or not isinstance(c_h, int) or c_h < 1:
         raise ConfigError(f"`high.c_h` (the high-level interval) must be an integer >= 1, got {c_h!r}.")
-    low, high = list(_get(cfg, "high.subgoal_low")), list(_get(cfg, "high.subgoal_high"))
+    low, high = _vector(cfg, "high.subgoal_low"), _vector(cfg, "high.subgoal_high")
     if len(low) != len(high) or not low:
         raise ConfigError(
             f"`high.subgoal_low` and `high.subgoal_high` must have the same length, got {low}, {high}."
@@ -156,6 +481,7 @@ def validate_config(cfg: Mapping, env_names: tuple[str, ...] | None = None) -> N
         raise ConfigError(
             f"`high.subgoal_low` must be below `high.subgoal_high` on every axis, got {low}, {high}."
         )
+    _check_against_env(cfg, name)
     _number(cfg, "high.subgoal_noise", low=0.0)
     _fraction(cfg, "high.subgoal_test_ratio")
     _number(cfg, "high.subgoal_test_threshold", low=0.0, strict=True)

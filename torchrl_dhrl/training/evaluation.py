@@ -23,21 +23,30 @@ class EvaluationResult(NamedTuple):
             threshold (the paper's and the reference's measure).
         any_success (float): fraction of episodes within the threshold at any step.
         final_distance (float): mean final distance between the achieved and the desired goal.
+        last_steps_success (float): fraction of the last ``last_steps`` steps (all episodes) whose
+            state is within the threshold: tells "passes through the goal" from "stays there".
+        final_speed (float): mean distance the achieved goal moved in the last step (goal units per
+            env step): an agent still moving at the end overshoots or coasts.
         rollout (TensorDictBase): the ``[num_envs, T]`` rollout (achieved goals, subgoals, waypoints).
     """
 
     success: float
     any_success: float
     final_distance: float
+    last_steps_success: float
+    final_speed: float
     rollout: TensorDictBase
 
 
 @torch.no_grad()
-def evaluate(env: EnvBase, policy: TensorDictModuleBase, max_steps: int) -> EvaluationResult:
+def evaluate(
+    env: EnvBase, policy: TensorDictModuleBase, max_steps: int, *, last_steps: int = 10
+) -> EvaluationResult:
     """Runs one episode in each of ``env``'s envs with exploration off and measures success.
 
     The env should be built with its test goals (``make_env(..., eval=True)``) and the policy's
-    primers; every env runs exactly ``max_steps`` steps (episodes only truncate).
+    primers; every env runs exactly ``max_steps`` steps (episodes only truncate). ``last_steps``
+    sets the window of :attr:`EvaluationResult.last_steps_success`.
 
     Examples:
         >>> import torch
@@ -53,10 +62,13 @@ def evaluate(env: EnvBase, policy: TensorDictModuleBase, max_steps: int) -> Eval
     success = rollout["next", "is_success"].reshape(*rollout.shape, -1).any(-1)
     final = rollout[..., -1]
     distance = (final["next", "achieved_goal"] - final["next", "desired_goal"]).norm(dim=-1)
+    speed = (final["next", "achieved_goal"] - final["achieved_goal"]).norm(dim=-1)
     return EvaluationResult(
         success=success[..., -1].float().mean().item(),
         any_success=success.any(-1).float().mean().item(),
         final_distance=distance.mean().item(),
+        last_steps_success=success[..., -last_steps:].float().mean().item(),
+        final_speed=speed.mean().item(),
         rollout=rollout,
     )
 

@@ -8,12 +8,13 @@ from tensordict.utils import NestedKey
 from torchrl.data import Composite, Unbounded
 from torchrl.envs.transforms import Transform
 
+from torchrl_dhrl._unregistered import UnregisteredAttributes
 from torchrl_dhrl.planner import FrontierGoalShifting
 
 __all__ = ["GoalShiftOnReset"]
 
 
-class GoalShiftOnReset(Transform):
+class GoalShiftOnReset(UnregisteredAttributes, Transform):
     """Env transform running :class:`~torchrl_dhrl.planner.FrontierGoalShifting` when episodes start.
 
     DHRL's Algorithm 2 shifts the goal of a training episode right after ``Env.reset``, once the
@@ -29,6 +30,8 @@ class GoalShiftOnReset(Transform):
 
     Args:
         fgs (FrontierGoalShifting): the goal-shifting module (it reads ``observation`` and the goal).
+            A plain attribute, not a submodule (the planner and its graph are owned elsewhere);
+            assigning ``transform.fgs`` replaces it.
 
     Keyword Args:
         goal_key (NestedKey): the goal entry. Defaults to ``"desired_goal"``.
@@ -50,6 +53,9 @@ class GoalShiftOnReset(Transform):
         (False, True)
     """
 
+    #: a plain attribute, not a submodule: the planner (and its graph) is owned elsewhere
+    _unregistered = ("fgs",)
+
     def __init__(
         self,
         fgs: FrontierGoalShifting,
@@ -61,7 +67,7 @@ class GoalShiftOnReset(Transform):
         if not isinstance(fgs, FrontierGoalShifting):
             raise TypeError(f"`fgs` must be a FrontierGoalShifting, got {type(fgs).__name__}.")
         super().__init__(in_keys=[goal_key], out_keys=[held_goal_key, shifted_key])
-        self.__dict__["fgs"] = fgs  # not a submodule: the planner (and its graph) is owned elsewhere
+        self.fgs = fgs
         self.goal_key = goal_key
         self.held_goal_key = held_goal_key
         self.shifted_key = shifted_key

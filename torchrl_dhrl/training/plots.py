@@ -16,7 +16,7 @@ from tensordict import TensorDictBase  # noqa: E402
 from torchrl_dhrl.envs import plot_env  # noqa: E402
 from torchrl_dhrl.planner import GraphPlanner  # noqa: E402
 
-__all__ = ["graph_path_to_goal", "plot_episode", "plot_success_curve"]
+__all__ = ["graph_path_to_goal", "plot_distance_scatter", "plot_episode", "plot_success_curve"]
 
 
 def graph_path_to_goal(planner: GraphPlanner, state: torch.Tensor, goal: torch.Tensor) -> np.ndarray:
@@ -84,6 +84,55 @@ def plot_success_curve(
     ax.set_ylim(-0.02, 1.02)
     ax.grid(alpha=0.3)
     ax.legend(loc="lower right")
+    if title:
+        ax.set_title(title)
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    fig.savefig(path, dpi=100, bbox_inches="tight")
+    plt.close(fig)
+    return path
+
+
+def plot_distance_scatter(
+    true: torch.Tensor,
+    learned: torch.Tensor,
+    path: str | Path,
+    *,
+    graph: torch.Tensor | None = None,
+    speed: float | None = None,
+    title: str | None = None,
+) -> Path:
+    """Saves the learned landmark-to-landmark distances (steps) against the true obstacle-free path
+    lengths (goal units) of the same pairs (see :func:`~torchrl_dhrl.training.graph_quality`).
+
+    ``learned`` is the graph's direct distance matrix entry, ``graph`` (optional) the all-pairs shortest
+    distance through the graph; ``speed`` (goal units per step, e.g. ``planner.oracle_speed``) draws the
+    line ``steps = length / speed`` a distance would follow at that nominal speed. Pairs the graph does
+    not connect (``inf``) are left out of the ``graph`` series.
+    """
+    true = torch.as_tensor(true).double().cpu()
+    fig, ax = plt.subplots(figsize=(5.5, 4.5))
+    learned = torch.as_tensor(learned).double().cpu()
+    ax.scatter(true.numpy(), learned.numpy(), s=6, alpha=0.4, label="learned d(i, j)")
+    if graph is not None:
+        graph = torch.as_tensor(graph).double().cpu()
+        finite = torch.isfinite(graph)
+        ax.scatter(
+            true[finite].numpy(),
+            graph[finite].numpy(),
+            s=6,
+            alpha=0.4,
+            marker="x",
+            label="shortest path in the graph",
+        )
+    if speed and true.numel() and torch.isfinite(true).any():
+        top = true[torch.isfinite(true)].max().item()
+        label = f"length / {speed:g} (nominal speed)"
+        ax.plot([0.0, top], [0.0, top / speed], color="k", lw=1, ls="--", label=label)
+    ax.set_xlabel("true obstacle-free path length (goal units)")
+    ax.set_ylabel("distance (steps)")
+    ax.grid(alpha=0.3)
+    ax.legend(loc="upper left", fontsize=8)
     if title:
         ax.set_title(title)
     path = Path(path)

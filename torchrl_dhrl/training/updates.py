@@ -33,6 +33,14 @@ class LossUpdater:
     ``target_update_interval`` steps (reference: 0.995 every 10 steps). A non-finite loss raises
     :class:`NonFiniteLossError` before any parameter changes.
 
+    With ``actor_after_critic_step=True`` (the reference implementation's order) the critic
+    losses are back-propagated and the critic optimiser stepped first, and the actor loss of a
+    delayed-actor step is then evaluated on the same sample with the *updated* critic and
+    stepped separately. With ``False`` one backward pass of the sum of all ``loss_*`` entries
+    (critic and actor losses from the same, pre-step critic) is followed by both optimiser
+    steps, as TorchRL's TD3 recipes do. The two differ by one critic step in the critic the
+    actor follows; both run the same forward and backward passes.
+
     The number of steps taken is the updater's only state (``state_dict``); the optimisers and the
     loss (with its target parameters) are checkpointed by their owners.
 
@@ -67,6 +75,8 @@ class LossUpdater:
         cudagraphs (bool): replay the update as CUDA graphs (see above). Defaults to ``False``.
         autocast_dtype (torch.dtype, optional): ``torch.bfloat16`` for mixed-precision updates
             (see above); ``None`` (default) for full precision. Not combined with ``cudagraphs``.
+        actor_after_critic_step (bool): evaluate and step the actor loss after the critic step
+            (see above; needs a loss with ``loss_terms`` and ``actor_loss``). Defaults to ``False``.
 
     Examples:
         >>> import torch
@@ -100,6 +110,7 @@ class LossUpdater:
         target_update_interval: int = 10,
         cudagraphs: bool = False,
         autocast_dtype: torch.dtype | None = None,
+        actor_after_critic_step: bool = False,
     ) -> None:
         if set(optimizers) != {"actor", "critic"}:
             raise ValueError(f"`optimizers` must have keys 'actor' and 'critic', got {sorted(optimizers)}.")
@@ -114,6 +125,12 @@ class LossUpdater:
             )
         if autocast_dtype is not None and cudagraphs:
             raise ValueError("`autocast_dtype` is not supported together with `cudagraphs=True`.")
+        if actor_after_critic_step and not (hasattr(loss, "loss_terms") and hasattr(loss, "actor_loss")):
+            raise TypeError(
+                f"`actor_after_critic_step=True` needs a loss with `loss_terms` and `actor_loss`, got "
+                f"{type(loss).__name__}."
+            )
+        self.actor_after_critic_step = bool(actor_after_critic_step)
         self.loss = loss
         self.autocast_dtype = autocast_dtype
         self.replay_buffer = replay_buffer
@@ -153,12 +170,37 @@ class LossUpdater:
         if self.cudagraphs:
             return self._graph_step()
         sample = self._sample()
-        with self._autocast():
-            out = self.loss(sample)
-        self._check_finite([out], first_update=self.num_updates + 1)  # before any parameter changes
-        self._optimise(out, update_actor=bool(out.get("actor_updated", True)))
+        if self.actor_after_critic_step:
+            out = self._sequential_update(sample, self.loss._due_actor_update(), check=True)
+        else:
+            with self._autocast():
+                out = self.loss(sample)
+            self._check_finite([out], first_update=self.num_updates + 1)  # before any parameter changes
+            self._optimise(out, update_actor=bool(out.get("actor_updated", True)))
         self._count_update()
         return out.detach()
+
+    def _sequential_update(self, sample: TensorDictBase, update_actor: bool, check: bool) -> TensorDictBase:
+        """Critic step, then (when due) the actor loss on the updated critic and the actor step.
+
+        ``check``: raise :class:`NonFiniteLossError` before each optimiser step (eager path only).
+        """
+        with self._autocast():
+            out = self.loss.loss_terms(sample, update_actor=False)
+        if check:
+            self._check_finite([out], first_update=self.num_updates + 1)
+        self._optimise(out, update_actor=False)
+        if update_actor:
+            with self._autocast():
+                loss_actor = self.loss.actor_loss(sample)[0]
+            out.set("loss_actor", loss_actor)
+            out.set("actor_updated", torch.ones_like(out.get("actor_updated")))
+            if check:
+                self._check_finite([out], first_update=self.num_updates + 1)
+            self.optimizers["actor"].zero_grad(set_to_none=True)
+            loss_actor.backward()
+            self.optimizers["actor"].step()
+        return out
 
     def _autocast(self):
         """``torch.autocast`` on the loss's device when ``autocast_dtype`` is set, else a no-op."""
@@ -186,6 +228,8 @@ class LossUpdater:
         """The captured part of a step: loss terms, backward, Adam steps (no host synchronisation)."""
 
         def update(sample: TensorDictBase) -> TensorDictBase:
+            if self.actor_after_critic_step:
+                return self._sequential_update(sample, update_actor, check=False).detach()
             out = self.loss.loss_terms(sample, update_actor=update_actor)
             self._optimise(out, update_actor)
             return out.detach()

@@ -1,0 +1,114 @@
+"""Are a DHRL maze run's subgoals and graph consistent with the maze's true geometry?
+
+Loads a checkpoint, rebuilds its agent (graph included), runs one deterministic evaluation on the test
+goals and prints the ``diag/...`` numbers the recipe logs every epoch (subgoals and waypoints in walls or
+outside the arena, graph edges through walls, rank correlation of the learned distances with the true
+obstacle-free path lengths, landmark coverage, the high level's subgoal at the start), a table of learned
+vs true distances for a few landmark pairs, and saves their scatter plot (``distance_scatter.png`` in the
+run directory unless ``--plot`` says otherwise).
+
+    python recipes/diagnose_graph.py outputs/<date>/<time>            # the run directory
+    python recipes/diagnose_graph.py run/checkpoint.pt --no-rollout --pairs 12 --plot /tmp/scatter.png
+"""
+
+from __future__ import annotations
+
+import argparse
+import math
+from pathlib import Path
+
+import torch
+
+from torchrl_dhrl.training import checkpoint_file, graph_diagnosis_from_checkpoint, plot_distance_scatter
+
+
+def pair_table(diagnosis, count: int) -> list[dict]:
+    """``count`` landmark pairs spread over the range of true path lengths (evenly spaced quantiles)."""
+    pairs = diagnosis.pairs
+    true = pairs["true"]
+    if true.numel() == 0 or count < 1:
+        return []
+    order = true.argsort()
+    picks = order[torch.linspace(0, true.numel() - 1, min(count, true.numel())).round().long()]
+    goals = diagnosis.landmark_goals
+    rows = []
+    for k in picks.unique_consecutive().tolist():
+        i, j = int(pairs["rows"][k]), int(pairs["cols"][k])
+        rows.append(
+            {
+                "i": i,
+                "j": j,
+                "goal_i": goals[i].tolist(),
+                "goal_j": goals[j].tolist(),
+                "true": true[k].item(),
+                "learned": pairs["learned"][k].item(),
+                "graph": pairs["graph"][k].item(),
+            }
+        )
+    return rows
+
+
+def main(argv: list[str] | None = None):
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("checkpoint", help="a checkpoint.pt or the run directory holding it")
+    parser.add_argument("--pairs", type=int, default=8, help="landmark pairs in the table")
+    parser.add_argument("--sources", type=int, default=64, help="landmarks whose pairs are compared")
+    parser.add_argument(
+        "--no-rollout", action="store_true", help="skip the evaluation (subgoal fractions NaN)"
+    )
+    parser.add_argument("--plot", default=None, help="scatter plot (default: <run dir>/distance_scatter.png)")
+    parser.add_argument(
+        "--resolution",
+        type=float,
+        default=None,
+        help="grid cell size of the true paths (default: the recipe's)",
+    )
+    parser.add_argument("--device", default="cpu")
+    args = parser.parse_args(argv)
+    diagnosis = graph_diagnosis_from_checkpoint(
+        args.checkpoint,
+        rollout=not args.no_rollout,
+        max_sources=args.sources,
+        resolution=args.resolution,
+        device=args.device,
+    )
+    cfg = diagnosis.config
+    speed = cfg["planner"]["oracle_speed"]
+    metrics = diagnosis.metrics
+    print(f"{cfg['env_name']}: {metrics['graph/landmarks']} landmarks, {metrics['graph/edges']} edges")
+    for key, value in diagnosis.metrics.items():
+        if key.startswith("diag/"):
+            print(f"  {key:34s} {value:8.3f}")
+    rows = pair_table(diagnosis, args.pairs)
+    if rows:
+        print(f"\nlearned vs true distances (true steps = length / oracle_speed {speed:g}):")
+        print(
+            f"{'i':>4} {'j':>4} {'goal i':>15} {'goal j':>15} {'true len':>9} {'true steps':>10} "
+            f"{'learned':>8} {'graph':>8}"
+        )
+        for row in rows:
+            gi = "({:.1f}, {:.1f})".format(*row["goal_i"][:2])
+            gj = "({:.1f}, {:.1f})".format(*row["goal_j"][:2])
+            true_steps = row["true"] / speed if math.isfinite(row["true"]) else math.inf
+            print(
+                f"{row['i']:4d} {row['j']:4d} {gi:>15} {gj:>15} {row['true']:9.2f} {true_steps:10.1f} "
+                f"{row['learned']:8.1f} {row['graph']:8.1f}"
+            )
+    if diagnosis.pairs["true"].numel():
+        plot = Path(args.plot or checkpoint_file(args.checkpoint).parent / "distance_scatter.png")
+        plot_distance_scatter(
+            diagnosis.pairs["true"],
+            diagnosis.pairs["learned"],
+            plot,
+            graph=diagnosis.pairs["graph"],
+            speed=speed,
+            title=f"{cfg['env_name']}: learned vs true landmark distances",
+        )
+        print(f"\nScatter plot: {plot}")
+    else:
+        print("\nNo graph in this checkpoint: no distances to compare.")
+    return diagnosis, rows
+
+
+if __name__ == "__main__":
+    main()

@@ -1,0 +1,315 @@
+"""Bad input stops the recipe at start-up: before anything is built or written, with one line naming the key.
+
+Unit tests of the checks (device, seed, unknown keys, resume, run directory, threads) and, through the
+command line, the one-line message, the exit status 2 and the files left untouched.
+"""
+
+from __future__ import annotations
+
+import os
+import subprocess
+import sys
+
+import pytest
+import torch
+from _recipe import RECIPES, load_recipe, recipe_config
+from torchrl_dhrl.envs import ENV_NAMES
+
+from torchrl_dhrl.training import (
+    RESUME_MUTABLE_KEYS,
+    CheckpointError,
+    ConfigError,
+    available_cpus,
+    check_known_keys,
+    check_resume_config,
+    load_checkpoint,
+    resolve_device,
+    resolve_threads,
+    set_threads,
+    validate_config,
+)
+
+recipe = load_recipe()
+SMOKE = ("env=PointMaze", "preset=smoke", "plots.every_epochs=0", "device=cpu", "logger.backend=none")
+
+
+@pytest.fixture(scope="module")
+def run(tmp_path_factory):
+    """A finished 80-step smoke run (its directory, holding checkpoint.pt)."""
+    path = tmp_path_factory.mktemp("run")
+    recipe.train(recipe_config(*SMOKE, "total_steps=80"), run_dir=path)
+    return path
+
+
+def _snapshot(path):
+    return {p: (p.stat().st_mtime_ns, p.read_bytes()) for p in sorted(path.rglob("*")) if p.is_file()}
+
+
+# ---- values ------------------------------------------------------------------------------------------------
+
+
+@pytest.mark.parametrize(
+    "override, match",
+    [
+        ("device=mps", "`device` must be 'auto', 'cpu', 'cuda' or 'cuda:N'.*'mps'"),
+        ("device=meta", "`device` must be .*'meta'"),
+        ("device=0", "`device` must be"),
+        ("seed=-1", r"`seed` must be an integer in \[0, 2\*\*32 - 1\]"),
+        ("seed=4294967296", r"`seed` .*\[0, 2\*\*32 - 1\]"),
+        ("threads=0", "`threads` must be null .* or an integer >= 1"),
+        ("threads=two", "`threads`"),
+        ("low.hidden=64", "`low.hidden` must be a non-empty list"),
+        ("high.subgoal_low=[a,b]", "`high.subgoal_low` must be a list of numbers"),
+        (
+            "high.subgoal_low=[-1.0,-1.0,-1.0] high.subgoal_high=[9.0,9.0,9.0]",
+            "`high.subgoal_low` must have 2 entries",
+        ),
+        ("goal_indices=[0,99]", r"`goal_indices` must be null or 2 distinct indices in \[0, 29\)"),
+        ("goal_indices=[0,0]", "`goal_indices`"),
+        ("total_steps=100", r"`total_steps` \(100\) must be >= one collector batch.*1 x 600"),
+        ("high.c_h=601", r"`high.c_h` \(601\) must be <= the episode length \(600\)"),
+        ("low.batch_size=3000000", r"`low.batch_size` \(3000000\) must be <= `low.buffer_size`"),
+        ("progress=maybe", "`progress` must be true or false"),
+        ("plots.video=1", "`plots.video` must be true or false"),
+        ("logger.exp_name=5", "`logger.exp_name` must be null"),
+        ("run_dir=5", "`run_dir` must be null or a path"),
+        ("resume=5", "`resume` must be null or a path"),
+    ],
+)
+def test_bad_values_name_the_key(override, match):
+    with pytest.raises(ConfigError, match=match):
+        validate_config(recipe_config("env=AntMaze", *override.split()))
+
+
+def test_resolve_device_accepts_only_cpu_cuda_and_auto():
+    assert resolve_device("cpu") == torch.device("cpu")
+    assert resolve_device(None) == resolve_device("auto")
+    for bad in ("mps", "meta", "xpu", "tpu", "cuda:x", 1):
+        with pytest.raises(ConfigError, match="`device`"):
+            resolve_device(bad)
+    if torch.cuda.is_available():
+        count = torch.cuda.device_count()
+        assert resolve_device(f"cuda:{count - 1}") == torch.device("cuda", count - 1)
+        with pytest.raises(ConfigError, match=f"only {count} CUDA device"):
+            resolve_device(f"cuda:{count}")
+    else:
+        with pytest.raises(ConfigError, match="torch.cuda.is_available"):
+            resolve_device("cuda:0")
+
+
+def test_largest_seed_is_valid():
+    validate_config(recipe_config("env=AntMaze", "seed=4294967295"))
+
+
+# ---- keys ---------------------------------------------------------------------------------------------------
+
+
+@pytest.mark.parametrize("env", ENV_NAMES)
+@pytest.mark.parametrize("preset", ["paper", "quick", "smoke"])
+def test_env_and_preset_files_only_set_keys_of_the_schema(env, preset):
+    check_known_keys(recipe_config(f"env={env}", f"preset={preset}"), recipe.config_schema())
+
+
+@pytest.mark.parametrize(
+    "override, match",
+    [
+        ("+foo=1", "Unknown configuration key `foo`"),
+        ("+low.foo=1", "Unknown configuration key `low.foo`"),
+        ("++planner.cutof=3", "`planner.cutof` .*did you mean `planner.cutoff`"),
+    ],
+)
+def test_added_keys_are_rejected(override, match, tmp_path):
+    cfg = recipe_config(*SMOKE, override)
+    with pytest.raises(ConfigError, match=match):
+        recipe.train(cfg, run_dir=tmp_path / "run")
+    assert not (tmp_path / "run").exists()
+
+
+def test_schema_is_read_from_config_yaml():
+    schema = recipe.config_schema()
+    assert "defaults" not in schema and schema["threads"] is None and "hidden" in schema["low"]
+    with pytest.raises(ConfigError, match="`low` is a group of keys"):
+        check_known_keys({"low": 5}, schema)
+    with pytest.raises(ConfigError, match="Unknown configuration keys `a`, `b.c`"):
+        check_known_keys({"a": 1, "b": {"c": 2}}, {"b": {"d": 1}})
+
+
+# ---- resume -------------------------------------------------------------------------------------------------
+
+
+def test_check_resume_config():
+    saved = {
+        "seed": 0,
+        "total_steps": 480,
+        "device": "cpu",
+        "logger": {"backend": "csv"},
+        "low": {"hidden": [32]},
+    }
+    same = {**saved, "total_steps": 960, "device": "cuda", "logger": {"backend": "none"}, "new_key": True}
+    notes = check_resume_config(saved, same)
+    assert notes == [
+        "device: 'cpu' -> 'cuda'",
+        "logger.backend: 'csv' -> 'none'",
+        "total_steps: 480 -> 960",
+        "new_key: not in the checkpoint, True now",
+    ]
+    with pytest.raises(ConfigError, match=r"low.hidden \[32\] -> \[64\]; seed 0 -> 1 \(saved -> now\)"):
+        check_resume_config(saved, {**same, "seed": 1, "low": {"hidden": [64]}})
+    assert {"total_steps", "device", "run_dir", "resume", "threads", "logger.*", "plots.*"} <= set(
+        RESUME_MUTABLE_KEYS
+    )
+
+
+@pytest.mark.parametrize(
+    "kind", ["corrupt", "truncated", "not_a_checkpoint", "tensor", "missing", "empty_dir"]
+)
+def test_bad_resume_names_resume_and_the_file(kind, run, tmp_path):
+    path = tmp_path / f"{kind}.pt"
+    if kind == "corrupt":
+        path.write_bytes(b"garbage" * 100)
+    elif kind == "truncated":
+        path.write_bytes((run / "checkpoint.pt").read_bytes()[:4096])
+    elif kind == "not_a_checkpoint":
+        torch.save({"weights": torch.ones(2)}, path)
+    elif kind == "tensor":
+        torch.save(torch.ones(2), path)
+    elif kind == "empty_dir":
+        path.mkdir()
+    before = _snapshot(run)
+    cfg = recipe_config(*SMOKE, f"resume={path}")
+    match = "`resume=.*" + ("no checkpoint at" if kind in ("missing", "empty_dir") else "not a")
+    with pytest.raises(ConfigError, match=match) as info:
+        recipe.train(cfg, run_dir=tmp_path / "out")
+    assert str(path) in str(info.value)
+    assert not (tmp_path / "out").exists() and _snapshot(run) == before
+
+
+def test_resume_with_another_configuration_says_which_keys(run, tmp_path):
+    before = _snapshot(run)
+    cfg = recipe_config(*SMOKE, "low.hidden=[64]", "seed=3", f"resume={run}")
+    with pytest.raises(ConfigError, match=r"low.hidden \[32, 32\] -> \[64\]; seed 0 -> 3.*only total_steps"):
+        recipe.train(cfg, run_dir=run)  # in place: the checkpoint must survive
+    assert _snapshot(run) == before
+
+
+def test_resume_allows_the_mutable_keys(run, tmp_path, capsys):
+    cfg = recipe_config(*SMOKE, "total_steps=160", "threads=1", "progress=true", f"resume={run}")
+    cfg, device, run_dir, resume, state = recipe.start_up(cfg, run_dir=tmp_path / "continued")
+    out = capsys.readouterr().out
+    assert "Threads: 1 intra-op" in out and "threads=1 in the configuration" in out
+    assert "Resuming" in out and "total_steps: 80 -> 160" in out and "threads: None -> 1" in out
+    assert resume == run / "checkpoint.pt" and state["counters"]["env_steps"] == 80 and run_dir.is_dir()
+
+
+def test_load_checkpoint_errors(tmp_path):
+    path = tmp_path / "x.pt"
+    path.write_bytes(b"\x00" * 10)
+    with pytest.raises(CheckpointError, match="x.pt.* is not a readable checkpoint"):
+        load_checkpoint(path)
+    torch.save({"agent": 1}, path)
+    assert load_checkpoint(path, required_keys=("agent",)) == {"agent": 1}
+    with pytest.raises(CheckpointError, match="lacks 'counters'"):
+        load_checkpoint(path, required_keys=("agent", "counters"))
+    with pytest.raises(FileNotFoundError):
+        load_checkpoint(tmp_path / "nothing.pt")
+
+
+# ---- run directory ------------------------------------------------------------------------------------------
+
+
+def test_run_dir_with_a_checkpoint_is_not_overwritten(run):
+    before = _snapshot(run)
+    with pytest.raises(ConfigError, match="already holds a checkpoint.pt, which this run would overwrite"):
+        recipe.train(recipe_config(*SMOKE), run_dir=run)
+    assert _snapshot(run) == before
+
+
+def test_run_dir_that_is_a_file(tmp_path):
+    (tmp_path / "file").write_text("x")
+    for run_dir in (tmp_path / "file", tmp_path / "file" / "sub"):
+        with pytest.raises(ConfigError, match="`run_dir`.*is a file, not a directory"):
+            recipe.train(recipe_config(*SMOKE), run_dir=run_dir)
+    assert (tmp_path / "file").read_text() == "x"
+
+
+@pytest.mark.skipif(
+    os.environ.get("MUJOCO_GL", "").lower() in ("egl", "osmesa"), reason="offscreen rendering is available"
+)
+def test_video_without_offscreen_rendering_fails_at_start_up(tmp_path):
+    with pytest.raises(ConfigError, match="`plots.video=true` needs MuJoCo offscreen rendering"):
+        recipe.train(recipe_config(*SMOKE, "plots.video=true"), run_dir=tmp_path / "run")
+    assert not (tmp_path / "run").exists()
+
+
+# ---- threads ------------------------------------------------------------------------------------------------
+
+
+def test_threads(monkeypatch):
+    monkeypatch.delenv("OMP_NUM_THREADS", raising=False)
+    assert resolve_threads(None) == (
+        available_cpus(),
+        f"threads=null: the {available_cpus()} CPU core(s) this process may run on",
+    )
+    monkeypatch.setenv("OMP_NUM_THREADS", "1")
+    assert resolve_threads(None)[0] == 1 and resolve_threads(3)[0] == 3
+    if hasattr(os, "sched_getaffinity"):
+        assert available_cpus() == len(os.sched_getaffinity(0))
+    before = torch.get_num_threads()
+    try:
+        line = set_threads(1)
+        assert torch.get_num_threads() == 1 and line.startswith("Threads: 1 intra-op") and "\n" not in line
+    finally:
+        torch.set_num_threads(before)
+
+
+# ---- the command line ---------------------------------------------------------------------------------------
+
+
+def _cli(*args, env=None, cwd=None):
+    return subprocess.run(
+        [sys.executable, str(RECIPES / "dhrl_antmaze.py"), *args],
+        capture_output=True,
+        text=True,
+        timeout=300,
+        env={**os.environ, "OMP_NUM_THREADS": "1", **(env or {})},
+        cwd=cwd,
+    )
+
+
+@pytest.mark.parametrize(
+    "override, expected",
+    [
+        ("high.c_h=0", "`high.c_h` (the high-level interval) must be an integer >= 1, got 0."),
+        ("+low.foo=1", "Unknown configuration key `low.foo`"),
+        pytest.param("seed=-1", "`seed` must be an integer in [0, 2**32 - 1]", marks=pytest.mark.slow),
+        pytest.param("device=mps", "`device` must be 'auto', 'cpu'", marks=pytest.mark.slow),
+    ],
+)
+def test_command_line_prints_one_line_and_exits_2(override, expected, tmp_path):
+    result = _cli("preset=smoke", override, cwd=tmp_path)  # Hydra's default outputs/<date>/<time> in tmp_path
+    assert result.returncode == 2, result.stderr[-2000:]
+    lines = result.stderr.strip().splitlines()
+    assert len(lines) == 1 and lines[0].startswith("dhrl_antmaze.py: configuration error: "), result.stderr
+    assert expected in lines[0] and "Traceback" not in result.stderr
+    assert list(tmp_path.iterdir()) == []  # Hydra's output directory is removed again
+
+
+def test_command_line_bad_resume_leaves_the_run_untouched(run, tmp_path):
+    corrupt = tmp_path / "corrupt.pt"
+    corrupt.write_bytes(b"garbage" * 100)
+    before = _snapshot(run)
+    result = _cli(
+        "preset=smoke", f"resume={corrupt}", f"run_dir={run}", f"hydra.run.dir={tmp_path / 'hydra'}"
+    )
+    assert result.returncode == 2 and "Traceback" not in result.stderr
+    assert f"`resume={corrupt}`" in result.stderr and "not a readable checkpoint" in result.stderr
+    assert _snapshot(run) == before and not (tmp_path / "hydra").exists()
+
+
+@pytest.mark.slow
+def test_command_line_full_error_shows_the_traceback(tmp_path):
+    result = _cli(
+        "preset=smoke", "high.c_h=0", f"hydra.run.dir={tmp_path / 'hydra'}", env={"HYDRA_FULL_ERROR": "1"}
+    )
+    assert result.returncode != 0 and "Traceback" in result.stderr and "ConfigError" in result.stderr
+    assert not (tmp_path / "hydra").exists()
