@@ -194,18 +194,26 @@ class MazeLayout:
     def in_wall(self, xy, margin: float = 0.0) -> np.ndarray:
         """Whether each point of ``xy [..., 2]`` lies inside a wall footprint grown by ``margin``.
 
-        Points exactly on a wall face count as outside (open boxes).
+        Inside means in the interior of the union of the (grown) wall boxes: points on a face that
+        borders free space count as outside, points on a face shared by two adjacent wall blocks
+        (e.g. the middle of the U-maze's inner wall) as inside.
         """
         xy = np.asarray(xy, dtype=np.float64)
         bounds = np.array([box.xy_bounds for box in self.wall_boxes])  # [W, 4]
-        x, y = xy[..., 0, None], xy[..., 1, None]
-        inside = (
-            (x > bounds[:, 0] - margin)
-            & (x < bounds[:, 1] + margin)
-            & (y > bounds[:, 2] - margin)
-            & (y < bounds[:, 3] + margin)
-        )
-        return inside.any(axis=-1)
+
+        def closed(points: np.ndarray) -> np.ndarray:
+            x, y = points[..., 0, None], points[..., 1, None]
+            return (
+                (x >= bounds[:, 0] - margin)
+                & (x <= bounds[:, 1] + margin)
+                & (y >= bounds[:, 2] - margin)
+                & (y <= bounds[:, 3] + margin)
+            ).any(axis=-1)
+
+        # interior of the union: the point and every point a hair away from it are in a closed box
+        eps = 1e-9 * max(1.0, float(np.abs(bounds).max()))
+        steps = np.array([(dx, dy) for dx in (-1, 0, 1) for dy in (-1, 0, 1)], dtype=np.float64) * eps
+        return np.stack([closed(xy + step) for step in steps]).all(axis=0)
 
     @property
     def bounds(self) -> tuple[np.ndarray, np.ndarray]:

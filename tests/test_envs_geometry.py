@@ -269,3 +269,14 @@ def test_samplers_are_deterministic_and_exact_count():
     ).shape == (0, 2)
     with pytest.raises(ValueError):
         FixedGoalSampler(())
+
+
+def test_in_wall_counts_shared_block_faces_as_inside():
+    """The inner wall of the U is two blocks: the face they share is wall, the face on free space is not."""
+    from torchrl_dhrl.envs import get_maze_spec
+
+    layout = get_maze_spec("PointMaze").layout
+    points = [[2.0, 4.0], [-2.0, 4.0], [4.0, 4.0], [6.0, 4.0], [5.999, 4.0], [6.001, 4.0], [2.0, 2.0], [0.0, 0.0]]
+    assert layout.in_wall(points).tolist() == [True, True, True, False, True, False, False, False]
+    # grown by a margin, the free-facing face moves out with it
+    assert layout.in_wall([[6.3, 4.0], [6.6, 4.0]], margin=0.5).tolist() == [True, False]

@@ -16,6 +16,6 @@ from torchrl_dhrl.objectives import __all__ as _objectives_all
 from torchrl_dhrl.planner import *  # noqa: F403
 from torchrl_dhrl.planner import __all__ as _planner_all
 
-__version__ = "0.1.0"
+__version__ = "0.2.0"
 
 __all__ = ["make_env", *_data_all, *_modules_all, *_objectives_all, *_planner_all]
