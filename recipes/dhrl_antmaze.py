@@ -312,7 +312,7 @@ def train(cfg: DictConfig | dict, run_dir: str | Path | None = None) -> dict:
     wall_start, wall_before = time.perf_counter(), counters["wall_s"]
     last_time = time.perf_counter()
     metrics: dict = {}
-    _raise_keyboard_interrupt_on_sigterm()
+    stop = _GracefulStop()
     try:
         for batch in collector:
             timer["collect"] += time.perf_counter() - last_time
@@ -353,8 +353,11 @@ def train(cfg: DictConfig | dict, run_dir: str | Path | None = None) -> dict:
                     checkpoint()
             if counters["env_steps"] >= cfg["total_steps"]:
                 break
+            if stop.requested:  # a signal during this batch: stop here, every update of the batch done
+                raise KeyboardInterrupt
             last_time = time.perf_counter()
     except KeyboardInterrupt:
+        stop.restore()
         bar.close()
         path = checkpoint()
         _plot_curve(cfg, history, run_dir)
@@ -362,11 +365,14 @@ def train(cfg: DictConfig | dict, run_dir: str | Path | None = None) -> dict:
         collector.shutdown()
         raise
     except NonFiniteLossError as err:
+        stop.restore()
         bar.close()
         collector.shutdown()
         raise SystemExit(
             f"Stopping: {err}. The last good checkpoint is kept at {run_dir / 'checkpoint.pt'}."
         ) from err
+    finally:
+        stop.restore()
     bar.close()
     path = checkpoint()
     collector.shutdown()
@@ -498,16 +504,43 @@ def _write_metrics_csv(history: list[dict], path: Path) -> None:
     tmp.replace(path)
 
 
-def _raise_keyboard_interrupt_on_sigterm() -> None:
-    """Treat SIGTERM (e.g. a job scheduler's stop) like Ctrl-C: checkpoint, then exit."""
+class _GracefulStop:
+    """SIGINT (Ctrl-C) and SIGTERM (a job scheduler's stop) ask the loop to stop at the end of the batch.
 
-    def handler(signum, frame):
-        raise KeyboardInterrupt
+    The first signal sets :attr:`requested`: the loop finishes the batch's updates (and its epoch end),
+    then checkpoints and exits, so the checkpoint sits at a batch boundary and a resumed run continues
+    exactly. An exception raised at an arbitrary point instead (Python's default for SIGINT) could land
+    inside ``TensorDict.to_module``, whose exit turns it into a ``RuntimeError`` and skips the checkpoint.
+    A second signal stops at once (``KeyboardInterrupt``; the last periodic checkpoint is kept if that
+    one cannot be written). :meth:`restore` puts the previous handlers back.
+    """
 
-    try:
-        signal.signal(signal.SIGTERM, handler)
-    except ValueError:  # not in the main thread
-        pass
+    SIGNALS = (signal.SIGINT, signal.SIGTERM)
+
+    def __init__(self) -> None:
+        self.requested = False
+        self._previous = {}
+        for signum in self.SIGNALS:
+            try:
+                self._previous[signum] = signal.signal(signum, self._handle)
+            except ValueError:  # not in the main thread: no handler, default behaviour
+                pass
+
+    def _handle(self, signum, frame) -> None:
+        if self.requested:
+            raise KeyboardInterrupt
+        self.requested = True
+        name = signal.Signals(signum).name
+        print(
+            f"\n{name}: stopping after this batch's updates with a checkpoint (send it again to stop now).",
+            file=sys.stderr,
+            flush=True,
+        )
+
+    def restore(self) -> None:
+        for signum, handler in self._previous.items():
+            signal.signal(signum, handler)
+        self._previous = {}
 
 
 @hydra.main(config_path="config", config_name="config", version_base="1.3")

@@ -114,3 +114,15 @@ def test_reach_test_from_a_recipe_checkpoint_and_cli(tmp_path, capsys):
     )
     assert [row["radius"] for row in cli_rows] == pytest.approx([1.0, 2.0])
     assert "reached" in capsys.readouterr().out
+
+
+def test_reach_test_keeps_goals_inside_the_goal_box(tmp_path):
+    """The Reacher3D fingertip starts 2 cm inside the goal box's x = 1 face: offsets beyond it are dropped."""
+    load_recipe().train(
+        recipe_config("env=Reacher3D", "preset=smoke", "logger.backend=none", "plots.every_epochs=0"),
+        run_dir=tmp_path,
+    )
+    rows = reach_test_from_checkpoint(tmp_path, radii=[0.01, 0.5], num_directions=8, max_steps=5)
+    near, far = rows
+    assert near["goals"] == 8  # a 1 cm ball around the start lies inside the box
+    assert 1 <= far["goals"] < 8  # half a metre out: the directions towards +x leave it

@@ -276,7 +276,16 @@ def test_in_wall_counts_shared_block_faces_as_inside():
     from torchrl_dhrl.envs import get_maze_spec
 
     layout = get_maze_spec("PointMaze").layout
-    points = [[2.0, 4.0], [-2.0, 4.0], [4.0, 4.0], [6.0, 4.0], [5.999, 4.0], [6.001, 4.0], [2.0, 2.0], [0.0, 0.0]]
+    points = [
+        [2.0, 4.0],
+        [-2.0, 4.0],
+        [4.0, 4.0],
+        [6.0, 4.0],
+        [5.999, 4.0],
+        [6.001, 4.0],
+        [2.0, 2.0],
+        [0.0, 0.0],
+    ]
     assert layout.in_wall(points).tolist() == [True, True, True, False, True, False, False, False]
     # grown by a margin, the free-facing face moves out with it
     assert layout.in_wall([[6.3, 4.0], [6.6, 4.0]], margin=0.5).tolist() == [True, False]

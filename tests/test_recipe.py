@@ -2,6 +2,8 @@
 ablation switches and the command line."""
 
 import csv
+import os
+import signal
 import subprocess
 import sys
 
@@ -223,6 +225,41 @@ def test_ctrl_c_saves_a_checkpoint_that_resumes(tmp_path, monkeypatch):
         recipe_config("env=PointMaze", *SMOKE, "plots.every_epochs=0", f"resume={tmp_path}"), run_dir=tmp_path
     )
     assert summary["env_steps"] == 480
+
+
+@pytest.mark.parametrize("signum", [signal.SIGTERM, signal.SIGINT])
+def test_a_signal_mid_update_stops_at_the_batch_end_and_resumes_exactly(signum, tmp_path, monkeypatch):
+    """A signal inside an update (where an exception would cross ``TensorDict.to_module``) stops the run after
+    the batch's updates: a clean checkpoint that resumes to the straight run's parameters, bit for bit."""
+    from torchrl_dhrl.training import LossUpdater
+
+    overrides = ("env=PointMaze", *SMOKE, "plots.every_epochs=0", "device=cpu")
+    straight = tmp_path / "straight"
+    recipe.train(recipe_config(*overrides, "total_steps=480"), run_dir=straight)
+    real_step = LossUpdater._step
+    calls = {"n": 0}
+
+    def signal_inside_an_update(self):
+        calls["n"] += 1
+        if calls["n"] == 100:  # the 20th low-level update of batch 3 (batch 2: 80 low + 8 high)
+            os.kill(os.getpid(), signum)
+        return real_step(self)
+
+    monkeypatch.setattr(LossUpdater, "_step", signal_inside_an_update)
+    before = (signal.getsignal(signal.SIGINT), signal.getsignal(signal.SIGTERM))
+    halves = tmp_path / "halves"
+    with pytest.raises(KeyboardInterrupt):
+        recipe.train(recipe_config(*overrides, "total_steps=480"), run_dir=halves)
+    assert (signal.getsignal(signal.SIGINT), signal.getsignal(signal.SIGTERM)) == before  # handlers restored
+    state = load_checkpoint(halves / "checkpoint.pt")
+    assert state["counters"]["env_steps"] == 240 and state["low_updater"]["num_updates"] == 160
+    monkeypatch.setattr(LossUpdater, "_step", real_step)
+    recipe.train(recipe_config(*overrides, "total_steps=480", f"resume={halves}"), run_dir=halves)
+    a, b = (
+        _flat(load_checkpoint(straight / "checkpoint.pt")["agent"]),
+        _flat(load_checkpoint(halves / "checkpoint.pt")["agent"]),
+    )
+    assert a.keys() == b.keys() and all(torch.equal(a[k], b[k]) for k in a)
 
 
 def test_nan_stops_with_a_message_and_keeps_the_last_good_checkpoint(tmp_path, monkeypatch):

@@ -187,7 +187,8 @@ def reach_test_from_checkpoint(
 
     Defaults follow the run's config: radii ``(0.25, 0.5, 1, 1.5) x cutoff x oracle_speed`` (the goal-space
     span of a graph edge, at the env's nominal speed), ``max_steps = 3 x cutoff``, the planner's
-    ``reach_radius``; goals blocked by the maze walls (or the UR3 boards) are dropped.
+    ``reach_radius``; goals blocked by the maze walls (or the UR3 boards) or outside the env's goal box are
+    dropped.
 
     Args:
         path (str or Path): a ``checkpoint.pt`` or the run directory holding it.
@@ -211,6 +212,13 @@ def reach_test_from_checkpoint(
             1.0, boxes=boxes, margin=planner["oracle_margin"], goal_indices=range(start.shape[-1])
         )
         offsets = visible_offsets(start.cpu(), offsets, walls)
+    # goals must stay inside the env's goal box (the Reacher3D fingertip starts 2 cm from its edge)
+    spec = probe.observation_spec["desired_goal"].space
+    low, high = spec.low.reshape(-1).cpu(), spec.high.reshape(-1).cpu()
+    goals = start.cpu() + offsets
+    offsets = offsets[((goals >= low) & (goals <= high)).all(-1)]
+    if offsets.shape[0] == 0:
+        raise ValueError(f"No reach-test goal around the start {start.tolist()} lies inside the goal box.")
     env = make_env(cfg["env_name"], num_envs=offsets.shape[0], seed=seed, device=device)
     result = low_level_reach_test(
         env, agent.low_actor, offsets, max_steps=max_steps, reach_radius=planner["reach_radius"]
