@@ -84,13 +84,7 @@ def plot_success_curve(
     ax.set_ylim(-0.02, 1.02)
     ax.grid(alpha=0.3)
     ax.legend(loc="lower right")
-    if title:
-        ax.set_title(title)
-    path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fig.savefig(path, dpi=100, bbox_inches="tight")
-    plt.close(fig)
-    return path
+    return _save(fig, ax, path, title)
 
 
 def plot_distance_scatter(
@@ -133,6 +127,11 @@ def plot_distance_scatter(
     ax.set_ylabel("distance (steps)")
     ax.grid(alpha=0.3)
     ax.legend(loc="upper left", fontsize=8)
+    return _save(fig, ax, path, title)
+
+
+def _save(fig, ax, path: str | Path, title: str | None) -> Path:
+    """Titles the axes (if ``title``), writes the figure to ``path`` (parents created) and closes it."""
     if title:
         ax.set_title(title)
     path = Path(path)
