@@ -50,6 +50,8 @@ from torchrl_dhrl.training import (
     checkpoint_file,
     evaluate,
     get_rng_state,
+    goal_as_waypoint,
+    hierarchy_diagnostics,
     load_checkpoint,
     make_agent,
     make_collector,
@@ -442,6 +444,7 @@ def _end_of_epoch(
     metrics["graph/edges"] = int(planner.edges.shape[0]) if planner.has_graph else 0
     if epoch % schedule["eval_every_epochs"] == 0:
         start = time.perf_counter()
+        before = eval_env.base_env.state_dict() if schedule["eval_flat"] else None
         result = evaluate(eval_env, agent.policy, episode_length)
         metrics["time/eval_s"] = time.perf_counter() - start
         metrics["eval/success"] = result.success
@@ -458,6 +461,17 @@ def _end_of_epoch(
             cfg["env_name"], planner, rollout, agent.high_policy.actor, margin=cfg["planner"]["oracle_margin"]
         )
         metrics.update(diag)
+        # the high level's subgoals vs the goal, and the low level's delivery of them (every env)
+        hierarchy = hierarchy_diagnostics(rollout, cfg["low"]["reward_threshold"])
+        metrics.update({f"diag/{k}": v for k, v in hierarchy.items()})
+        if schedule["eval_flat"]:  # the low level alone chasing the goal, on the same test goals (diagnosis)
+            after = eval_env.base_env.state_dict()
+            eval_env.base_env.load_state_dict(before)
+            flat = evaluate(eval_env, goal_as_waypoint(agent.low_actor), episode_length)
+            eval_env.base_env.load_state_dict(after)  # the next evaluation's goals as without this one
+            metrics["eval/flat_success"] = flat.success
+            metrics["eval/flat_any_success"] = flat.any_success
+            metrics["eval/flat_final_distance"] = flat.final_distance
         every = cfg["plots"]["every_epochs"]
         if every and (epoch // schedule["eval_every_epochs"]) % every == 0:
             plot_episode(

@@ -280,3 +280,37 @@ def test_nan_stops_with_a_message_and_keeps_the_last_good_checkpoint(tmp_path, m
         recipe.train(cfg, run_dir=tmp_path)
     state = load_checkpoint(tmp_path / "checkpoint.pt")
     assert state["counters"]["env_steps"] == 240  # the checkpoint of the 3rd batch's epoch
+
+
+def test_flat_evaluation_uses_the_same_goals_and_changes_nothing_else(tmp_path, monkeypatch):
+    """``schedule.eval_flat``: the low level alone on the main evaluation's test goals (Reacher3D draws them at
+    random), and every other metric as without it."""
+    goals = []
+    evaluate = recipe.evaluate
+
+    def recording(env, policy, steps, **kwargs):
+        result = evaluate(env, policy, steps, **kwargs)
+        goals.append(result.rollout["desired_goal"][:, 0].clone())
+        return result
+
+    monkeypatch.setattr(recipe, "evaluate", recording)
+    overrides = ("env=Reacher3D", *SMOKE, "total_steps=240", "plots.every_epochs=0", "device=cpu")
+    recipe.train(recipe_config(*overrides, "schedule.eval_flat=true"), run_dir=tmp_path / "flat")
+    with_flat, goals = goals, []
+    recipe.train(recipe_config(*overrides, "schedule.eval_flat=false"), run_dir=tmp_path / "plain")
+    assert len(with_flat) == 2 * len(goals) == 6
+    for epoch, plain in enumerate(goals):
+        main, flat = with_flat[2 * epoch], with_flat[2 * epoch + 1]
+        torch.testing.assert_close(main, flat, rtol=0, atol=0)  # paired: the same test goals
+        torch.testing.assert_close(main, plain, rtol=0, atol=0)  # the next evaluations' goals unchanged
+    assert not torch.equal(goals[0], goals[1])  # the test goals are random per episode in Reacher3D
+    timing = ("time/", "env_steps_per_s", "graph/build_s", "eval/flat_")
+    rows_flat, rows_plain = _metrics(tmp_path / "flat"), _metrics(tmp_path / "plain")
+    untimed = lambda rows: [{k: v for k, v in r.items() if not k.startswith(timing)} for r in rows]  # noqa: E731
+    assert untimed(rows_flat) == untimed(rows_plain)
+    for row in rows_flat:
+        assert 0.0 <= float(row["eval/flat_success"]) <= float(row["eval/flat_any_success"]) <= 1.0
+        assert float(row["eval/flat_final_distance"]) > 0
+        for key in ("subgoal_goal_distance", "subgoal_reached", "segment_progress", "graph_steps"):
+            assert row[f"diag/{key}"] != ""
+    assert "eval/flat_success" not in rows_plain[0]

@@ -39,8 +39,9 @@ from .diagnostics import (
     summarize_reach,
     visible_offsets,
 )
-from .evaluation import EvaluationResult, ModuleTimer, evaluate, record_video
+from .evaluation import EvaluationResult, ModuleTimer, evaluate, goal_as_waypoint, record_video
 from .goal_shift import GoalShiftOnReset
+from .hierarchy_diagnostics import HIERARCHY_DIAG_KEYS, hierarchy_diagnostics, subgoal_segments
 from .maze_diagnostics import (
     GraphDiagnosis,
     MazeGeometry,
@@ -67,6 +68,7 @@ __all__ = [
     "EvaluationResult",
     "GoalShiftOnReset",
     "GraphDiagnosis",
+    "HIERARCHY_DIAG_KEYS",
     "LOGGER_BACKENDS",
     "LOW_LEVEL_KEYS",
     "LineOfSightDistance",
@@ -84,9 +86,11 @@ __all__ = [
     "evaluate",
     "feasibility_fractions",
     "get_rng_state",
+    "goal_as_waypoint",
     "graph_diagnosis_from_checkpoint",
     "graph_path_to_goal",
     "graph_quality",
+    "hierarchy_diagnostics",
     "grid_moves",
     "grid_shortest_paths",
     "landmark_coverage",
@@ -113,6 +117,7 @@ __all__ = [
     "set_threads",
     "spearman_correlation",
     "start_subgoal",
+    "subgoal_segments",
     "summarize_reach",
     "validate_config",
     "visible_offsets",

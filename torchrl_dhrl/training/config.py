@@ -68,6 +68,7 @@ CHOICES = {
 #: Boolean switches (see docs/faithfulness.md).
 SWITCHES = (
     "schedule.train_during_warmup",
+    "schedule.eval_flat",
     "low.sqgc",
     "low.relative_goal",
     "low.target_action_clamp",

@@ -8,11 +8,12 @@ from typing import NamedTuple
 
 import torch
 from tensordict import TensorDictBase
-from tensordict.nn import TensorDictModuleBase
+from tensordict.nn import TensorDictModule, TensorDictModuleBase, TensorDictSequential
+from tensordict.utils import NestedKey
 from torchrl.envs import EnvBase
 from torchrl.envs.utils import ExplorationType, set_exploration_type
 
-__all__ = ["EvaluationResult", "ModuleTimer", "evaluate", "record_video"]
+__all__ = ["EvaluationResult", "ModuleTimer", "evaluate", "goal_as_waypoint", "record_video"]
 
 
 class EvaluationResult(NamedTuple):
@@ -71,6 +72,35 @@ def evaluate(
         final_speed=speed.mean().item(),
         rollout=rollout,
     )
+
+
+def goal_as_waypoint(
+    low_actor: TensorDictModuleBase, goal_key: NestedKey = "desired_goal"
+) -> TensorDictSequential:
+    """The low level alone, chasing the final goal: a flat policy for diagnosis.
+
+    Copies ``goal_key`` into the low-level actor's goal entry (its second in-key, ``"waypoint"`` for
+    :class:`~torchrl_dhrl.modules.LowLevelActor`) and acts. Evaluated next to the full agent, it tells a
+    high level (or a graph) that leads the low level astray from a low level that cannot reach the goal
+    itself; on a maze with walls between the start and the goal it is expected to fail.
+
+    Examples:
+        >>> import torch
+        >>> from tensordict import TensorDict
+        >>> from torchrl_dhrl.modules import LowLevelActor
+        >>> actor = LowLevelActor(6, 2, action_max=1.0, action_dim=2, num_cells=(8,))
+        >>> flat = goal_as_waypoint(actor)
+        >>> td = flat(TensorDict(observation=torch.zeros(3, 6), desired_goal=torch.ones(3, 2), batch_size=[3]))
+        >>> torch.equal(td["waypoint"], td["desired_goal"]), td["action"].shape
+        (True, torch.Size([3, 2]))
+    """
+    if len(low_actor.in_keys) < 2:
+        raise ValueError(
+            f"goal_as_waypoint: the low-level actor must read (observation, goal); its in_keys are {low_actor.in_keys}."
+        )
+    waypoint_key = low_actor.in_keys[1]
+    copy = TensorDictModule(lambda goal: goal.clone(), in_keys=[goal_key], out_keys=[waypoint_key])
+    return TensorDictSequential(copy, low_actor)
 
 
 class ModuleTimer:
