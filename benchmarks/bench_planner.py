@@ -41,9 +41,15 @@ from scipy.sparse.csgraph import floyd_warshall as scipy_floyd_warshall
 from tensordict import TensorDict
 from torch import nn
 
-from torchrl_dhrl.modules import GoalConditionedCritic, GoalDistance, LowLevelActor
-from torchrl_dhrl.modules.distance import DEFAULT_CPU_CHUNK_SIZE
-from torchrl_dhrl.planner import GraphPlanner, LandmarkGraph, farthest_point_sampling, floyd_warshall
+from torchrl_dhrl.modules import GoalConditionedCritic, LowLevelActor
+from torchrl_dhrl.planner import (
+    GoalDistance,
+    GraphPlanner,
+    LandmarkGraph,
+    farthest_point_sampling,
+    floyd_warshall,
+)
+from torchrl_dhrl.planner.distances import DEFAULT_CPU_CHUNK_SIZE
 
 #: The previous build settings: lazy FPS without proxy, 256 candidates per round (same evaluations
 #: as the previous implementation, pair for pair).
@@ -157,7 +163,7 @@ def bench_query(args, gen):
     print(f"\n== 1. planner query: {args.envs} envs, {args.landmarks} landmarks, oracle distance ==")
     side = (args.landmarks**0.5) * 1.0  # ~1 unit (10 steps) between neighbouring landmarks
     states, goals = points(args.landmarks, side, 29, gen)
-    planner = GraphPlanner(oracle_distance, 2, cutoff=CUTOFF, max_path_length=32)
+    planner = GraphPlanner(LandmarkGraph(cutoff=CUTOFF), oracle_distance, 2, max_path_length=32)
     planner.graph.set_landmarks(states, goals, oracle_distance)
     degree = planner.edges.shape[0] / args.landmarks
     q_states, q_goals = points(args.envs, side, 29, gen)

@@ -14,6 +14,11 @@ All models are built programmatically with :mod:`dm_control.mjcf`. One batched s
 * Gymnasium: ids ``dhrl/<name>-v0`` (registered on import) / :class:`GymGoalEnv`, goal-env convention
   (float64 ``Dict`` observations, vectorised ``compute_reward``, ``info["is_success"]``).
 
+Any other TorchRL env can join them: :func:`check_goal_env` validates the key contract the library reads
+(``observation``, ``achieved_goal``, ``desired_goal``, ``is_success``, ``step_count``, the done flags and
+``max_episode_steps``; ``docs/goal_env.md``) and :func:`register_env` makes it available by name to
+:func:`make_env` and the training recipe.
+
 :func:`plot_env` draws any environment with matplotlib (:func:`plot_maze` from above with walls, start
 and test goals; :func:`plot_arm` as a top, front or side projection with the arm, the boards and the goal
 region), with trajectories, landmarks, edges and paths in goal space. The ``Maze*`` names of the core
@@ -23,12 +28,22 @@ classes (:class:`MazeSimulation`, :class:`MazeEnv`, :class:`MazeGoalEnv`) remain
 from .agents import AntAgent, MotorControl, PointAgent
 from .arena import build_maze_mjcf, compile_maze_model
 from .arms import ARM_NAMES, ARMS, ArmSpec, build_arm_mjcf, get_arm_spec, ur3_boards
+from .goal_env import GOAL_ENV_KEYS, GoalEnvError, check_goal_env
 from .goals import BoxGoalSampler, FixedGoalSampler, FreeCellGoalSampler, GaussianGoalSampler, GoalSampler
 from .gym_env import GymGoalEnv, MazeGoalEnv, register_gym_envs
 from .layouts import COMPLEX_MAZE, U_MAZE, MazeLayout, WallBox, bottleneck_walls
 from .mazes import MAZE_NAMES, MAZES, MazeSpec, get_maze_spec
 from .plotting import plot_arm, plot_env, plot_maze
-from .registry import ENV_NAMES, ENVS, get_env_spec
+from .registry import (
+    ENV_NAMES,
+    ENVS,
+    EnvFactory,
+    get_env_factory,
+    get_env_spec,
+    register_env,
+    registered_env_names,
+    unregister_env,
+)
 from .robots import UR3_DH, PR2Arm, UR3Arm
 from .simulation import GoalSimulation, MazeSimulation, sparse_reward
 from .task import TaskSpec, lookup_spec
@@ -52,11 +67,14 @@ __all__ = [
     "COMPLEX_MAZE",
     "ENVS",
     "ENV_NAMES",
+    "EnvFactory",
     "FixedGoalSampler",
     "FreeCellGoalSampler",
+    "GOAL_ENV_KEYS",
     "GYM_IDS",
     "GaussianGoalSampler",
     "GoalEnv",
+    "GoalEnvError",
     "GoalSampler",
     "GoalSimulation",
     "GymGoalEnv",
@@ -78,8 +96,10 @@ __all__ = [
     "bottleneck_walls",
     "build_arm_mjcf",
     "build_maze_mjcf",
+    "check_goal_env",
     "compile_maze_model",
     "get_arm_spec",
+    "get_env_factory",
     "get_env_spec",
     "get_maze_spec",
     "lookup_spec",
@@ -87,7 +107,10 @@ __all__ = [
     "plot_arm",
     "plot_env",
     "plot_maze",
+    "register_env",
     "register_gym_envs",
+    "registered_env_names",
     "sparse_reward",
+    "unregister_env",
     "ur3_boards",
 ]

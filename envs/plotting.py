@@ -14,7 +14,7 @@ import numpy as np
 from .arms import ArmSpec, get_arm_spec
 from .goals import BoxGoalSampler, FixedGoalSampler, GaussianGoalSampler
 from .mazes import MazeSpec, get_maze_spec
-from .registry import get_env_spec
+from .registry import get_env_factory, get_env_spec
 
 __all__ = ["plot_maze", "plot_arm", "plot_env", "ARM_VIEWS"]
 
@@ -305,6 +305,20 @@ def plot_arm(
     return ax
 
 
+def _plot_goal_space(name: str, *, ax=None, title: str | None = None, **overlays):
+    """The overlays alone on goal axes 0 and 1 (an environment without a known scene)."""
+    import matplotlib.pyplot as plt
+
+    if ax is None:
+        _, ax = plt.subplots(figsize=(5, 5))
+    _draw_overlays(ax, (0, 1), **overlays)
+    ax.set_aspect("equal", adjustable="datalim")
+    ax.set_xlabel(_AXIS_LABELS[0])
+    ax.set_ylabel(_AXIS_LABELS[1])
+    ax.set_title(name if title is None else title)
+    return ax
+
+
 def plot_env(
     name: str,
     *,
@@ -322,8 +336,12 @@ def plot_env(
     Points are in the environment's goal space (``[..., 2]`` for the mazes, ``[..., 3]`` for the arms);
     3-D goal spaces are drawn as a projection, from above by default.
 
+    An environment registered with :func:`~torchrl_dhrl.envs.register_env` has no scene to draw: its
+    overlays are drawn alone on the first two goal axes.
+
     Args:
-        name (str): any of :data:`~torchrl_dhrl.envs.ENV_NAMES` (or its Gymnasium id), or a spec.
+        name (str): any of :data:`~torchrl_dhrl.envs.ENV_NAMES` (or its Gymnasium id), a spec, or the
+            name of a registered environment.
 
     Keyword Args:
         trajectory, landmarks, edges, path, goal, ax: as :func:`plot_maze` / :func:`plot_arm`.
@@ -345,8 +363,10 @@ def plot_env(
         >>> ax.get_title()
         'Reacher3D (side)'
     """
-    spec = get_env_spec(name)
     overlays = {"trajectory": trajectory, "landmarks": landmarks, "edges": edges, "path": path, "goal": goal}
+    if get_env_factory(name) is not None:
+        return _plot_goal_space(name, ax=ax, title=title, **overlays)
+    spec = get_env_spec(name)
     if isinstance(spec, MazeSpec):
         if view != "top":
             raise ValueError(f"Mazes are drawn from above only: view must be 'top', got {view!r}.")

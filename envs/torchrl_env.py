@@ -8,7 +8,8 @@ from tensordict import TensorDict, TensorDictBase
 from torchrl.data import Bounded, Categorical, Composite, Unbounded
 from torchrl.envs import EnvBase
 
-from .registry import get_env_spec
+from .goal_env import GoalEnvError, check_goal_env
+from .registry import get_env_factory, get_env_spec
 from .simulation import GoalSimulation
 from .task import OVERVIEW_CAMERA, TaskSpec
 
@@ -272,13 +273,16 @@ def make_env(
     device=None,
     eval: bool = False,  # noqa: A002 - the documented option name
     max_episode_steps: int | None = None,
-) -> GoalEnv:
+) -> EnvBase:
     """Builds a DHRL environment as a native batched TorchRL environment.
 
     Args:
         name (str): ``"PointMaze"``, ``"AntMazeSmall"``, ``"AntMaze"``, ``"AntMazeBottleneck"``,
             ``"AntMazeComplex"``, ``"Reacher3D"`` or ``"UR3Obstacle"`` (the Gymnasium ids
-            ``"dhrl/<name>-v0"`` are accepted too).
+            ``"dhrl/<name>-v0"`` are accepted too), or the name of an env registered with
+            :func:`~torchrl_dhrl.envs.register_env`: its factory is called with the keyword arguments
+            below and the env it returns is checked against the goal-env contract
+            (:func:`~torchrl_dhrl.envs.check_goal_env` on the specs, batch size ``[num_envs]``).
 
     Keyword Args:
         num_envs (int): batch size of the env. Defaults to ``1``.
@@ -291,6 +295,7 @@ def make_env(
 
     Raises:
         ValueError: for an unknown name; the message lists the valid ones.
+        GoalEnvError: when a registered factory returns an env that does not meet the contract.
 
     Examples:
         >>> from torchrl_dhrl.envs import make_env
@@ -300,6 +305,22 @@ def make_env(
         >>> make_env("Reacher3D", seed=0).rollout(3)["next", "achieved_goal"].shape
         torch.Size([1, 3, 3])
     """
+    factory = get_env_factory(name)
+    if factory is not None:
+        env = factory(
+            num_envs=num_envs, seed=seed, device=device, eval=eval, max_episode_steps=max_episode_steps
+        )
+        if not isinstance(env, EnvBase):
+            raise TypeError(
+                f"The factory registered as {name!r} returned a {type(env).__name__}, not an EnvBase."
+            )
+        if tuple(env.batch_size) != (num_envs,):
+            raise GoalEnvError(
+                f"The factory registered as {name!r} returned an env of batch_size {tuple(env.batch_size)} "
+                f"for num_envs={num_envs}; expected ({num_envs},) (see docs/goal_env.md)."
+            )
+        check_goal_env(env, steps=0)
+        return env
     return GoalEnv(
         name,
         num_envs=num_envs,

@@ -256,7 +256,7 @@ def train(cfg: DictConfig | dict, run_dir: str | Path | None = None) -> dict:
     episode_length = train_env.base_env.max_episode_steps
     num_envs = cfg["num_envs"]
     buffers = make_replay_buffers(cfg, agent, device)
-    low_rb, _, high_rb, _ = buffers
+    low_rb, high_rb = buffers
     low_updater, high_updater = make_updaters(cfg, agent, buffers)
     collector = make_collector(train_env, agent, episode_length)
     counters = {"env_steps": 0, "episodes": 0, "epochs": 0, "graph_builds": 0, "wall_s": 0.0}
@@ -462,7 +462,13 @@ def _end_of_epoch(
         )
         metrics.update(diag)
         # the high level's subgoals vs the goal, and the low level's delivery of them (every env)
-        hierarchy = hierarchy_diagnostics(rollout, cfg["low"]["reward_threshold"])
+        hierarchy = hierarchy_diagnostics(
+            rollout,
+            cfg["low"]["reward_threshold"],
+            distance=planner.distance,
+            distance_from_graph=planner.distance_from_graph,
+            far_threshold=cfg["high"]["far_from_graph_factor"] * cfg["planner"]["cutoff"],
+        )
         metrics.update({f"diag/{k}": v for k, v in hierarchy.items()})
         if schedule["eval_flat"]:  # the low level alone chasing the goal, on the same test goals (diagnosis)
             after = eval_env.base_env.state_dict()

@@ -18,7 +18,7 @@ from test_recipe import _flat
 from test_relabel_future import GoalStream, check_goals
 from torchrl.data import LazyTensorStorage, TensorDictReplayBuffer
 
-from torchrl_dhrl.data import FutureGoalRelabel
+from torchrl_dhrl.data import FutureGoalRelabel, RelabelReplayBuffer
 from torchrl_dhrl.modules import GoalConditionedCritic, HighLevelPolicy, LowLevelActor
 from torchrl_dhrl.objectives import HighLevelLoss, SQGCLoss, make_optimizers
 from torchrl_dhrl.planner import GraphPlanner, LandmarkGraph, farthest_point_sampling
@@ -88,9 +88,9 @@ def test_graph_planner_transform_on_cuda_matches_cpu():
     )
     outs = []
     for device in ("cpu", CUDA):
-        planner = GraphPlanner(asymmetric_distance, 2, cutoff=4.0, max_landmarks=60, early_stop=0.0).to(
-            device
-        )
+        planner = GraphPlanner(
+            LandmarkGraph(cutoff=4.0, max_landmarks=60, early_stop=0.0), asymmetric_distance, 2
+        ).to(device)
         planner.build(*_on(device, states, goals))
         out = planner(td.to(device))
         outs.append(out)
@@ -246,15 +246,18 @@ def test_recipe_with_cudagraphs(tmp_path):
 def test_future_goal_relabel_on_a_cuda_buffer():
     torch.manual_seed(0)
     stream = GoalStream(num_envs=4, min_len=5, max_len=40, seed=1)
-    rb = TensorDictReplayBuffer(storage=LazyTensorStorage(4 * 64, ndim=2, device=CUDA), batch_size=1024)
-    relabel = FutureGoalRelabel(rb, window=7)
+    relabel = FutureGoalRelabel(window=7)
+    rb = RelabelReplayBuffer(
+        storage=LazyTensorStorage(4 * 64, ndim=2, device=CUDA), relabel=[relabel], batch_size=1024
+    )
     for _ in range(6):
         rb.extend(stream.batch(16))
-        sample = relabel(rb.sample())
+        sample = rb.sample()
         assert sample["goal"].device.type == "cuda"
         sample = sample.cpu()
         expected = stream.expected_window(sample["achieved_goal"], 7)
-        assert torch.equal(relabel.window_lengths(sample["index"].to(CUDA)).cpu(), expected)
+        window = relabel.window_lengths(sample["index"].to(CUDA), rb.storage, rb.newest_index)
+        assert torch.equal(window.cpu(), expected)
         for key in ("goal", "graph_goal"):
             check_goals(sample, key, expected)
 

@@ -8,7 +8,7 @@ from _recipe import RECIPES, load_recipe, recipe_config
 from tensordict.nn import TensorDictModule
 from torchrl_dhrl.envs import make_env
 
-from torchrl_dhrl.training import LineOfSightDistance
+from torchrl_dhrl.planner import LineOfSightDistance
 from torchrl_dhrl.training.builders import _obstacle_boxes
 from torchrl_dhrl.training.diagnostics import (
     low_level_reach_test,
@@ -116,10 +116,18 @@ def test_reach_test_from_a_recipe_checkpoint_and_cli(tmp_path, capsys):
     assert "reached" in capsys.readouterr().out
 
 
-def test_reach_test_keeps_goals_inside_the_goal_box(tmp_path):
-    """The Reacher3D fingertip starts 2 cm inside the goal box's x = 1 face: offsets beyond it are dropped."""
+@pytest.mark.parametrize("angles", ["null", "[4,6]"])
+def test_reach_test_keeps_goals_inside_the_goal_box(angles, tmp_path):
+    """The Reacher3D fingertip starts 2 cm inside the goal box's x = 1 face: offsets beyond it are dropped.
+    With ``angle_features`` the reach test's env feeds the actor the 19-D observation it was trained on."""
     load_recipe().train(
-        recipe_config("env=Reacher3D", "preset=smoke", "logger.backend=none", "plots.every_epochs=0"),
+        recipe_config(
+            "env=Reacher3D",
+            "preset=smoke",
+            "logger.backend=none",
+            "plots.every_epochs=0",
+            f"angle_features={angles}",
+        ),
         run_dir=tmp_path,
     )
     rows = reach_test_from_checkpoint(tmp_path, radii=[0.01, 0.5], num_directions=8, max_steps=5)

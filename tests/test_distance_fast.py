@@ -4,8 +4,9 @@ import pytest
 import torch
 from tensordict import TensorDict
 
-from torchrl_dhrl.modules import GoalConditionedCritic, GoalDistance, LowLevelActor
-from torchrl_dhrl.modules.distance import DEFAULT_CPU_CHUNK_SIZE
+from torchrl_dhrl.modules import GoalConditionedCritic, LowLevelActor
+from torchrl_dhrl.planner import GoalDistance
+from torchrl_dhrl.planner.distances import DEFAULT_CPU_CHUNK_SIZE
 
 OBS, GOAL, ACT = 9, 2, 4
 #: Tolerances of the reduced-precision path against float32 on the network below: the error is about

@@ -8,7 +8,7 @@ import torch
 from scipy.stats import chisquare
 from tensordict import TensorDict
 
-from torchrl_dhrl.planner import FrontierGoalShifting, GraphPlanner
+from torchrl_dhrl.planner import FrontierGoalShifting, GraphPlanner, LandmarkGraph
 
 # landmarks 0..5 on the x axis (one step apart) and an island {6: x=20, 7: x=21} unreachable from x=0
 POINTS = torch.tensor([[float(x), 0.0] for x in (0, 1, 2, 3, 4, 5, 20, 21)])
@@ -22,7 +22,7 @@ def euclidean(states, goals):
 
 @pytest.fixture
 def planner():
-    planner = GraphPlanner(euclidean, 2, cutoff=1.5)
+    planner = GraphPlanner(LandmarkGraph(cutoff=1.5), euclidean, 2)
     planner.graph.set_landmarks(POINTS, POINTS.clone(), euclidean)
     return planner
 
@@ -58,7 +58,7 @@ def test_shifts_only_goals_inside_the_graph(planner, trigger, expected):
     new_goals, shifted = fgs.shift(starts, goals)
     assert shifted.tolist() == expected
     assert torch.equal(new_goals[~shifted], goals[~shifted])
-    empty = FrontierGoalShifting(GraphPlanner(euclidean, 2, cutoff=1.5))
+    empty = FrontierGoalShifting(GraphPlanner(LandmarkGraph(cutoff=1.5), euclidean, 2))
     same, none = empty.shift(starts, goals)
     assert torch.equal(same, goals) and not none.any()
 

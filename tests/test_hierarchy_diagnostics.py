@@ -5,7 +5,12 @@ import pytest
 import torch
 from tensordict import TensorDict
 
-from torchrl_dhrl.training import HIERARCHY_DIAG_KEYS, hierarchy_diagnostics, subgoal_segments
+from torchrl_dhrl.training import (
+    HIERARCHY_DIAG_KEYS,
+    LEARNED_DISTANCE_DIAG_KEYS,
+    hierarchy_diagnostics,
+    subgoal_segments,
+)
 
 
 def _rollout(B, T, dim, flags, seed):
@@ -139,3 +144,40 @@ def test_bad_input():
         hierarchy_diagnostics(rollout, 0.5)
     with pytest.raises(ValueError, match="time dimension"):
         subgoal_segments(torch.zeros(2, 0, dtype=torch.bool))
+
+
+def test_learned_distances_against_reference():
+    """The learned-distance entries: per-segment calls on the segment's first state and its subgoal."""
+    g = torch.Generator().manual_seed(7)
+    B, T = 3, 17
+    flags = torch.rand(B, T, generator=g) < 0.3
+    flags[:, 0] = True
+    rollout = _rollout(B, T, 2, flags, 7)
+    rollout["observation"] = torch.cat([rollout["achieved_goal"], torch.randn(B, T, 3, generator=g)], -1)
+    landmarks = torch.randn(5, 2, generator=g)
+    distance = lambda states, goals: 10 * (goals - states[..., :2]).norm(dim=-1)  # noqa: E731
+    from_graph = lambda goals: 10 * torch.cdist(goals, landmarks).min(-1).values  # noqa: E731
+    out = hierarchy_diagnostics(
+        rollout, 0.5, distance=distance, distance_from_graph=from_graph, far_threshold=8.0
+    )
+    assert set(out) == set(HIERARCHY_DIAG_KEYS) | set(LEARNED_DISTANCE_DIAG_KEYS)
+    learned, near = [], []
+    for b in range(B):
+        for t in range(T):
+            if flags[b, t]:
+                s = rollout["subgoal"][b, t]
+                learned.append(distance(rollout["observation"][b, t], s).item())
+                near.append(from_graph(s[None])[0].item())
+    near = np.array(near)
+    assert out["subgoal_learned_distance"] == pytest.approx(np.mean(learned), rel=1e-5)
+    assert out["subgoal_graph_distance"] == pytest.approx(near.mean(), rel=1e-5)
+    assert out["subgoals_far_from_graph"] == pytest.approx((near > 8.0).mean())
+    # no graph yet: the planner's distance from the graph is infinite -> NaN, not inf
+    no_graph = hierarchy_diagnostics(
+        rollout,
+        0.5,
+        distance_from_graph=lambda goals: torch.full(goals.shape[:-1], float("inf")),
+        far_threshold=8.0,
+    )
+    assert np.isnan(no_graph["subgoal_graph_distance"]) and np.isnan(no_graph["subgoals_far_from_graph"])
+    assert "subgoal_learned_distance" not in no_graph

@@ -9,9 +9,14 @@ import torch
 from tensordict import TensorDict
 from test_high_level_builder import SubgoalStream
 from torchrl.data import LazyTensorStorage, TensorDictReplayBuffer
-from torchrl.envs import Compose, RenameTransform
+from torchrl.envs import RenameTransform
 
-from torchrl_dhrl.data import FutureGoalRelabel, HighLevelTransitionBuilder, HindsightSubgoalRelabel
+from torchrl_dhrl.data import (
+    FutureGoalRelabel,
+    HighLevelTransitionBuilder,
+    HindsightSubgoalRelabel,
+    RelabelReplayBuffer,
+)
 
 P1, P2, FAR = 1.3, 5.0, 90.0
 
@@ -177,12 +182,8 @@ def test_pipeline_goals_same_episode_within_high_level_window():
     torch.manual_seed(4)
     window = 3
     stream = SubgoalStream(num_envs=3, min_len=8, max_len=40, flag_prob=0.2, seed=11)
-    rb = TensorDictReplayBuffer(
-        storage=LazyTensorStorage(60), transform=HighLevelTransitionBuilder(), batch_size=2048
-    )
-    relabel = Compose(
+    relabel = [
         FutureGoalRelabel(
-            rb,
             her_ratio=1.0,
             window=window,
             out_keys=["desired_goal"],
@@ -191,6 +192,12 @@ def test_pipeline_goals_same_episode_within_high_level_window():
             step_count_key="segment_index",
         ),
         HindsightSubgoalRelabel(lambda g: torch.full(g.shape[:1], float("inf"))),
+    ]
+    rb = RelabelReplayBuffer(
+        storage=LazyTensorStorage(60),
+        transform=HighLevelTransitionBuilder(),
+        relabel=relabel,
+        batch_size=2048,
     )
     segment_of_end: dict[tuple[int, int], int] = {}  # (uid, end step + 1) -> segment index
     for _ in range(15):  # the 60-record buffer wraps around
@@ -202,7 +209,7 @@ def test_pipeline_goals_same_episode_within_high_level_window():
             segment_of_end[tuple(uid_end)] = index[0]
         if len(rb) == 0:
             continue
-        sample = relabel(rb.sample())
+        sample = rb.sample()
         uid = sample["achieved_goal"][:, 0].long()
         goal = sample["desired_goal"].long()
         assert (goal[:, 0] == uid).all(), "high-level goal from another episode"

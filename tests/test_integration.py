@@ -4,7 +4,7 @@ relabelled replay, one SQGC and one high-level update, and a graph built from th
 import torch
 from tensordict.nn import TensorDictSequential
 from torchrl.collectors import Collector
-from torchrl.data import LazyTensorStorage, TensorDictReplayBuffer
+from torchrl.data import LazyTensorStorage
 from torchrl.envs import Compose, TransformedEnv
 
 import torchrl_dhrl as dhrl
@@ -21,11 +21,17 @@ def test_full_dhrl_pipeline_on_pointmaze():
     gc = dhrl.GoalConditionedCritic(obs_dim, 2, env.action_spec, num_cells=(32, 32), goal_key="goal")
     loss = dhrl.SQGCLoss(actor, pc, gc)
     distance = dhrl.GoalDistance.from_loss(loss)
-    planner = dhrl.GraphPlanner(distance, 2, cutoff=30.0, max_landmarks=20, early_stop=0.0)
+    planner = dhrl.GraphPlanner(
+        dhrl.LandmarkGraph(cutoff=30.0, max_landmarks=20, early_stop=0.0), distance, 2
+    )
     env = TransformedEnv(env, Compose(high.make_primer(), planner.make_primer()))
     policy = TensorDictSequential(high, planner, dhrl.make_low_level_policy(actor))
 
-    rb = TensorDictReplayBuffer(storage=LazyTensorStorage(1000, ndim=2), batch_size=64)
+    rb = dhrl.RelabelReplayBuffer(  # samples come out with hindsight goals and rewards
+        storage=LazyTensorStorage(1000, ndim=2),
+        relabel=[dhrl.FutureGoalRelabel(window=150, goal_key="waypoint")],
+        batch_size=64,
+    )
     collector = Collector(env, policy, frames_per_batch=num_envs * 20, total_frames=num_envs * steps)
     for i, batch in enumerate(collector):
         assert batch.shape == (num_envs, 20)
@@ -40,8 +46,7 @@ def test_full_dhrl_pipeline_on_pointmaze():
             assert planner.has_graph and 2 <= planner.num_landmarks <= 20
     collector.shutdown()
 
-    relabel = dhrl.FutureGoalRelabel(rb, window=150, goal_key="waypoint")
-    sample = relabel(rb.sample())
+    sample = rb.sample()
     out = loss(sample)
     total = out["loss_policy_qvalue"] + out["loss_graph_qvalue"] + out["loss_actor"]
     assert torch.isfinite(total)

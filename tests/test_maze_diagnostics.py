@@ -17,7 +17,7 @@ from scipy.stats import spearmanr
 from tensordict import TensorDict
 
 from torchrl_dhrl.modules import HighLevelActor
-from torchrl_dhrl.planner import GraphPlanner, LandmarkGraph
+from torchrl_dhrl.planner import CutoffEdgeRule, GraphPlanner, LandmarkGraph
 from torchrl_dhrl.training import (
     MazeGeometry,
     feasibility_fractions,
@@ -247,7 +247,9 @@ def test_edges_crossing_walls_on_a_hand_made_graph():
     # 11.3 straight, a corner cut
     assert out["edges_shortcut"] == pytest.approx(2 / 6)
     keep = torch.tensor([[0.0, 1e9, 1.0], [1e9, 0.0, 1e9], [1.0, 1e9, 0.0]])  # only the free pair
-    graph = LandmarkGraph(cutoff=100.0, nn_factor=1.0).set_distance_matrix(goals, goals, keep)
+    graph = LandmarkGraph(cutoff=100.0, edge_rule=CutoffEdgeRule(nn_factor=1.0)).set_distance_matrix(
+        goals, goals, keep
+    )
     assert graph_quality(geometry, graph, coverage_radius=2.0)["edges_crossing_walls"] == 0.0
     empty = graph_quality(geometry, LandmarkGraph(), coverage_radius=2.0)
     assert all(math.isnan(v) for v in empty.values())
@@ -270,14 +272,18 @@ def test_rank_correlation_one_for_the_true_distance_lower_without_walls():
     def straight_steps(s, g):
         return (g - s[..., :2]).norm(dim=-1) / 0.2
 
-    true_planner = GraphPlanner(true_steps, goal_dim=2, cutoff=30.0, max_landmarks=40, early_stop=0.0)
+    true_planner = GraphPlanner(
+        LandmarkGraph(cutoff=30.0, max_landmarks=40, early_stop=0.0), true_steps, goal_dim=2
+    )
     true_planner.build(states, goals)
     out = graph_quality(geometry, true_planner, coverage_radius=2.0)
     assert out["distance_rank_corr"] == pytest.approx(1.0, abs=1e-6)
     assert out["graph_distance_rank_corr"] > 0.95
     # edges cut the walls' corners only: short detours, no shortcut through a wall
     assert 0.0 < out["edges_crossing_walls"] < 0.15 and out["edges_shortcut"] == 0.0
-    straight = GraphPlanner(straight_steps, goal_dim=2, cutoff=30.0, max_landmarks=40, early_stop=0.0)
+    straight = GraphPlanner(
+        LandmarkGraph(cutoff=30.0, max_landmarks=40, early_stop=0.0), straight_steps, goal_dim=2
+    )
     straight.build(states, goals)
     out = graph_quality(geometry, straight, coverage_radius=2.0)
     assert out["distance_rank_corr"] < 0.95  # 0.91: the pairs across the inner wall
@@ -322,7 +328,9 @@ def test_landmark_coverage():
 
 
 def test_maze_epoch_diagnostics_keys_and_arms():
-    planner = GraphPlanner(lambda s, g: (g - s[..., :2]).norm(dim=-1), goal_dim=2, cutoff=5.0, early_stop=0.0)
+    planner = GraphPlanner(
+        LandmarkGraph(cutoff=5.0, early_stop=0.0), lambda s, g: (g - s[..., :2]).norm(dim=-1), goal_dim=2
+    )
     geometry = MazeGeometry.from_maze("PointMaze", margin=0.5)
     states, goals = _candidates(geometry, 60)
     planner.build(states, goals)

@@ -10,12 +10,12 @@ from tensordict.nn import TensorDictModule
 
 from torchrl_dhrl.modules import (
     GoalConditionedCritic,
-    GoalDistance,
     LowLevelActor,
     distance_to_q,
     make_low_level_policy,
     q_to_distance,
 )
+from torchrl_dhrl.planner import GoalDistance
 
 OBS, GOAL, ACT = 6, 2, 3
 GAMMA = 0.99

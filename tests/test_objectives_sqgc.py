@@ -8,8 +8,9 @@ import torch
 from tensordict import TensorDict
 from torchrl.objectives import SoftUpdate
 
-from torchrl_dhrl.modules import GoalConditionedCritic, GoalDistance, LowLevelActor
+from torchrl_dhrl.modules import GoalConditionedCritic, LowLevelActor
 from torchrl_dhrl.objectives import SQGCLoss, make_optimizers
+from torchrl_dhrl.planner import GoalDistance
 
 OBS, GOAL, ACT, AMAX, GAMMA = 6, 2, 3, 2.0, 0.99
 

@@ -9,7 +9,7 @@ import pytest
 import torch
 from tensordict import TensorDict
 
-from torchrl_dhrl.planner import GraphPlanner, LandmarkGraph
+from torchrl_dhrl.planner import CutoffEdgeRule, GraphPlanner, LandmarkGraph
 
 INF = math.inf
 
@@ -50,7 +50,7 @@ def u_maze_candidates(spacing=0.5):
 
 def line_planner(max_path_length=32, **kwargs):
     """Six landmarks on the x axis at 0, 1, ..., 5, one unit (= one step) apart."""
-    planner = GraphPlanner(euclidean, 2, cutoff=1.5, max_path_length=max_path_length, **kwargs)
+    planner = GraphPlanner(LandmarkGraph(cutoff=1.5), euclidean, 2, max_path_length=max_path_length, **kwargs)
     points = torch.stack([torch.arange(6.0), torch.zeros(6)], -1)
     planner.graph.set_landmarks(points, points.clone(), euclidean)
     return planner
@@ -85,7 +85,7 @@ def test_edges_follow_cutoff_and_nearest_neighbour_rule():
     num = 60
     matrix = torch.rand(num, num, generator=gen) * 20
     matrix[:15] += 4.0  # landmarks with no neighbour within the cutoff: only the 1.2 x NN rule connects them
-    graph = LandmarkGraph(cutoff=3.0, nn_factor=1.2)
+    graph = LandmarkGraph(cutoff=3.0, edge_rule=CutoffEdgeRule(nn_factor=1.2))
     pts = torch.rand(num, 2, generator=gen)
     graph.set_distance_matrix(pts, pts.clone(), matrix)
     d = matrix.numpy().copy()
@@ -198,7 +198,7 @@ def test_batched_query_matches_networkx_dijkstra(num_landmarks, seed):
 def test_unreachable_subgoal_falls_back_to_nearest_reachable_landmark():
     # two islands: {0, 1, 2} reachable from the start, {3, 4} reachable from nowhere
     points = torch.tensor([[0.0, 0.0], [1.0, 0.0], [2.0, 0.0], [10.0, 0.0], [11.0, 0.0]])
-    graph = LandmarkGraph(cutoff=1.5, nn_factor=1.0)
+    graph = LandmarkGraph(cutoff=1.5, edge_rule=CutoffEdgeRule(nn_factor=1.0))
     graph.set_landmarks(points, points.clone(), euclidean)
     plan = graph.plan(torch.tensor([[0.0, 0.0]]), torch.tensor([[11.5, 0.0]]), euclidean)
     assert not plan.reachable.item() and math.isinf(plan.cost.item())
@@ -242,7 +242,7 @@ def test_direct_edge_wins_when_shorter_and_no_graph_means_subgoal():
     planner = line_planner()
     plan = planner.plan(torch.tensor([[2.0, 0.3]]), torch.tensor([[2.5, 0.3]]))
     assert plan.length.item() == 0 and plan.cost.item() == pytest.approx(0.5)
-    empty = GraphPlanner(euclidean, 2, cutoff=1.5)
+    empty = GraphPlanner(LandmarkGraph(cutoff=1.5), euclidean, 2)
     assert not empty.has_graph and torch.isinf(empty.distance_from_graph(torch.zeros(3, 2))).all()
     td = empty(step_td([[0.0, 0.0], [1.0, 1.0]], [7.0, 7.0], True))
     assert torch.equal(td["waypoint"], torch.full((2, 2), 7.0))
@@ -397,16 +397,20 @@ def test_batch_of_envs_with_different_subgoals_and_leading_dims():
 # ----------------------------------------------------------------------------- checkpoints
 def test_state_dict_round_trip_with_a_different_landmark_count():
     states, goals = u_maze_candidates(spacing=1.0)
-    source = GraphPlanner(line_of_sight_distance, 2, cutoff=6.0, max_landmarks=60, early_stop=2.0)
+    source = GraphPlanner(
+        LandmarkGraph(cutoff=6.0, max_landmarks=60, early_stop=2.0), line_of_sight_distance, 2
+    )
     source.build(states, goals)
-    other = GraphPlanner(line_of_sight_distance, 2, cutoff=6.0, max_landmarks=60, early_stop=2.0)
+    other = GraphPlanner(
+        LandmarkGraph(cutoff=6.0, max_landmarks=60, early_stop=2.0), line_of_sight_distance, 2
+    )
     other.build(states[:30], goals[:30])
     assert other.num_landmarks != source.num_landmarks
     buffer = io.BytesIO()
     torch.save(source.state_dict(), buffer)
     buffer.seek(0)
     other.load_state_dict(torch.load(buffer))
-    fresh = GraphPlanner(line_of_sight_distance, 2, cutoff=6.0)
+    fresh = GraphPlanner(LandmarkGraph(cutoff=6.0), line_of_sight_distance, 2)
     fresh.load_state_dict(source.state_dict())
     for target in (other, fresh):
         for name, value in source.state_dict().items():
@@ -420,13 +424,13 @@ def test_state_dict_round_trip_with_a_different_landmark_count():
 
 def test_input_validation():
     with pytest.raises(ValueError, match="goal_dim"):
-        GraphPlanner(euclidean, 0)
+        GraphPlanner(LandmarkGraph(), euclidean, 0)
     with pytest.raises(TypeError, match="callable"):
-        GraphPlanner(3.0, 2)
+        GraphPlanner(LandmarkGraph(), 3.0, 2)
     with pytest.raises(ValueError, match="cutoff"):
-        GraphPlanner(euclidean, 2, cutoff=-1.0)
+        LandmarkGraph(cutoff=-1.0)
     with pytest.raises(ValueError, match="start_fallback_factor"):
-        GraphPlanner(euclidean, 2, start_fallback_factor=0.5)
+        LandmarkGraph(start_fallback_factor=0.5)
     planner = line_planner()
     with pytest.raises(KeyError, match="subgoal"):
         planner(step_td([0.0, 0.0], [5.0, 0.0], True).exclude("subgoal"))

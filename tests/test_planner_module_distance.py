@@ -17,8 +17,7 @@ from torchrl.envs import TransformedEnv
 from torchrl_dhrl.envs import make_env
 
 from torchrl_dhrl.data import FutureGoalRelabel, HighLevelTransitionBuilder, HindsightSubgoalRelabel
-from torchrl_dhrl.planner import FrontierGoalShifting, GraphPlanner, LandmarkGraph
-from torchrl_dhrl.training.goal_shift import GoalShiftOnReset
+from torchrl_dhrl.planner import FrontierGoalShifting, GoalShiftOnReset, GraphPlanner, LandmarkGraph
 
 
 class ScaledEuclidean(nn.Module):
@@ -77,7 +76,7 @@ def assert_no_distance_state(owner):
 
 def test_module_distance_builds_and_plans_through_the_transform():
     distance = ScaledEuclidean(1.0)
-    planner = GraphPlanner(distance, goal_dim=2, cutoff=1.5, max_landmarks=20, early_stop=0.9)
+    planner = GraphPlanner(LandmarkGraph(cutoff=1.5, max_landmarks=20, early_stop=0.9), distance, goal_dim=2)
     assert planner.distance is distance
     points = line_points()
     planner.build(points, points.clone())
@@ -97,14 +96,14 @@ def test_module_distance_builds_and_plans_through_the_transform():
     buffer = io.BytesIO()
     torch.save(planner.state_dict(), buffer)
     buffer.seek(0)
-    other = GraphPlanner(ScaledEuclidean(1.0), goal_dim=2, cutoff=1.5)
+    other = GraphPlanner(LandmarkGraph(cutoff=1.5), ScaledEuclidean(1.0), goal_dim=2)
     other.load_state_dict(torch.load(buffer))
     assert torch.equal(other(query())["planner", "path"], planner(query())["planner", "path"])
     assert isinstance(copy.deepcopy(planner).distance, ScaledEuclidean)
 
 
 def test_reassigning_the_distance_takes_effect():
-    planner = GraphPlanner(ScaledEuclidean(1.0), goal_dim=2, cutoff=10.0, max_path_length=8)
+    planner = GraphPlanner(LandmarkGraph(cutoff=10.0), ScaledEuclidean(1.0), goal_dim=2, max_path_length=8)
     points = torch.stack([torch.arange(6.0), torch.zeros(6)], -1)
     planner.graph.set_landmarks(points, points.clone(), planner.distance)
     goal = torch.tensor([[7.0, 0.0]])  # 2 units past the last landmark
@@ -128,7 +127,9 @@ def test_reassigning_the_distance_takes_effect():
 def test_module_distance_in_env_mode():
     # PointMaze: obs[..., :2] is the position; the desired goal serves as the subgoal (no new_subgoal flag)
     distance = ScaledEuclidean(10.0)
-    planner = GraphPlanner(distance, goal_dim=2, cutoff=30.0, subgoal_key="desired_goal", max_path_length=8)
+    planner = GraphPlanner(
+        LandmarkGraph(cutoff=30.0), distance, goal_dim=2, subgoal_key="desired_goal", max_path_length=8
+    )
     env = TransformedEnv(make_env("PointMaze", num_envs=1, seed=0), planner)
     grid = torch.cartesian_prod(torch.arange(0.0, 8.5, 2.0), torch.arange(0.0, 8.5, 2.0))
     planner.graph.set_landmarks(torch.cat([grid, torch.zeros(grid.shape[0], 4)], -1), grid, distance)
@@ -141,7 +142,7 @@ def test_module_distance_in_env_mode():
 
 def test_fgs_and_goal_shift_with_a_module_distance():
     distance = ScaledEuclidean(1.0)
-    planner = GraphPlanner(distance, goal_dim=2, cutoff=1.5)
+    planner = GraphPlanner(LandmarkGraph(cutoff=1.5), distance, goal_dim=2)
     points = torch.tensor([[float(x), 0.0] for x in range(6)])
     planner.graph.set_landmarks(points, points.clone(), distance)
     fgs = FrontierGoalShifting(planner, noise=0.0, generator=torch.Generator().manual_seed(0))
@@ -153,7 +154,7 @@ def test_fgs_and_goal_shift_with_a_module_distance():
     assert (torch.cdist(out["desired_goal"][:1], points).min() < 1e-6).item()
     assert fgs.planner is planner and not list(fgs.state_dict()) and not list(fgs.parameters())
     # the planner can be replaced: an empty one shifts nothing
-    fgs.planner = GraphPlanner(ScaledEuclidean(1.0), goal_dim=2, cutoff=1.5)
+    fgs.planner = GraphPlanner(LandmarkGraph(cutoff=1.5), ScaledEuclidean(1.0), goal_dim=2)
     assert not fgs(td.clone())["goal_shifted"].any()
     assert "planner" not in fgs._modules
     with pytest.raises(TypeError, match="GraphPlanner"):
@@ -167,7 +168,7 @@ def test_fgs_and_goal_shift_with_a_module_distance():
 
 def test_gradual_penalty_with_a_module_distance():
     torch.manual_seed(0)
-    planner = GraphPlanner(ScaledEuclidean(10.0), goal_dim=2, cutoff=30.0)
+    planner = GraphPlanner(LandmarkGraph(cutoff=30.0), ScaledEuclidean(10.0), goal_dim=2)
     points = torch.tensor([[float(x), 0.0] for x in range(6)])
     planner.graph.set_landmarks(points, points.clone(), planner.distance)
     sample = TensorDict(
@@ -199,10 +200,7 @@ def test_gradual_penalty_with_a_module_distance():
 
 
 def test_other_callables_stay_plain_attributes():
-    from torchrl.data import LazyTensorStorage, TensorDictReplayBuffer
-
-    rb = TensorDictReplayBuffer(storage=LazyTensorStorage(8))
-    future = FutureGoalRelabel(rb, reward_fn=ModuleReward())
+    future = FutureGoalRelabel(reward_fn=ModuleReward())
     for owner in (future, HighLevelTransitionBuilder(reward_fn=ModuleReward())):
         assert_no_distance_state(owner)
         owner.reward_fn = lambda achieved, goal: achieved[..., :1]  # was: TypeError (child module)

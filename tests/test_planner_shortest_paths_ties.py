@@ -300,7 +300,9 @@ def test_random_lattice_plans_are_sound():
 
 
 def test_graph_planner_on_a_lattice_plans_the_full_route():
-    planner = GraphPlanner(lattice_distance, 2, cutoff=30.0, max_landmarks=64, max_path_length=8)
+    planner = GraphPlanner(
+        LandmarkGraph(cutoff=30.0, max_landmarks=64), lattice_distance, 2, max_path_length=8
+    )
     points = torch.tensor(LATTICE)
     planner.graph.set_landmarks(points, points.clone(), lattice_distance)
     start, subgoal = torch.tensor([QUERY[0]]), torch.tensor([QUERY[1]])

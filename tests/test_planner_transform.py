@@ -11,7 +11,7 @@ from torchrl.envs.transforms import Transform
 from torchrl.envs.utils import check_env_specs
 from torchrl.testing.mocking_classes import ContinuousActionVecMockEnv
 
-from torchrl_dhrl.planner import GraphPlanner
+from torchrl_dhrl.planner import GraphPlanner, LandmarkGraph
 from torchrl_dhrl.planner.graph_planner import STATE_ENTRIES
 
 SUBGOAL = (2.5, 2.5)
@@ -26,7 +26,7 @@ def grid_planner(**kwargs):
     xs = torch.arange(-3.0, 3.5, 1.0)
     goals = torch.cartesian_prod(xs, xs)
     states = torch.cat([goals, torch.zeros(goals.shape[0], 5)], -1)
-    planner = GraphPlanner(euclidean, 2, cutoff=1.5, **kwargs)
+    planner = GraphPlanner(LandmarkGraph(cutoff=1.5), euclidean, 2, **kwargs)
     planner.graph.set_landmarks(states, goals, euclidean)
     return planner
 

@@ -99,6 +99,7 @@ def test_resume_continues_exactly(tmp_path):
         ("PointMaze", "fgs.enabled=true"),
         ("PointMaze", "high.c_h=5"),
         ("PointMaze", "planner.build_dtype=bfloat16"),
+        ("Reacher3D", "angle_features=[4,6]"),
     ],
 )
 def test_ablation_switches_run(env, override, tmp_path):
@@ -313,4 +314,10 @@ def test_flat_evaluation_uses_the_same_goals_and_changes_nothing_else(tmp_path, 
         assert float(row["eval/flat_final_distance"]) > 0
         for key in ("subgoal_goal_distance", "subgoal_reached", "segment_progress", "graph_steps"):
             assert row[f"diag/{key}"] != ""
+    # the learned distances: from the graph once there is one (NaN in the warm-up epoch without a graph)
+    assert rows_flat[0]["diag/subgoal_graph_distance"] == "nan"
+    for row in rows_flat[1:]:
+        assert float(row["diag/subgoal_graph_distance"]) >= 0
+        assert 0.0 <= float(row["diag/subgoals_far_from_graph"]) <= 1.0
+        assert float(row["diag/subgoal_learned_distance"]) >= 0
     assert "eval/flat_success" not in rows_plain[0]

@@ -6,10 +6,10 @@ import pytest
 import torch
 from tensordict import TensorDict
 from torchrl.collectors import Collector
-from torchrl.data import Bounded, Composite, LazyTensorStorage, TensorDictReplayBuffer, Unbounded
+from torchrl.data import Bounded, Composite, LazyTensorStorage, Unbounded
 from torchrl.envs import EnvBase, SerialEnv, StepCounter, TransformedEnv
 
-from torchrl_dhrl.data import FutureGoalRelabel
+from torchrl_dhrl.data import FutureGoalRelabel, RelabelReplayBuffer
 
 
 class TraceableGoalEnv(EnvBase):
@@ -68,11 +68,9 @@ def test_collector_batches_never_cross_episodes(layout):
     collector = Collector(
         env, None, frames_per_batch=num_envs * horizon, total_frames=num_envs * horizon * 10
     )
-    if layout == "ndim2":
-        rb = TensorDictReplayBuffer(storage=LazyTensorStorage(num_envs * 64, ndim=2), batch_size=2048)
-    else:
-        rb = TensorDictReplayBuffer(storage=LazyTensorStorage(num_envs * 64), batch_size=2048)
-    relabel = FutureGoalRelabel(rb, window=window)
+    relabel = FutureGoalRelabel(window=window)
+    storage = LazyTensorStorage(num_envs * 64, ndim=2 if layout == "ndim2" else 1)
+    rb = RelabelReplayBuffer(storage=storage, relabel=[relabel], batch_size=2048)
     last_step: dict[int, int] = {}
     try:
         for batch in collector:
@@ -80,7 +78,7 @@ def test_collector_batches_never_cross_episodes(layout):
             for uid, step in batch["next", "achieved_goal"].reshape(-1, 2).long().tolist():
                 last_step[uid] = max(step, last_step.get(uid, 0))
             rb.extend(batch if layout == "ndim2" else batch.reshape(-1))
-            sample = relabel(rb.sample())
+            sample = rb.sample()
             for key in ("goal", "graph_goal"):
                 goal, achieved = sample[key], sample["achieved_goal"]
                 relabelled = goal[:, 0] != -1000.0
@@ -92,6 +90,8 @@ def test_collector_batches_never_cross_episodes(layout):
             if layout == "ndim2":  # episode-contiguous lanes: the full window is used
                 uid, step = sample["achieved_goal"].long().unbind(-1)
                 expected = (torch.tensor([last_step[int(u)] for u in uid]) - step).clamp(max=window)
-                assert torch.equal(relabel.window_lengths(sample["index"]), expected)
+                assert torch.equal(
+                    relabel.window_lengths(sample["index"], rb.storage, rb.newest_index), expected
+                )
     finally:
         collector.shutdown()

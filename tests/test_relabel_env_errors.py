@@ -13,9 +13,8 @@ MESSAGE = "is not an environment transform"
 
 
 def sample_transforms():
-    rb = TensorDictReplayBuffer(storage=LazyTensorStorage(8))
     return {
-        "future": FutureGoalRelabel(rb),
+        "future": FutureGoalRelabel(),
         "hindsight": HindsightSubgoalRelabel(),
         "builder": HighLevelTransitionBuilder(),
     }

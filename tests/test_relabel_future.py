@@ -16,7 +16,7 @@ from tensordict import TensorDict
 from torchrl.data import LazyTensorStorage, ListStorage, ReplayBuffer, TensorDictReplayBuffer
 from torchrl.envs import Compose, RenameTransform
 
-from torchrl_dhrl.data import FutureGoalRelabel, SparseGoalReward
+from torchrl_dhrl.data import FutureGoalRelabel, RelabelReplayBuffer, SparseGoalReward
 
 SENTINEL = -1000.0  # the stored (chased) goal: never an achieved goal
 
@@ -106,11 +106,19 @@ def sparse_reward(achieved: torch.Tensor, goal: torch.Tensor, threshold: float =
     return torch.where(distance > threshold, -1.0, 0.0)
 
 
-def filled_buffer(stream: GoalStream, capacity: int, cycles: int, horizon: int) -> TensorDictReplayBuffer:
-    rb = TensorDictReplayBuffer(storage=LazyTensorStorage(capacity, ndim=2), batch_size=512)
+def filled_buffer(
+    stream: GoalStream, capacity: int, cycles: int, horizon: int, *relabel
+) -> RelabelReplayBuffer:
+    rb = RelabelReplayBuffer(storage=LazyTensorStorage(capacity, ndim=2), relabel=relabel, batch_size=512)
     for _ in range(cycles):
         rb.extend(stream.batch(horizon))
     return rb
+
+
+def relabelled(rb: RelabelReplayBuffer, relabel: FutureGoalRelabel, batch_size: int | None = None):
+    """A sample of ``rb`` relabelled by ``relabel`` called directly, as the buffer calls its steps."""
+    sample, info = rb.sample(batch_size, return_info=True)
+    return relabel.relabel_sample(sample, info["index"], rb.storage, newest_index=rb.newest_index)
 
 
 # ---------------------------------------------------------------------------------------------------
@@ -118,14 +126,14 @@ def filled_buffer(stream: GoalStream, capacity: int, cycles: int, horizon: int) 
 def test_goals_same_episode_within_window_multi_env(window):
     torch.manual_seed(0)
     stream = GoalStream(num_envs=4, min_len=5, max_len=40, seed=1)
-    rb = TensorDictReplayBuffer(storage=LazyTensorStorage(4 * 64, ndim=2), batch_size=1024)
-    relabel = FutureGoalRelabel(rb, window=window)
+    relabel = FutureGoalRelabel(window=window)
+    rb = RelabelReplayBuffer(storage=LazyTensorStorage(4 * 64, ndim=2), relabel=[relabel], batch_size=1024)
     for _ in range(12):  # 12 x 16 steps on a 64-step circular time line: wraps around twice
         rb.extend(stream.batch(16))
-        sample = relabel(rb.sample())
+        sample = rb.sample()
         expected = stream.expected_window(sample["achieved_goal"], window)
         coords = sample["index"]
-        assert torch.equal(relabel.window_lengths(coords), expected)
+        assert torch.equal(relabel.window_lengths(coords, rb.storage, rb.newest_index), expected)
         for key in ("goal", "graph_goal"):
             check_goals(sample, key, expected)
             assert torch.equal(sample["next", key], sample[key])
@@ -134,12 +142,12 @@ def test_goals_same_episode_within_window_multi_env(window):
 def test_her_ratio_binomial():
     torch.manual_seed(1)
     stream = GoalStream(num_envs=3, min_len=10, max_len=30, seed=2)
-    rb = filled_buffer(stream, 3 * 200, cycles=5, horizon=30)
     relabel = FutureGoalRelabel(
-        rb, her_ratio=(0.8, 1.0, 0.3, 0.0), out_keys=["a", "b", "c", "d"], reward_keys=None
+        her_ratio=(0.8, 1.0, 0.3, 0.0), out_keys=["a", "b", "c", "d"], reward_keys=None
     )
+    rb = filled_buffer(stream, 3 * 200, 5, 30, relabel)
     n = 20_000
-    sample = relabel(rb.sample(n))
+    sample = rb.sample(n)
     for key, ratio in (("a", 0.8), ("c", 0.3)):
         fraction = check_goals(sample, key).double().mean().item()
         sigma = math.sqrt(ratio * (1 - ratio) / n)
@@ -151,9 +159,8 @@ def test_her_ratio_binomial():
 def test_rewards_match_relabelled_goals():
     torch.manual_seed(2)
     stream = GoalStream(num_envs=2, min_len=3, max_len=12, seed=3)
-    rb = filled_buffer(stream, 2 * 100, cycles=4, horizon=25)
-    relabel = FutureGoalRelabel(rb, window=5)
-    sample = relabel(rb.sample(4096))
+    rb = filled_buffer(stream, 2 * 100, 4, 25, FutureGoalRelabel(window=5))
+    sample = rb.sample(4096)
     for goal_key, reward_key in (("goal", "reward"), ("graph_goal", "graph_reward")):
         expected = sparse_reward(sample["next", "achieved_goal"], sample[goal_key]).float()
         assert torch.equal(sample["next", reward_key], expected)
@@ -167,13 +174,13 @@ def test_rewards_match_relabelled_goals():
 
 def test_custom_reward_fn():
     stream = GoalStream(num_envs=2, min_len=3, max_len=12, seed=4)
-    rb = filled_buffer(stream, 2 * 50, cycles=2, horizon=20)
 
     def negative_distance(achieved, goal):
         return -(achieved - goal).norm(dim=-1)  # [B]: the transform adds the trailing dim
 
-    relabel = FutureGoalRelabel(rb, negative_distance, her_ratio=1.0, out_keys=["goal"], reward_keys=["r"])
-    sample = relabel(rb.sample(256))
+    relabel = FutureGoalRelabel(negative_distance, her_ratio=1.0, out_keys=["goal"], reward_keys=["r"])
+    rb = filled_buffer(stream, 2 * 50, 2, 20, relabel)
+    sample = rb.sample(256)
     ahead = sample["goal"][..., 1] - sample["next", "achieved_goal"][..., 1]
     torch.testing.assert_close(sample["r"], -ahead.unsqueeze(-1))
 
@@ -184,14 +191,13 @@ def test_offsets_uniform_on_support(n_valid):
     window = 10
     # one env, one long episode stored; transition t has min(T_t, W) = n_valid future records
     stream = GoalStream(num_envs=1, min_len=40, max_len=40, seed=5)
-    rb = filled_buffer(stream, 64, cycles=1, horizon=40)
-    relabel = FutureGoalRelabel(rb, window=window, her_ratio=1.0, out_keys=["goal"], reward_keys=None)
+    rb = filled_buffer(stream, 64, 1, 40)
+    relabel = FutureGoalRelabel(window=window, her_ratio=1.0, out_keys=["goal"], reward_keys=None)
     t = 40 - n_valid
     draws = 40_000
     index = torch.tensor([[t, 0]]).expand(draws, 2)
     sample = rb.storage.get((index[:, 0], index[:, 1]))
-    sample.set("index", index)
-    out = relabel(sample)
+    out = relabel.relabel_sample(sample, index, rb.storage, newest_index=rb.newest_index)
     offset = (out["goal"][:, 1] - out["next", "achieved_goal"][:, 1]).long()
     counts = torch.bincount(offset, minlength=window)
     assert counts[n_valid:].sum() == 0 and (counts[:n_valid] > 0).all()
@@ -202,17 +208,17 @@ def test_flat_storage_pitfall_and_traj_ids():
     """rb.extend(batch.reshape(-1)) interleaves envs: done flags alone let goals cross episodes."""
     torch.manual_seed(4)
     stream = GoalStream(num_envs=4, min_len=20, max_len=60, seed=6)
-    rb = TensorDictReplayBuffer(storage=LazyTensorStorage(10_000), batch_size=4096)
+    rb = RelabelReplayBuffer(storage=LazyTensorStorage(10_000), batch_size=4096)
     for _ in range(6):
         rb.extend(stream.batch(25).reshape(-1))
-    naive = FutureGoalRelabel(rb, her_ratio=1.0, out_keys=["goal"], traj_key=None, step_count_key=None)
-    sample = naive(rb.sample())
+    naive = FutureGoalRelabel(her_ratio=1.0, out_keys=["goal"], traj_key=None, step_count_key=None)
+    sample = relabelled(rb, naive)
     crossed = sample["goal"][:, 0] != sample["achieved_goal"][:, 0]
     assert crossed.double().mean() > 0.05  # the pitfall is real
     # trajectory ids tell interleaved chunks apart (step counts alone can coincide across envs)
     for markers in ({}, {"step_count_key": None, "done_key": None}):
-        relabel = FutureGoalRelabel(rb, her_ratio=1.0, out_keys=["goal"], **markers)
-        sample = relabel(rb.sample())
+        relabel = FutureGoalRelabel(her_ratio=1.0, out_keys=["goal"], **markers)
+        sample = relabelled(rb, relabel)
         check_goals(sample, "goal")
         uid, step = sample["achieved_goal"][:, 0].long(), sample["achieved_goal"][:, 1].long()
         remaining = torch.tensor([stream.episode_length[int(u)] for u in uid]) - step
@@ -224,17 +230,18 @@ def test_wrap_around_seam_without_trajectory_ids():
     torch.manual_seed(5)
     stream = GoalStream(num_envs=2, min_len=4, max_len=4, seed=7)
     # 12 time slots = 3 episodes; 5-step batches leave the newest episode of each env unfinished
-    rb = TensorDictReplayBuffer(storage=LazyTensorStorage(2 * 12, ndim=2), batch_size=2048)
-    relabel = FutureGoalRelabel(rb, window=4, her_ratio=1.0, out_keys=["goal"], traj_key=None)
+    relabel = FutureGoalRelabel(window=4, her_ratio=1.0, out_keys=["goal"], traj_key=None)
+    rb = RelabelReplayBuffer(storage=LazyTensorStorage(2 * 12, ndim=2), relabel=[relabel], batch_size=2048)
     seen_seam = False
     for _ in range(9):
         rb.extend(stream.batch(5))
-        sample = relabel(rb.sample())
+        sample = rb.sample()
         expected = stream.expected_window(sample["achieved_goal"], 4)
         check_goals(sample, "goal", expected)
+        assert rb.newest_index == rb.storage._last_cursor_index  # tracked from extend's indices
         if not rb.storage._is_full:
             continue
-        newest = rb.storage._last_cursor_index
+        newest = rb.newest_index
         following = rb.storage.get(((newest + 1) % 12, 0))
         newest_td = rb.storage.get((newest, 0))
         if not newest_td["next", "done"].item():
@@ -242,22 +249,32 @@ def test_wrap_around_seam_without_trajectory_ids():
     assert seen_seam  # the markers alone could not have told the seam apart
 
 
-def test_seam_after_load_state_dict_uses_writer_cursor():
+def test_seam_after_load_state_dict_uses_the_saved_newest_index():
     torch.manual_seed(6)
     stream = GoalStream(num_envs=2, min_len=4, max_len=4, seed=8)
-    rb = filled_buffer(stream, 2 * 12, cycles=7, horizon=5)
+    rb = filled_buffer(stream, 2 * 12, 7, 5)
     state = rb.state_dict()
-    restored = TensorDictReplayBuffer(storage=LazyTensorStorage(2 * 12, ndim=2), batch_size=2048)
+    relabel = FutureGoalRelabel(window=4, her_ratio=1.0, out_keys=["goal"], traj_key=None)
+    restored = RelabelReplayBuffer(
+        storage=LazyTensorStorage(2 * 12, ndim=2), relabel=[relabel], batch_size=2048
+    )
     restored.load_state_dict(state)
     assert restored.storage._is_full and restored.storage._last_cursor_index is None
     newest = 34 % 12  # 35 steps written: the newest record (step 2 of 4) is followed by an old step 3
+    assert restored.newest_index == newest  # saved by the buffer, not read from the storage
     assert (
         restored.storage.get((newest + 1, 0))["step_count"]
         == restored.storage.get((newest, 0))["step_count"] + 1
     )
-    relabel = FutureGoalRelabel(restored, window=4, her_ratio=1.0, out_keys=["goal"], traj_key=None)
-    sample = relabel(restored.sample())
+    sample = restored.sample()
     check_goals(sample, "goal", stream.expected_window(sample["achieved_goal"], 4))
+    # a plain TensorDictReplayBuffer's state: the position is unknown, the markers alone guard the seam
+    plain = TensorDictReplayBuffer(storage=LazyTensorStorage(2 * 12, ndim=2))
+    plain.load_state_dict(state)
+    restored.load_state_dict(plain.state_dict())
+    assert restored.newest_index is None
+    with pytest.warns(UserWarning, match="newest write position is unknown"):
+        restored.sample()
 
 
 @pytest.mark.parametrize("batch_size", [[], [4], [6, 4]])
@@ -277,9 +294,8 @@ def test_batch_shapes_without_buffer(batch_size, ndim):
         storage.set(range(40), data)
         index = torch.randint(40, batch_size)
         sample = storage.get(index)
-    sample.set("index", index)
     assert sample.batch_size == torch.Size(batch_size)
-    out = FutureGoalRelabel(storage, window=6)(sample)
+    out = FutureGoalRelabel(window=6).relabel_sample(sample, index, storage)
     assert out["goal"].shape == torch.Size([*batch_size, 2])
     assert out["next", "graph_reward"].shape == torch.Size([*batch_size, 1])
     check_goals(out, "graph_goal")
@@ -289,39 +305,41 @@ def test_batch_shapes_without_buffer(batch_size, ndim):
 def test_inside_replay_buffer_and_composed():
     torch.manual_seed(8)
     stream = GoalStream(num_envs=2, min_len=5, max_len=15, seed=10)
-    rb = TensorDictReplayBuffer(storage=LazyTensorStorage(2 * 50, ndim=2), batch_size=128)
+    pipeline = Compose(
+        FutureGoalRelabel(window=8),
+        RenameTransform([("next", "graph_reward")], [("next", "reward")]),
+    )
+    rb = RelabelReplayBuffer(storage=LazyTensorStorage(2 * 50, ndim=2), relabel=pipeline, batch_size=128)
+    assert len(rb.relabel) == 2  # a Compose is unpacked into steps
     # a buffer transform runs at sampling time, before the relabel
     rb.append_transform(RenameTransform(["observation"], ["state"], create_copy=True))
     rb.extend(stream.batch(30))
-    pipeline = Compose(
-        FutureGoalRelabel(rb, window=8),
-        RenameTransform([("next", "graph_reward")], [("next", "reward")]),
-    )
-    out = pipeline(rb.sample())
+    out = rb.sample()
     assert "state" in out.keys() and ("next", "reward") in out.keys(True)
     assert ("next", "graph_reward") not in out.keys(True)
     check_goals(out, "graph_goal", stream.expected_window(out["achieved_goal"], 8))
     torch.testing.assert_close(
         out["next", "reward"], sparse_reward(out["next", "achieved_goal"], out["graph_goal"]).float()
     )
-    # appended inside the buffer it cannot see the sample's storage coordinates: a clear error
-    rb.append_transform(FutureGoalRelabel(rb))
-    with pytest.raises(ValueError, match="TensorDictReplayBuffer.sample"):
+    # appended as a transform it cannot see the sample's storage coordinates: a clear error
+    rb.append_transform(FutureGoalRelabel())
+    with pytest.raises(RuntimeError, match=r"RelabelReplayBuffer\(storage=..., relabel="):
         rb.sample()
     plain = ReplayBuffer(storage=LazyTensorStorage(100), batch_size=8)
     plain.extend(stream.batch(10)[0])
-    plain.append_transform(FutureGoalRelabel(plain))
-    with pytest.raises(KeyError, match="TensorDictReplayBuffer.sample"):
+    plain.append_transform(FutureGoalRelabel())
+    with pytest.raises(RuntimeError, match="relabel_sample"):
         plain.sample()
+    with pytest.raises(RuntimeError, match="relabel_sample"):
+        pipeline(out)
 
 
 def test_in_place_relabel_key():
     stream = GoalStream(num_envs=2, min_len=5, max_len=15, seed=11)
-    rb = filled_buffer(stream, 2 * 50, cycles=1, horizon=30)
     relabel = FutureGoalRelabel(
-        rb, her_ratio=1.0, out_keys=["desired_goal"], reward_keys=[("next", "reward")], window=3
+        her_ratio=1.0, out_keys=["desired_goal"], reward_keys=[("next", "reward")], window=3
     )
-    out = relabel(rb.sample(64))
+    out = filled_buffer(stream, 2 * 50, 1, 30, relabel).sample(64)
     assert check_goals(out, "desired_goal").all()
     assert torch.equal(out["next", "desired_goal"], out["desired_goal"])
     assert torch.equal(
@@ -331,36 +349,46 @@ def test_in_place_relabel_key():
 
 def test_errors():
     stream = GoalStream(num_envs=2, min_len=5, max_len=15, seed=12)
-    rb = filled_buffer(stream, 2 * 50, cycles=1, horizon=10)
-    with pytest.raises(TypeError, match="TensorStorage"):
-        FutureGoalRelabel(ListStorage(10))
-    with pytest.raises(ValueError, match="her_ratio"):
-        FutureGoalRelabel(rb, her_ratio=(0.8, 1.2))
-    with pytest.raises(ValueError, match="one out_key per her_ratio"):
-        FutureGoalRelabel(rb, her_ratio=0.8)
-    with pytest.raises(ValueError, match="one reward key"):
-        FutureGoalRelabel(rb, reward_keys=["r"])
-    with pytest.raises(ValueError, match="window"):
-        FutureGoalRelabel(rb, window=0)
-    with pytest.raises(TypeError, match="callable"):
-        FutureGoalRelabel(rb, reward_fn=3)
-    with pytest.raises(ValueError, match="At least one"):
-        FutureGoalRelabel(rb, traj_key=None, done_key=None, step_count_key=None)
-    relabel = FutureGoalRelabel(rb)
+    rb = filled_buffer(stream, 2 * 50, 1, 10)
+    storage = rb.storage
     sample = rb.sample(8)
+    index = sample["index"]
+    with pytest.raises(TypeError, match="TensorStorage"):
+        FutureGoalRelabel().relabel_sample(sample.clone(), index, ListStorage(10))
+    with pytest.raises(TypeError, match="does not take the replay buffer"):
+        FutureGoalRelabel(rb)  # the former signature
+    with pytest.raises(ValueError, match="her_ratio"):
+        FutureGoalRelabel(her_ratio=(0.8, 1.2))
+    with pytest.raises(ValueError, match="one out_key per her_ratio"):
+        FutureGoalRelabel(her_ratio=0.8)
+    with pytest.raises(ValueError, match="one reward key"):
+        FutureGoalRelabel(reward_keys=["r"])
+    with pytest.raises(ValueError, match="window"):
+        FutureGoalRelabel(window=0)
+    with pytest.raises(TypeError, match="callable"):
+        FutureGoalRelabel(reward_fn=3)
+    with pytest.raises(ValueError, match="At least one"):
+        FutureGoalRelabel(traj_key=None, done_key=None, step_count_key=None)
+    relabel = FutureGoalRelabel()
     with pytest.raises(ValueError, match="storage coordinates"):
-        relabel(sample.clone().set("index", sample["index"][:, :1]))
+        relabel.relabel_sample(sample.clone(), index[:, :1], storage)
+    with pytest.raises(TypeError, match="integer storage coordinates"):
+        relabel.relabel_sample(sample.clone(), index.float(), storage)
     with pytest.raises(KeyError, match="desired_goal"):
-        relabel(sample.exclude("desired_goal"))
+        relabel.relabel_sample(sample.exclude("desired_goal"), index, storage)
     with pytest.raises(KeyError, match="none of the episode markers"):
-        FutureGoalRelabel(rb, traj_key="missing", step_count_key=None, done_key=None)(sample.clone())
+        FutureGoalRelabel(traj_key="missing", step_count_key=None, done_key=None).relabel_sample(
+            sample.clone(), index, storage
+        )
     empty = TensorDictReplayBuffer(storage=LazyTensorStorage(10, ndim=2))
     with pytest.raises(RuntimeError, match="empty"):
-        FutureGoalRelabel(empty)(sample.clone())
+        relabel.relabel_sample(sample.clone(), index, empty.storage)
     with pytest.raises(RuntimeError, match="not inside an environment"):
         relabel._call(sample)
+    with pytest.raises(RuntimeError, match="relabel_sample"):
+        relabel(sample.clone())
     with pytest.raises(ValueError, match="reward_fn must return"):
-        FutureGoalRelabel(rb, lambda a, g: a)(sample.clone())
+        FutureGoalRelabel(lambda a, g: a).relabel_sample(sample.clone(), index, storage)
 
 
 def test_plain_replay_buffer_is_accepted():
@@ -368,5 +396,4 @@ def test_plain_replay_buffer_is_accepted():
     rb = ReplayBuffer(storage=LazyTensorStorage(100), batch_size=16)
     rb.extend(stream.batch(50)[0])
     sample, info = rb.sample(return_info=True)
-    sample.set("index", info["index"])
-    check_goals(FutureGoalRelabel(rb, window=5)(sample), "graph_goal")
+    check_goals(FutureGoalRelabel(window=5).relabel_sample(sample, info["index"], rb.storage), "graph_goal")

@@ -16,8 +16,9 @@ import torch
 from tensordict import TensorDict
 from torchrl.objectives import SoftUpdate
 
-from torchrl_dhrl.modules import GoalConditionedCritic, GoalDistance, LowLevelActor
+from torchrl_dhrl.modules import GoalConditionedCritic, LowLevelActor
 from torchrl_dhrl.objectives import SQGCLoss, make_optimizers
+from torchrl_dhrl.planner import GoalDistance
 
 N_CELLS = 10
 EPISODE = 20

@@ -103,3 +103,25 @@ def test_resolve_device():
     if not torch.cuda.is_available():
         with pytest.raises(ConfigError, match="CUDA"):
             resolve_device("cuda")
+
+
+@pytest.mark.parametrize(
+    "env, value, ok",
+    [
+        ("Reacher3D", "[4,6]", True),
+        ("Reacher3D", "null", True),
+        ("Reacher3D", "[4,4]", False),  # repeated
+        ("Reacher3D", "[17]", False),  # outside the 17-D observation
+        ("Reacher3D", "[]", False),
+        ("Reacher3D", "[1.5]", False),
+        ("AntMaze", "[0]", False),  # the achieved goal's (x, y) are not angles
+        ("AntMaze", "[5,6]", True),
+    ],
+)
+def test_angle_features_values(env, value, ok):
+    cfg = recipe_config(f"env={env}", f"angle_features={value}")
+    if ok:
+        validate_config(cfg)
+    else:
+        with pytest.raises(ConfigError, match="angle_features"):
+            validate_config(cfg)

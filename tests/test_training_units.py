@@ -15,10 +15,14 @@ from torchrl_dhrl.envs import make_env
 
 from torchrl_dhrl.modules import GoalConditionedCritic, HighLevelActor
 from torchrl_dhrl.objectives import HighLevelLoss, make_optimizers
-from torchrl_dhrl.planner import FrontierGoalShifting, GraphPlanner
-from torchrl_dhrl.training import (
+from torchrl_dhrl.planner import (
+    FrontierGoalShifting,
     GoalShiftOnReset,
+    GraphPlanner,
+    LandmarkGraph,
     LineOfSightDistance,
+)
+from torchrl_dhrl.training import (
     LossUpdater,
     NonFiniteLossError,
     evaluate,
@@ -216,7 +220,7 @@ def test_line_of_sight_axis_parallel_and_broadcast():
 # ---------------------------------------------------------------- FGS inside the env
 def _line_planner():
     dist = lambda s, g: (g - s[..., :2]).norm(dim=-1) / 0.2  # noqa: E731
-    planner = GraphPlanner(dist, goal_dim=2, cutoff=30.0, max_landmarks=20, early_stop=0.0)
+    planner = GraphPlanner(LandmarkGraph(cutoff=30.0, max_landmarks=20, early_stop=0.0), dist, goal_dim=2)
     ys = torch.linspace(0, 8, 41)
     line = torch.stack([torch.zeros_like(ys), ys], -1)  # covers PointMaze's test goal (0, 8)
     states = torch.cat([line, torch.zeros(41, 4)], -1)  # PointMaze observations: x, y, yaw, velocities
@@ -249,7 +253,7 @@ def test_goal_shift_on_reset_in_env():
 
 
 def test_goal_shift_without_graph_keeps_goals_and_partial_reset():
-    planner = GraphPlanner(lambda s, g: (g - s[..., :2]).norm(dim=-1), goal_dim=2, cutoff=30.0)
+    planner = GraphPlanner(LandmarkGraph(cutoff=30.0), lambda s, g: (g - s[..., :2]).norm(dim=-1), goal_dim=2)
     env = TransformedEnv(
         make_env("PointMaze", num_envs=2, seed=0, max_episode_steps=3),
         GoalShiftOnReset(FrontierGoalShifting(planner)),

@@ -1,21 +1,35 @@
 """torchrl-dhrl: DHRL (Lee et al., NeurIPS 2022) as TorchRL components.
 
 Layout mirrors the algorithm's levels and TorchRL's kinds of parts:
-``modules`` (actors, exploration, critics, learned distance), ``objectives`` (SQGC and high-level losses),
-``planner`` (landmark graph, shortest paths, ``GraphPlanner`` transform, FGS), ``data`` (relabelling for
-both replay buffers) and ``envs`` (the paper's MuJoCo mazes).
+``modules`` (actors, exploration, critics), ``objectives`` (SQGC and high-level losses),
+``planner`` (temporal distances, landmark graph and edge rules, shortest paths, ``GraphPlanner`` transform,
+FGS), ``data`` (relabelling for both replay buffers) and ``envs`` (the paper's MuJoCo tasks, the goal-env
+contract ``check_goal_env`` and ``register_env`` for user environments); from ``training`` (the recipe's
+machinery) the update step ``LossUpdater`` and ``evaluate``.
 """
 
 from torchrl_dhrl.data import *  # noqa: F403
 from torchrl_dhrl.data import __all__ as _data_all
-from torchrl_dhrl.envs import make_env
+from torchrl_dhrl.envs import check_goal_env, make_env, register_env
 from torchrl_dhrl.modules import *  # noqa: F403
 from torchrl_dhrl.modules import __all__ as _modules_all
 from torchrl_dhrl.objectives import *  # noqa: F403
 from torchrl_dhrl.objectives import __all__ as _objectives_all
 from torchrl_dhrl.planner import *  # noqa: F403
 from torchrl_dhrl.planner import __all__ as _planner_all
+from torchrl_dhrl.training import LossUpdater, NonFiniteLossError, evaluate
 
 __version__ = "0.2.0"
 
-__all__ = ["make_env", *_data_all, *_modules_all, *_objectives_all, *_planner_all]
+__all__ = [
+    "LossUpdater",
+    "NonFiniteLossError",
+    "check_goal_env",
+    "evaluate",
+    "make_env",
+    "register_env",
+    *_data_all,
+    *_modules_all,
+    *_objectives_all,
+    *_planner_all,
+]

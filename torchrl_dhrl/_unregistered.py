@@ -4,7 +4,7 @@ from __future__ import annotations
 
 from typing import Any
 
-__all__ = ["UnregisteredAttributes"]
+__all__ = ["UnregisteredAttributes", "callable_attribute"]
 
 
 class UnregisteredAttributes:
@@ -53,3 +53,38 @@ class UnregisteredAttributes:
             object.__setattr__(self, name, value)
         else:
             super().__setattr__(name, value)
+
+
+def callable_attribute(name: str, contract: str, doc: str) -> property:
+    """A property holding a callable in the instance ``__dict__``, for a name listed in ``_unregistered``.
+
+    Assignments are checked (``TypeError`` naming ``name`` and the ``contract`` for anything that is not
+    callable) and stored under ``"_<name>"``, outside ``nn.Module`` registration.
+
+    Examples:
+        >>> import torch
+        >>> from torch import nn
+        >>> class Scorer(UnregisteredAttributes, nn.Module):
+        ...     _unregistered = ("score_fn",)
+        ...     score_fn = callable_attribute("score_fn", "(x) -> score", "The scoring function.")
+        >>> scorer = Scorer()
+        >>> scorer.score_fn = torch.sum
+        >>> scorer.score_fn is torch.sum, Scorer.score_fn.__doc__
+        (True, 'The scoring function.')
+        >>> try:
+        ...     scorer.score_fn = 3
+        ... except TypeError as err:
+        ...     print(err)
+        `score_fn` must be callable (x) -> score, got int.
+    """
+    key = f"_{name}"
+
+    def fget(self):
+        return self.__dict__[key]
+
+    def fset(self, value) -> None:
+        if not callable(value):
+            raise TypeError(f"`{name}` must be callable {contract}, got {type(value).__name__}.")
+        self.__dict__[key] = value
+
+    return property(fget, fset, doc=doc)

@@ -1,5 +1,7 @@
 """Replay-buffer relabelling for both DHRL levels.
 
+* :class:`RelabelReplayBuffer`: a replay buffer whose ``sample()`` returns relabelled batches (it runs
+  the relabellers below with the sampled storage indices).
 * :class:`FutureGoalRelabel`: hindsight goals from the future of the same episode (both levels; writes
   the policy-critic and graph-critic goal / reward pairs from one low-level sample).
 * :class:`HighLevelTransitionBuilder`: high-level transitions, one per issued subgoal, from collected
@@ -11,6 +13,7 @@
 
 from torchrl_dhrl.data.future_goals import FutureGoalRelabel
 from torchrl_dhrl.data.high_level_transitions import HighLevelTransitionBuilder
+from torchrl_dhrl.data.relabel_buffer import RelabelReplayBuffer
 from torchrl_dhrl.data.rewards import SparseGoalReward
 from torchrl_dhrl.data.storage import CompactLazyTensorStorage
 from torchrl_dhrl.data.subgoal_relabel import HindsightSubgoalRelabel
@@ -20,5 +23,6 @@ __all__ = [
     "FutureGoalRelabel",
     "HighLevelTransitionBuilder",
     "HindsightSubgoalRelabel",
+    "RelabelReplayBuffer",
     "SparseGoalReward",
 ]

@@ -97,36 +97,35 @@ class FutureGoalRelabel(UnregisteredAttributes, _SampleTransform, Transform):
     ``write_next_goal=True`` each goal is also written under ``("next", out_key)`` so a target policy run
     on ``td["next"]`` sees the same goal.
 
-    **Why a storage-bound transform.** A transform appended with ``rb.append_transform`` only receives the
-    stored records of the sample, never their storage coordinates, so it cannot reach the future records
-    of the same episode; torchrl's :class:`~torchrl.data.HERReplayBuffer` solves this by subclassing the
-    buffer, but it needs a 1-D storage, includes the current step, has no window cap and supports a single
-    ratio. This transform instead holds a reference to the buffer's storage and reads the ``"index"``
-    entry that :class:`~torchrl.data.TensorDictReplayBuffer` writes into every sample: apply it to the
-    output of ``rb.sample()`` (alone or in a :class:`~torchrl.envs.Compose` with further transforms). It
-    works with any sampler, with 1-D storages and with multi-dimensional ones (time first, then lanes,
-    as ``LazyTensorStorage(..., ndim=2)`` stores collector batches of shape ``[num_envs, T]``), and it
-    does not change the buffer class. Sampling and relabelling are two calls, so a writer running in
-    another thread between them could overwrite the window: relabel before the next ``extend``.
+    **A relabel step of the replay buffer.** The future records of the same episode are read from the
+    storage at the sample's storage coordinates, which a transform appended with ``rb.append_transform``
+    never sees (it runs on the sampled records alone). Pass this relabeller to
+    :class:`~torchrl_dhrl.data.RelabelReplayBuffer` (``relabel=[FutureGoalRelabel(...), ...]``): the
+    buffer hands it the sampled indices, its storage and its newest write position, and ``rb.sample()``
+    returns relabelled data, like torchrl's :class:`~torchrl.data.HERReplayBuffer` (which needs a 1-D
+    storage, includes the current step, has no window cap and supports a single ratio). On data read from
+    a storage by other means, call :meth:`relabel_sample` with the coordinates. Any sampler works, with
+    1-D storages and multi-dimensional ones (time first, then lanes, as ``LazyTensorStorage(..., ndim=2)``
+    stores collector batches of shape ``[num_envs, T]``). Called as a plain transform (``relabel(td)``,
+    in a :class:`~torchrl.envs.Compose` or appended to a buffer), it raises an error saying so.
 
     **Episode boundaries.** For each sample, the window of the next ``W`` records along the storage's
     time dimension (modulo its length, so a circular buffer's wrap-around is followed) is read once and a
     record ``t + j`` is accepted only if every available marker agrees: same trajectory id
     (``traj_key``, e.g. the collector's ``("collector", "traj_ids")``), consecutive step counter
     (``step_count[t + j] == step_count[t] + j``), no done flag at ``t .. t + j - 1`` (``done_key``), and
-    ``t + j`` not past the newest written record (the write seam of a full circular buffer, located from
-    the storage's last write, or from the writer's cursor when a buffer is given and its checkpoint was
-    just loaded). The first
-    rejected record ends the window. Markers that are ``None`` or absent from the storage are skipped; at
-    least one of the three must be present. Storing ``[num_envs, T]`` batches in a 1-D storage with
+    ``t + j`` not past the newest written record (the write seam of a full circular buffer: the
+    ``newest_index`` that :class:`~torchrl_dhrl.data.RelabelReplayBuffer` tracks; a storage that has not
+    wrapped around yet needs none). The first rejected record ends the window. Markers that are ``None``
+    or absent from the storage are skipped; at least one of the three must be present. Storing ``[num_envs, T]`` batches in a 1-D storage with
     ``rb.extend(batch.reshape(-1))`` interleaves partial episodes of different envs: with trajectory ids
     no goal crosses an episode, but windows stop at the end of each chunk. Store such batches with
     ``LazyTensorStorage(capacity, ndim=2)`` instead, which keeps each env's time line contiguous.
 
+    The storage (a :class:`~torchrl.data.replay_buffers.TensorStorage`, e.g. ``LazyTensorStorage``) must
+    hold ``achieved_goal_key`` and the markers.
+
     Args:
-        storage (Storage or ReplayBuffer): the :class:`~torchrl.data.replay_buffers.TensorStorage`
-            (e.g. ``LazyTensorStorage``) the samples come from, or the replay buffer holding it. It must
-            hold TensorDicts with ``achieved_goal_key`` and the markers.
         reward_fn (callable, optional): ``reward_fn(achieved_goal, goal) -> reward`` on tensors of shape
             ``[B, goal_dim]``, returning ``[B, 1]`` or ``[B]``. Defaults to
             :class:`~torchrl_dhrl.data.SparseGoalReward` with threshold ``0.5`` (``-1`` / ``0``). An
@@ -148,9 +147,6 @@ class FutureGoalRelabel(UnregisteredAttributes, _SampleTransform, Transform):
             ratio, or ``None`` to write no reward. Defaults to ``"default"``, meaning
             ``(("next", "reward"), ("next", "graph_reward"))`` for two outputs and
             ``[("next", "reward")]`` for one.
-        index_key (NestedKey, optional): the storage coordinates of each sample, as written by
-            :class:`~torchrl.data.TensorDictReplayBuffer` (``[*batch]`` for 1-D storages,
-            ``[*batch, ndim]`` otherwise). Defaults to ``"index"``.
         traj_key (NestedKey, optional): trajectory / episode id marker. Defaults to
             ``("collector", "traj_ids")``.
         done_key (NestedKey, optional): end-of-episode marker of each transition. Defaults to
@@ -163,7 +159,8 @@ class FutureGoalRelabel(UnregisteredAttributes, _SampleTransform, Transform):
     Examples:
         >>> import torch
         >>> from tensordict import TensorDict
-        >>> from torchrl.data import LazyTensorStorage, TensorDictReplayBuffer
+        >>> from torchrl.data import LazyTensorStorage
+        >>> from torchrl_dhrl.data import RelabelReplayBuffer
         >>> num_envs, T = 2, 8
         >>> step = torch.arange(T).expand(num_envs, T)
         >>> achieved = torch.stack([torch.arange(num_envs)[:, None].expand(num_envs, T), step], -1).float()
@@ -177,10 +174,10 @@ class FutureGoalRelabel(UnregisteredAttributes, _SampleTransform, Transform):
         ...     },
         ...     batch_size=[num_envs, T],
         ... )
-        >>> rb = TensorDictReplayBuffer(storage=LazyTensorStorage(64, ndim=2), batch_size=16)
+        >>> relabel = FutureGoalRelabel(window=3)
+        >>> rb = RelabelReplayBuffer(storage=LazyTensorStorage(64, ndim=2), relabel=[relabel], batch_size=16)
         >>> _ = rb.extend(batch)
-        >>> relabel = FutureGoalRelabel(rb, window=3)
-        >>> sample = relabel(rb.sample())
+        >>> sample = rb.sample()  # relabelled by the buffer
         >>> goal, achieved = sample["graph_goal"], sample["next", "achieved_goal"]
         >>> bool((goal[:, 0] == achieved[:, 0]).all())  # same env and episode
         True
@@ -189,15 +186,19 @@ class FutureGoalRelabel(UnregisteredAttributes, _SampleTransform, Transform):
         True
         >>> sample["next", "graph_reward"].shape
         torch.Size([16, 1])
+        >>> index = sample["index"]  # the same relabelling, called directly on records read from the storage
+        >>> records = rb.storage[index.unbind(-1)]
+        >>> again = relabel.relabel_sample(records, index, rb.storage, newest_index=rb.newest_index)
+        >>> bool(((again["goal"] - again["next", "achieved_goal"])[:, 1] < 3).all())
+        True
     """
 
     #: ``reward_fn`` may be an ``nn.Module``: a plain attribute, not a submodule (not in ``state_dict()``)
     _unregistered = ("reward_fn",)
-    _usage = "it relabels replay-buffer samples; apply it to the output of rb.sample()"
+    _usage = "it relabels replay-buffer samples; pass it to RelabelReplayBuffer(relabel=[...])"
 
     def __init__(
         self,
-        storage: Storage | ReplayBuffer,
         reward_fn: RewardFn | None = None,
         *,
         her_ratio: float | Sequence[float] = (0.8, 1.0),
@@ -206,19 +207,16 @@ class FutureGoalRelabel(UnregisteredAttributes, _SampleTransform, Transform):
         achieved_goal_key: NestedKey = ("next", "achieved_goal"),
         out_keys: Sequence[NestedKey] = ("goal", "graph_goal"),
         reward_keys: Sequence[NestedKey] | None | str = "default",
-        index_key: NestedKey = "index",
         traj_key: NestedKey | None = ("collector", "traj_ids"),
         done_key: NestedKey | None = ("next", "done"),
         step_count_key: NestedKey | None = "step_count",
         write_next_goal: bool = True,
     ) -> None:
-        buffer = None
-        if isinstance(storage, ReplayBuffer):
-            buffer, storage = storage, storage.storage
-        if not isinstance(storage, TensorStorage):
+        if isinstance(reward_fn, (ReplayBuffer, Storage)):
             raise TypeError(
-                "FutureGoalRelabel needs the TensorStorage the samples come from (e.g. LazyTensorStorage, "
-                f"or the replay buffer holding it), got {type(storage).__name__}."
+                "FutureGoalRelabel does not take the replay buffer or its storage: pass it to "
+                "RelabelReplayBuffer(storage=..., relabel=[FutureGoalRelabel(...)]), which hands it the "
+                "sampled indices and the storage, or call relabel_sample(data, index, storage)."
             )
         if isinstance(her_ratio, (int, float)) and not isinstance(her_ratio, bool):
             her_ratio = (her_ratio,)
@@ -256,13 +254,11 @@ class FutureGoalRelabel(UnregisteredAttributes, _SampleTransform, Transform):
             raise ValueError("At least one of traj_key, done_key and step_count_key must be given.")
         goal_key = _unravel_key(goal_key)
         super().__init__(
-            in_keys=[goal_key, _unravel_key(achieved_goal_key), _unravel_key(index_key)],
+            in_keys=[goal_key, _unravel_key(achieved_goal_key)],
             out_keys=out_keys
             + ([_next(k) for k in out_keys] if write_next_goal else [])
             + (reward_keys or []),
         )
-        self._rb_storage = storage
-        self._rb_writer = getattr(buffer, "_writer", None)
         self.reward_fn = reward_fn
         self.her_ratio = her_ratio
         self.window = window
@@ -270,23 +266,27 @@ class FutureGoalRelabel(UnregisteredAttributes, _SampleTransform, Transform):
         self.achieved_goal_key = _unravel_key(achieved_goal_key)
         self.goal_out_keys = out_keys
         self.reward_keys = reward_keys
-        self.index_key = _unravel_key(index_key)
         self.traj_key = None if traj_key is None else _unravel_key(traj_key)
         self.done_key = None if done_key is None else _unravel_key(done_key)
         self.step_count_key = None if step_count_key is None else _unravel_key(step_count_key)
         self.write_next_goal = write_next_goal
         self._warned_seam = False
 
-    @property
-    def storage(self) -> TensorStorage:
-        """The storage the relabelled goals are read from."""
-        return self._rb_storage
-
     # ------------------------------------------------------------------ storage access
-    def _field(self, key: NestedKey, required: bool = False) -> torch.Tensor | None:
+    @staticmethod
+    def _check_storage(storage: Storage) -> TensorStorage:
+        if not isinstance(storage, TensorStorage):
+            raise TypeError(
+                "FutureGoalRelabel needs the TensorStorage the samples come from (e.g. LazyTensorStorage), "
+                f"got {type(storage).__name__}."
+            )
+        return storage
+
+    @staticmethod
+    def _field(storage: TensorStorage, key: NestedKey, required: bool = False) -> torch.Tensor | None:
         """The written part of one storage entry, shape ``[T_len, *lanes, *feature]`` (a view)."""
         try:
-            return self._rb_storage.get(key)
+            return storage.get(key)
         except KeyError:
             if required:
                 raise KeyError(
@@ -294,16 +294,12 @@ class FutureGoalRelabel(UnregisteredAttributes, _SampleTransform, Transform):
                 ) from None
             return None
 
-    def _newest_time_index(self, length: int) -> int | None:
+    @staticmethod
+    def _newest_time_index(storage: TensorStorage, length: int, newest_index: int | None) -> int | None:
         """Time coordinate of the most recently written record, or ``None`` if unknown."""
-        storage = self._rb_storage
-        cursor = getattr(storage, "_last_cursor_index", None)
-        if cursor is not None:
-            return int(cursor) % length
-        writer_cursor = getattr(self._rb_writer, "_cursor", None)
-        if isinstance(writer_cursor, int) and len(storage) > 0:
-            return (writer_cursor - 1) % length
-        if not storage._is_full:
+        if newest_index is not None:
+            return int(newest_index) % length
+        if len(storage) < storage.max_size:  # not wrapped around yet: the last written row is the newest
             return length - 1
         return None
 
@@ -317,11 +313,14 @@ class FutureGoalRelabel(UnregisteredAttributes, _SampleTransform, Transform):
             )
         return field.reshape(records)[flat]
 
-    def _coordinates(self, index: torch.Tensor, batch_size: torch.Size, ndim: int) -> torch.Tensor:
-        if not isinstance(index, torch.Tensor):
+    @staticmethod
+    def _coordinates(index: torch.Tensor | tuple, batch_size: torch.Size, ndim: int) -> torch.Tensor:
+        if isinstance(index, tuple):  # per-dimension coordinates, as a sampler's info["index"]
+            index = torch.stack([torch.as_tensor(i) for i in index], -1)
+        elif not isinstance(index, torch.Tensor):
             index = torch.as_tensor(index)
         if index.dtype in (torch.float16, torch.bfloat16, torch.float32, torch.float64, torch.bool):
-            raise TypeError(f"{self.index_key!r} must hold integer storage coordinates, got {index.dtype}.")
+            raise TypeError(f"index must hold integer storage coordinates, got {index.dtype}.")
         numel = batch_size.numel()
         if ndim == 1 and index.shape in (batch_size, batch_size + (1,)):
             return index.reshape(numel, 1).long()
@@ -329,28 +328,30 @@ class FutureGoalRelabel(UnregisteredAttributes, _SampleTransform, Transform):
             return index.reshape(numel, ndim).long()
         expected = tuple(batch_size) if ndim == 1 else (*batch_size, ndim)
         raise ValueError(
-            f"{self.index_key!r} has shape {tuple(index.shape)}; expected {expected} storage coordinates for "
-            f"a batch of shape {tuple(batch_size)} sampled from a {ndim}-dimensional storage. Apply "
-            "FutureGoalRelabel to the output of TensorDictReplayBuffer.sample() on the same storage "
-            "(inside the buffer, e.g. with rb.append_transform, 'index' is the writer's stored time "
-            "index, not the sample's storage coordinates)."
+            f"index has shape {tuple(index.shape)}; expected {expected} storage coordinates for a batch of "
+            f"shape {tuple(batch_size)} sampled from a {ndim}-dimensional storage (the sampler's "
+            "info['index'], as RelabelReplayBuffer passes it)."
         )
 
     # ------------------------------------------------------------------ relabelling
-    def window_lengths(self, coords: torch.Tensor) -> torch.Tensor:
+    def window_lengths(
+        self, coords: torch.Tensor, storage: Storage, newest_index: int | None = None
+    ) -> torch.Tensor:
         """Number of usable future records ``min(T_t, W)`` for storage coordinates ``coords``.
 
         ``coords`` is ``[B, ndim]`` (``[B]`` is accepted for 1-D storages), as in the ``"index"`` entry of
         a sample. ``T_t`` counts the records of the same episode from ``t`` on (``t`` included) stored
-        contiguously along the time dimension. The result, ``[B]`` int64, is ``>= 1`` (the record itself).
+        contiguously along the time dimension of ``storage``, the newest written record (time coordinate
+        ``newest_index``, see :meth:`relabel_sample`) included. The result, ``[B]`` int64, is ``>= 1``
+        (the record itself).
         """
-        storage = self._rb_storage
+        storage = self._check_storage(storage)
         ndim = storage.ndim
         if coords.ndim == 1 and ndim == 1:
             coords = coords.unsqueeze(-1)
         if coords.ndim != 2 or coords.shape[-1] != ndim:
             raise ValueError(f"coords must have shape [B, {ndim}], got {tuple(coords.shape)}.")
-        achieved = self._field(self.achieved_goal_key, required=True)
+        achieved = self._field(storage, self.achieved_goal_key, required=True)
         length = achieved.shape[0]
         device = achieved.device
         coords = coords.to(device)
@@ -362,12 +363,12 @@ class FutureGoalRelabel(UnregisteredAttributes, _SampleTransform, Transform):
         for d, size in enumerate(achieved.shape[1:ndim], start=1):
             flat = flat * size + coords[:, d : d + 1]
 
-        newest = self._newest_time_index(length)
+        newest = self._newest_time_index(storage, length, newest_index)
         if newest is None:
             if not self._warned_seam:
                 warnings.warn(
-                    "FutureGoalRelabel: the storage is full and its last write position is unknown (e.g. "
-                    "right after load_state_dict); episode markers alone guard the wrap-around seam.",
+                    "FutureGoalRelabel: the storage is full and its newest write position is unknown "
+                    "(newest_index=None); episode markers alone guard the wrap-around seam.",
                     stacklevel=2,
                 )
                 self._warned_seam = True
@@ -376,15 +377,18 @@ class FutureGoalRelabel(UnregisteredAttributes, _SampleTransform, Transform):
             valid = steps <= torch.remainder(newest - time, length).unsqueeze(1)
 
         found = False
-        if self.traj_key is not None and (traj := self._field(self.traj_key)) is not None:
+        if self.traj_key is not None and (traj := self._field(storage, self.traj_key)) is not None:
             traj = self._marker(traj, ndim, flat)
             valid &= traj == traj[:, :1]
             found = True
-        if self.step_count_key is not None and (count := self._field(self.step_count_key)) is not None:
+        if (
+            self.step_count_key is not None
+            and (count := self._field(storage, self.step_count_key)) is not None
+        ):
             count = self._marker(count, ndim, flat)
             valid &= (count - count[:, :1]) == steps
             found = True
-        if self.done_key is not None and (done := self._field(self.done_key)) is not None:
+        if self.done_key is not None and (done := self._field(storage, self.done_key)) is not None:
             done = self._marker(done, ndim, flat).bool()
             valid[:, 1:] &= ~done[:, :-1]  # record t + j needs no episode end at t + j - 1
             found = True
@@ -400,18 +404,44 @@ class FutureGoalRelabel(UnregisteredAttributes, _SampleTransform, Transform):
         return torch.where(valid.all(1), self.window, first_rejected)
 
     def forward(self, tensordict: TensorDictBase) -> TensorDictBase:
+        raise RuntimeError(
+            "FutureGoalRelabel reads the future of each sampled transition from the storage, which a "
+            "transform called on the sample alone cannot see: pass it to RelabelReplayBuffer(storage=..., "
+            "relabel=[...]) (rb.sample() then returns relabelled data), or call "
+            "relabel_sample(data, index, storage)."
+        )
+
+    def relabel_sample(
+        self,
+        tensordict: TensorDictBase,
+        index: torch.Tensor | tuple,
+        storage: Storage,
+        *,
+        newest_index: int | None = None,
+    ) -> TensorDictBase:
+        """Relabels ``tensordict``, the records of ``storage`` at ``index``, in place and returns it.
+
+        This is the call :class:`~torchrl_dhrl.data.RelabelReplayBuffer` makes on every sample.
+
+        Args:
+            tensordict (TensorDictBase): the sampled records, batch shape ``[*batch]``.
+            index (Tensor or tuple of Tensor): their storage coordinates, ``[*batch]`` for a 1-D storage
+                and ``[*batch, ndim]`` otherwise (or a tuple of ``ndim`` tensors ``[*batch]``, as a
+                sampler's ``info["index"]``).
+            storage (TensorStorage): the storage they were read from.
+
+        Keyword Args:
+            newest_index (int, optional): the time coordinate (first storage dimension) of the most
+                recently written record, where the write seam of a full circular storage lies (see
+                :attr:`RelabelReplayBuffer.newest_index <torchrl_dhrl.data.RelabelReplayBuffer.newest_index>`).
+                ``None`` for a storage that has not wrapped around (the last written row is the newest);
+                for a full storage it leaves the seam to the episode markers, with a warning.
+        """
         if not is_tensor_collection(tensordict):
             raise TypeError(f"FutureGoalRelabel expects a TensorDict, got {type(tensordict).__name__}.")
-        storage = self._rb_storage
+        storage = self._check_storage(storage)
         if len(storage) == 0:
             raise RuntimeError("FutureGoalRelabel: the storage is empty; nothing to relabel from.")
-        index = tensordict.get(self.index_key, None)
-        if index is None:
-            raise KeyError(
-                f"FutureGoalRelabel needs the storage coordinates of each sample under {self.index_key!r}. "
-                "Apply it to the output of TensorDictReplayBuffer.sample() (which writes them), not "
-                "inside the buffer with append_transform: buffer transforms run before the index is known."
-            )
         goal = tensordict.get(self.goal_key, None)
         achieved_next = tensordict.get(self.achieved_goal_key, None)
         for key, value in ((self.goal_key, goal), (self.achieved_goal_key, achieved_next)):
@@ -427,14 +457,14 @@ class FutureGoalRelabel(UnregisteredAttributes, _SampleTransform, Transform):
             )
         coords = self._coordinates(index, batch_size, storage.ndim)
 
-        achieved_store = self._field(self.achieved_goal_key, required=True)
+        achieved_store = self._field(storage, self.achieved_goal_key, required=True)
         if achieved_store.shape[storage.ndim :] != goal_shape:
             raise ValueError(
                 f"Stored {self.achieved_goal_key!r} has goal shape "
                 f"{tuple(achieved_store.shape[storage.ndim :])}, the sampled {self.goal_key!r} has "
                 f"{tuple(goal_shape)}."
             )
-        n_valid = self.window_lengths(coords)
+        n_valid = self.window_lengths(coords, storage, newest_index)
         store_device = achieved_store.device
         coords = coords.to(store_device)
         time = coords[:, 0]

@@ -22,7 +22,10 @@ class HindsightSubgoalRelabel(UnregisteredAttributes, _SampleTransform, Transfor
     """Relabels high-level samples: hindsight subgoals (HAC) or subgoal testing with penalties.
 
     Applied to high-level transitions ``(s_t, g, sg_t, s_{t+c})`` after their goals were relabelled (see
-    :class:`~torchrl_dhrl.data.FutureGoalRelabel`). Each sample independently becomes one of:
+    :class:`~torchrl_dhrl.data.FutureGoalRelabel`), typically as the step after it in
+    :class:`~torchrl_dhrl.data.RelabelReplayBuffer`'s ``relabel`` list. It only reads the sample, so it
+    also works on its own, in a :class:`~torchrl.envs.Compose` or appended to any replay buffer. Each
+    sample independently becomes one of:
 
     * **hindsight action** (probability ``1 - subgoal_test_ratio``, 0.8): the action ``sg_t`` is replaced
       by the achieved goal at the end of the segment ``ag_{t+c}`` (HAC), as if the low level had been
@@ -118,7 +121,10 @@ class HindsightSubgoalRelabel(UnregisteredAttributes, _SampleTransform, Transfor
 
     #: callables (possibly ``nn.Module`` s) kept as plain attributes, never registered as submodules
     _unregistered = ("distance_from_graph", "reward_fn")
-    _usage = "it relabels replay-buffer samples; apply it to the output of rb.sample()"
+    _usage = (
+        "it relabels replay-buffer samples; pass it to RelabelReplayBuffer(relabel=[...]) or apply it to "
+        "rb.sample()'s output"
+    )
 
     def __init__(
         self,

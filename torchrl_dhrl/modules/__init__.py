@@ -1,8 +1,11 @@
-"""torchrl_dhrl.modules: DHRL actors, exploration, the c_h cadence, twin critics and the learned distance."""
+"""torchrl_dhrl.modules: DHRL actors, exploration, the c_h cadence and twin critics.
+
+The learned distance built from the graph critics, :class:`~torchrl_dhrl.planner.GoalDistance`, lives
+with the planner it serves, next to the distance protocol (:mod:`torchrl_dhrl.planner.distances`).
+"""
 
 from .actors import DEFAULT_NUM_CELLS, GoalConditionedActorNet, HighLevelActor, LowLevelActor
 from .critics import GoalConditionedCritic, GoalConditionedCriticNet, distance_to_q, q_to_distance
-from .distance import GoalDistance
 from .ensemble import EnsembleLinear, EnsembleMLP
 from .exploration import GaussianUniformExplorationModule
 from .policies import HighLevelPolicy, make_low_level_policy
@@ -17,7 +20,6 @@ __all__ = [
     "GoalConditionedActorNet",
     "GoalConditionedCritic",
     "GoalConditionedCriticNet",
-    "GoalDistance",
     "HighLevelActor",
     "HighLevelPolicy",
     "LowLevelActor",

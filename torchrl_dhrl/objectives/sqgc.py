@@ -23,7 +23,7 @@ class SQGCLoss(_GoalConditionedTD3Base):
       whose goals are relabelled with probability 0.8 (the rest keep the waypoint actually
       chased, so failures are seen);
     * the **graph critics** ``Q_graph`` give the temporal distances of the graph (Eq. (1),
-      :class:`~torchrl_dhrl.modules.GoalDistance`); they learn from the *graph batch*, whose
+      :class:`~torchrl_dhrl.planner.GoalDistance`); they learn from the *graph batch*, whose
       goals are all relabelled to future achieved goals, so failures never inflate distances.
 
     Each pair has target networks (update them with

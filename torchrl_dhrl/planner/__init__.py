@@ -1,18 +1,37 @@
-"""The graph level of DHRL: landmark graph, shortest paths, the GraphPlanner transform and FGS."""
+"""The graph level of DHRL: temporal distances, landmark graph, shortest paths, the GraphPlanner transform and FGS.
 
-from .fgs import FrontierGoalShifting
+The swap points of the graph level live here:
+
+- ``distances``: the :class:`TemporalDistance` protocol, the learned :class:`GoalDistance` and the
+  oracle :class:`LineOfSightDistance`;
+- ``edges``: the :class:`EdgeRule` protocol and the reference :class:`CutoffEdgeRule`;
+- ``graph``: :class:`LandmarkGraph` (FPS landmarks, edges, all-pairs shortest paths), composed into
+  :class:`GraphPlanner`;
+- ``fgs``: :class:`FrontierGoalShifting` and its env transform :class:`GoalShiftOnReset`.
+"""
+
+from .distances import AutocastDistance, GoalDistance, LineOfSightDistance, TemporalDistance
+from .edges import CutoffEdgeRule, EdgeRule
+from .fgs import FrontierGoalShifting, GoalShiftOnReset
 from .fps import FarthestPointSamplingResult, farthest_point_sampling
 from .graph import GraphPlan, LandmarkGraph
 from .graph_planner import GraphPlanner
 from .shortest_paths import ShortestPaths, floyd_warshall, reconstruct_paths
 
 __all__ = [
+    "AutocastDistance",
+    "CutoffEdgeRule",
+    "EdgeRule",
     "FarthestPointSamplingResult",
     "FrontierGoalShifting",
+    "GoalDistance",
+    "GoalShiftOnReset",
     "GraphPlan",
     "GraphPlanner",
     "LandmarkGraph",
+    "LineOfSightDistance",
     "ShortestPaths",
+    "TemporalDistance",
     "farthest_point_sampling",
     "floyd_warshall",
     "reconstruct_paths",

@@ -1,16 +1,11 @@
-"""Chunked evaluation of a temporal distance ``(states, goals) -> steps`` (private helpers)."""
+"""Chunked evaluation of a :class:`~torchrl_dhrl.planner.TemporalDistance` (private helpers)."""
 
 from __future__ import annotations
-
-from collections.abc import Callable
 
 import torch
 from torch import Tensor
 
-#: A temporal distance: ``distance(states[..., obs_dim], goals[..., goal_dim]) -> steps[...]``,
-#: broadcasting over the leading dims (the contract shared by the planner, FPS, FGS and the
-#: gradual penalty).
-DistanceFn = Callable[[Tensor, Tensor], Tensor]
+from .distances import TemporalDistance
 
 #: Default number of (state, goal) pairs per call of the distance function.
 DEFAULT_CHUNK_SIZE = 65536
@@ -27,17 +22,17 @@ def check_build_autocast_dtype(dtype: torch.dtype | None) -> torch.dtype | None:
     return dtype
 
 
-def check_supports_autocast(distance: DistanceFn, dtype: torch.dtype | None) -> None:
+def check_supports_autocast(distance: TemporalDistance, dtype: torch.dtype | None) -> None:
     """Reduced-precision building needs a distance with ``with_autocast(dtype)`` (e.g. ``GoalDistance``)."""
     if dtype is not None and not callable(getattr(distance, "with_autocast", None)):
         raise TypeError(
             f"`build_autocast_dtype={dtype}` needs a distance with a `with_autocast(dtype)` method returning "
-            f"its reduced-precision version (e.g. torchrl_dhrl.modules.GoalDistance); got "
+            f"its reduced-precision version (e.g. torchrl_dhrl.planner.GoalDistance); got "
             f"{type(distance).__name__}. Use build_autocast_dtype=None for other distances."
         )
 
 
-def build_distance(distance: DistanceFn, dtype: torch.dtype | None) -> DistanceFn:
+def build_distance(distance: TemporalDistance, dtype: torch.dtype | None) -> TemporalDistance:
     """The distance used for graph building: ``distance.with_autocast(dtype)``, or ``distance`` itself."""
     if dtype is None:
         return distance
@@ -51,7 +46,7 @@ def check_chunk_size(chunk_size: int) -> int:
     return chunk_size
 
 
-def _call(distance: DistanceFn, states: Tensor, goals: Tensor, shape: torch.Size) -> Tensor:
+def _call(distance: TemporalDistance, states: Tensor, goals: Tensor, shape: torch.Size) -> Tensor:
     out = distance(states, goals)
     if not isinstance(out, Tensor):
         raise TypeError(f"The distance function must return a Tensor, got {type(out).__name__}.")
@@ -60,7 +55,7 @@ def _call(distance: DistanceFn, states: Tensor, goals: Tensor, shape: torch.Size
             "The distance function must return one distance per (state, goal) pair, i.e. a tensor of "
             f"shape {tuple(shape)} for states {tuple(states.shape)} and goals {tuple(goals.shape)}; "
             f"got {tuple(out.shape)}. Contract: distance(states[..., obs_dim], goals[..., goal_dim]) "
-            "-> Tensor[...], broadcasting over the leading dims."
+            "-> Tensor[...], broadcasting over the leading dims (torchrl_dhrl.planner.TemporalDistance)."
         )
     if not out.is_floating_point():
         raise TypeError(f"The distance function must return a floating tensor, got {out.dtype}.")
@@ -68,7 +63,7 @@ def _call(distance: DistanceFn, states: Tensor, goals: Tensor, shape: torch.Size
 
 
 @torch.no_grad()
-def paired_distances(distance: DistanceFn, states: Tensor, goals: Tensor, chunk_size: int) -> Tensor:
+def paired_distances(distance: TemporalDistance, states: Tensor, goals: Tensor, chunk_size: int) -> Tensor:
     """``out[p] = distance(states[p], goals[p])`` for ``P`` pairs, at most ``chunk_size`` pairs per call."""
     num = states.shape[0]
     if num <= chunk_size:
@@ -86,7 +81,7 @@ def paired_distances(distance: DistanceFn, states: Tensor, goals: Tensor, chunk_
 
 
 @torch.no_grad()
-def pairwise_distances(distance: DistanceFn, states: Tensor, goals: Tensor, chunk_size: int) -> Tensor:
+def pairwise_distances(distance: TemporalDistance, states: Tensor, goals: Tensor, chunk_size: int) -> Tensor:
     """``out[i, j] = distance(states[i], goals[j])`` as an ``[M, N]`` matrix, built from broadcast calls.
 
     Rows are processed in blocks so that one call sees at most ``max(chunk_size, N)`` pairs.

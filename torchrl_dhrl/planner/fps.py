@@ -9,7 +9,8 @@ from typing import NamedTuple
 import torch
 from torch import Tensor
 
-from ._distance import DEFAULT_CHUNK_SIZE, DistanceFn, check_chunk_size, paired_distances
+from ._distance import DEFAULT_CHUNK_SIZE, check_chunk_size, paired_distances
+from .distances import TemporalDistance
 
 FPS_STRATEGIES = ("lazy", "dense")
 #: Named proxies of the lazy strategy (see :func:`farthest_point_sampling`).
@@ -71,7 +72,7 @@ def _check_distances(values: Tensor) -> Tensor:
 def farthest_point_sampling(
     states: Tensor,
     goals: Tensor,
-    distance: DistanceFn,
+    distance: TemporalDistance,
     max_count: int,
     *,
     early_stop: float = 0.0,

@@ -9,17 +9,18 @@ from typing import NamedTuple
 import torch
 from torch import Tensor, nn
 
-from torchrl_dhrl._unregistered import UnregisteredAttributes
+from torchrl_dhrl._unregistered import UnregisteredAttributes, callable_attribute
 
 from ._distance import (
     DEFAULT_CHUNK_SIZE,
-    DistanceFn,
     build_distance,
     check_build_autocast_dtype,
     check_chunk_size,
     paired_distances,
     pairwise_distances,
 )
+from .distances import TemporalDistance
+from .edges import CutoffEdgeRule, EdgeRule
 from .fps import DEFAULT_LAZY_BATCH, FPS_STRATEGIES, ProxyFn, farthest_point_sampling, resolve_proxy
 from .shortest_paths import count_hops, floyd_warshall, reconstruct_paths
 
@@ -77,8 +78,9 @@ class LandmarkGraph(UnregisteredAttributes, nn.Module):
     :meth:`build` selects landmarks among candidate states by farthest point sampling with the
     temporal distance (Algorithm 2 of the paper: from each chosen *state* to every candidate's
     *achieved goal*), computes the landmark distance matrix ``D[i, j] = d(state_i -> goal_j)``,
-    keeps the edges ``i -> j`` with ``D[i, j] < cutoff`` or ``D[i, j] < nn_factor * min_k D[i, k]``
-    (so every landmark has an outgoing edge), and solves all shortest paths once
+    keeps the edges ``i -> j`` chosen by ``edge_rule`` (by default :class:`CutoffEdgeRule`, the
+    reference rule: ``D[i, j] < cutoff`` or ``D[i, j] < 1.2 * min_k D[i, k]``, so every landmark has
+    an outgoing edge), and solves all shortest paths once
     (:func:`~torchrl_dhrl.planner.floyd_warshall`, with a next-hop table). :meth:`plan` then
     answers a batch of ``(state, subgoal)`` queries with tensor operations only: the best plan is
     ``min_{i, j} d(s, i) + D*[i, j] + d(j, sg)`` over the entry landmarks ``i`` connected to the
@@ -91,8 +93,10 @@ class LandmarkGraph(UnregisteredAttributes, nn.Module):
     of the last :meth:`build` (the largest min-distance left uncovered, a resolution diagnostic
     worth logging; ``NaN`` for graphs set from given landmarks).
 
-    The distance is passed to each method rather than stored, so that one graph serves a learned
-    distance (whose parameters belong to the learner, not to this module) or an oracle.
+    The distance (a :class:`~torchrl_dhrl.planner.TemporalDistance`) is passed to each method rather
+    than stored, so that one graph serves a learned distance (whose parameters belong to the learner,
+    not to this module) or an oracle. A :class:`~torchrl_dhrl.planner.GraphPlanner` owns one graph and
+    passes it its distance.
 
     Args:
         cutoff (float): edge threshold in steps, for graph edges and for connecting a query's
@@ -102,8 +106,13 @@ class LandmarkGraph(UnregisteredAttributes, nn.Module):
             value. Defaults to ``10.0``.
         min_landmarks (int, optional): FPS early stopping needs at least this many landmarks.
             Defaults to ``max_landmarks // 10``.
-        nn_factor (float): an edge ``i -> j`` is also kept when ``D[i, j]`` is below
-            ``nn_factor`` times the distance from ``i`` to its nearest landmark. Defaults to ``1.2``.
+
+    Keyword Args:
+        edge_rule (callable, optional): which landmark pairs become edges,
+            ``edge_rule(distances[K, K], cutoff) -> bool[K, K]`` (see
+            :class:`~torchrl_dhrl.planner.EdgeRule`). A plain attribute, not a submodule; assigning
+            ``graph.edge_rule`` takes effect at the next build. Defaults to
+            ``CutoffEdgeRule(nn_factor=1.2)``.
         start_fallback_factor (float): when no landmark is within ``cutoff`` of a query state, the
             state is connected to the landmarks within ``start_fallback_factor`` times its
             smallest landmark distance. Defaults to ``1.5``.
@@ -118,7 +127,7 @@ class LandmarkGraph(UnregisteredAttributes, nn.Module):
         build_autocast_dtype (torch.dtype, optional): ``torch.bfloat16`` or ``torch.float16`` to
             evaluate the distances of :meth:`build` and :meth:`set_landmarks` in reduced precision,
             through the distance's ``with_autocast(dtype)`` (e.g.
-            :meth:`~torchrl_dhrl.modules.GoalDistance.with_autocast`; other distances raise a
+            :meth:`~torchrl_dhrl.planner.GoalDistance.with_autocast`; other distances raise a
             TypeError). With bfloat16 on a CPU with bfloat16 units: 2-3.5x faster per pair, at a
             relative distance error of about 0.1% (median) to 0.6% (max) on a 3x256 critic. FPS
             may part ways with a full-precision build after a near-tie (other landmarks, same
@@ -140,8 +149,8 @@ class LandmarkGraph(UnregisteredAttributes, nn.Module):
         [0.0, 1.2, 2.5, 3.7, 5.0]
     """
 
-    #: a callable proxy (possibly an ``nn.Module``) is a plain attribute, never a submodule
-    _unregistered = ("fps_proxy",)
+    #: callables (possibly ``nn.Module`` s) are plain attributes, never submodules
+    _unregistered = ("fps_proxy", "edge_rule")
 
     def __init__(
         self,
@@ -149,11 +158,11 @@ class LandmarkGraph(UnregisteredAttributes, nn.Module):
         max_landmarks: int = 300,
         early_stop: float = 10.0,
         min_landmarks: int | None = None,
-        nn_factor: float = 1.2,
+        *,
+        edge_rule: EdgeRule | None = None,
         start_fallback_factor: float = 1.5,
         chunk_size: int = DEFAULT_CHUNK_SIZE,
         fps_strategy: str = "lazy",
-        *,
         fps_proxy: str | ProxyFn | None = "goal",
         fps_lazy_batch: int = DEFAULT_LAZY_BATCH,
         build_autocast_dtype: torch.dtype | None = None,
@@ -167,7 +176,7 @@ class LandmarkGraph(UnregisteredAttributes, nn.Module):
         if min_landmarks is not None and (not isinstance(min_landmarks, int) or min_landmarks < 0):
             raise ValueError(f"`min_landmarks` must be a non-negative int, got {min_landmarks!r}.")
         self.min_landmarks = max_landmarks // 10 if min_landmarks is None else min_landmarks
-        self.nn_factor = _check_positive("nn_factor", nn_factor)
+        self.edge_rule = CutoffEdgeRule() if edge_rule is None else edge_rule
         self.start_fallback_factor = _check_positive("start_fallback_factor", start_fallback_factor)
         if self.start_fallback_factor < 1.0:
             raise ValueError(f"`start_fallback_factor` must be >= 1, got {start_fallback_factor}.")
@@ -230,7 +239,9 @@ class LandmarkGraph(UnregisteredAttributes, nn.Module):
         return self
 
     @torch.no_grad()
-    def build(self, candidate_states: Tensor, candidate_goals: Tensor, distance: DistanceFn) -> LandmarkGraph:
+    def build(
+        self, candidate_states: Tensor, candidate_goals: Tensor, distance: TemporalDistance
+    ) -> LandmarkGraph:
         """Rebuilds the graph from scratch from candidate states (e.g. sampled from the replay buffer).
 
         The landmark distance matrix reuses every pair FPS evaluated (all ``d(l_m -> l_j)`` with
@@ -281,7 +292,7 @@ class LandmarkGraph(UnregisteredAttributes, nn.Module):
         return self
 
     @torch.no_grad()
-    def set_landmarks(self, states: Tensor, goals: Tensor, distance: DistanceFn) -> LandmarkGraph:
+    def set_landmarks(self, states: Tensor, goals: Tensor, distance: TemporalDistance) -> LandmarkGraph:
         """Uses the given landmarks as they are (no sampling): computes their distances, edges and paths.
 
         Args:
@@ -327,8 +338,7 @@ class LandmarkGraph(UnregisteredAttributes, nn.Module):
             return self.clear()
         off_diag = matrix.clone()
         off_diag.fill_diagonal_(math.inf)
-        nearest = off_diag.min(dim=1, keepdim=True).values
-        keep = (off_diag < self.cutoff) | (off_diag < self.nn_factor * nearest)
+        keep = self._edges(off_diag)
         weights = torch.where(keep, off_diag, torch.full_like(off_diag, math.inf))
         weights.fill_diagonal_(0.0)
         paths = floyd_warshall(weights)
@@ -342,6 +352,23 @@ class LandmarkGraph(UnregisteredAttributes, nn.Module):
         self.version = self.version.to(states.device) + 1
         self.coverage_radius = torch.full((), math.nan, dtype=states.dtype, device=states.device)
         return self
+
+    edge_rule = callable_attribute(
+        "edge_rule",
+        "(distances[K, K], cutoff) -> bool[K, K]",
+        "Which landmark pairs become edges (an :class:`~torchrl_dhrl.planner.EdgeRule`); not a submodule.",
+    )
+
+    def _edges(self, distances: Tensor) -> Tensor:
+        """The ``[K, K]`` bool edge mask of the edge rule, checked."""
+        keep = self.edge_rule(distances.clone(), self.cutoff)
+        if not isinstance(keep, Tensor) or keep.dtype != torch.bool or keep.shape != distances.shape:
+            got = f"{keep.dtype} {tuple(keep.shape)}" if isinstance(keep, Tensor) else type(keep).__name__
+            raise ValueError(
+                f"The edge rule {self.edge_rule!r} must return a bool tensor of shape {tuple(distances.shape)} "
+                f"(keep[i, j]: edge i -> j), got {got}."
+            )
+        return keep.to(distances.device)
 
     @staticmethod
     def _check_landmarks(states: Tensor, goals: Tensor) -> None:
@@ -375,7 +402,7 @@ class LandmarkGraph(UnregisteredAttributes, nn.Module):
                 )
 
     @torch.no_grad()
-    def start_costs(self, states: Tensor, distance: DistanceFn) -> Tensor:
+    def start_costs(self, states: Tensor, distance: TemporalDistance) -> Tensor:
         """``[B, K]`` cost of the edges start -> landmark (``inf`` where not connected).
 
         A state connects to the landmarks within ``cutoff``; when there are none, to the
@@ -421,7 +448,7 @@ class LandmarkGraph(UnregisteredAttributes, nn.Module):
         return cost, entries.gather(1, arg)
 
     @torch.no_grad()
-    def reach_costs(self, states: Tensor, distance: DistanceFn) -> Tensor:
+    def reach_costs(self, states: Tensor, distance: TemporalDistance) -> Tensor:
         """``[..., K]`` estimated steps from each state to each landmark through the graph.
 
         ``inf`` marks landmarks the graph cannot reach from the state.
@@ -436,7 +463,7 @@ class LandmarkGraph(UnregisteredAttributes, nn.Module):
 
     @torch.no_grad()
     def distance_from_graph(
-        self, goals: Tensor, distance: DistanceFn, *, at_most: float | None = None, candidates: int = 16
+        self, goals: Tensor, distance: TemporalDistance, *, at_most: float | None = None, candidates: int = 16
     ) -> Tensor:
         """``min_k d(landmark_state_k -> goal)`` for goals ``[..., goal_dim]`` -> ``[...]``.
 
@@ -483,7 +510,7 @@ class LandmarkGraph(UnregisteredAttributes, nn.Module):
 
     @torch.no_grad()
     def plan(
-        self, states: Tensor, subgoals: Tensor, distance: DistanceFn, max_path_length: int | None = None
+        self, states: Tensor, subgoals: Tensor, distance: TemporalDistance, max_path_length: int | None = None
     ) -> GraphPlan:
         """Plans waypoint sequences for a batch of ``(state, subgoal)`` queries.
 
@@ -631,6 +658,6 @@ class LandmarkGraph(UnregisteredAttributes, nn.Module):
     def extra_repr(self) -> str:
         return (
             f"num_landmarks={self.num_landmarks}, cutoff={self.cutoff}, max_landmarks={self.max_landmarks}, "
-            f"early_stop={self.early_stop}, nn_factor={self.nn_factor}, "
+            f"early_stop={self.early_stop}, edge_rule={self.edge_rule!r}, "
             f"start_fallback_factor={self.start_fallback_factor}"
         )

@@ -12,10 +12,10 @@ from torchrl.data import Composite, Unbounded
 from torchrl.envs import TensorDictPrimer
 from torchrl.envs.transforms import Transform
 
-from torchrl_dhrl._unregistered import UnregisteredAttributes
+from torchrl_dhrl._unregistered import UnregisteredAttributes, callable_attribute
 
-from ._distance import DEFAULT_CHUNK_SIZE, DistanceFn, check_supports_autocast
-from .fps import DEFAULT_LAZY_BATCH, ProxyFn
+from ._distance import check_supports_autocast
+from .distances import TemporalDistance
 from .graph import GraphPlan, LandmarkGraph
 
 #: Per-env tracking entries stored under ``state_key`` (all with a trailing feature dim).
@@ -44,9 +44,11 @@ class GraphPlanner(UnregisteredAttributes, Transform):
     allowed per hop, ``[max_path_length + 1]``), ``index`` (current waypoint), ``steps`` (spent on
     it), ``truncated``, ``has_plan`` and ``graph_version``. Nothing per-env is kept in Python, so
     the planner works for any batch shape and survives ``step_mdp``, collectors, batched envs and
-    checkpoints. The graph itself (:class:`LandmarkGraph`: landmarks, distance matrix, edges,
-    all-pairs distances and next-hop table) is made of registered buffers, so ``state_dict()``
-    round-trips it.
+    checkpoints. The planner is composed of a :class:`LandmarkGraph` (``graph``, a registered
+    submodule: landmarks, distance matrix, edges, all-pairs distances and next-hop table, all
+    buffers, so ``state_dict()`` round-trips it) and a :class:`TemporalDistance` (``distance``, a
+    plain attribute). How the graph is built (cutoff, FPS settings, the edge rule, reduced-precision
+    building) is the graph's business; the planner adds the tracking of waypoints.
 
     **Why a** :class:`~torchrl.envs.transforms.Transform`: a transform is an ``nn.Module`` with
     ``in_keys``/``out_keys`` and a ``forward(tensordict)``, so the same object serves in the three
@@ -74,42 +76,23 @@ class GraphPlanner(UnregisteredAttributes, Transform):
        useful for learning: DHRL relabels the low-level goals instead.
 
     Args:
-        distance (callable): the temporal distance ``distance(states[..., obs_dim],
-            goals[..., goal_dim]) -> steps[...]``, e.g. the learned graph-critic distance or an
-            oracle; any callable, an ``nn.Module`` included. It is not registered as a submodule
-            (its parameters belong to the learner): it is not part of ``state_dict()`` or
-            ``parameters()``, ``.to()`` does not move it, and assigning ``planner.distance``
-            replaces it for the next build and query.
+        graph (LandmarkGraph): the landmark graph to build and plan on, with its settings (``cutoff``,
+            ``max_landmarks``, ``early_stop``, ``edge_rule``, ``build_autocast_dtype``, ...). Registered
+            as a submodule: ``state_dict()`` holds it and ``.to()`` moves it.
+        distance (TemporalDistance): ``distance(states[..., obs_dim], goals[..., goal_dim]) ->
+            steps[...]``, e.g. :class:`GoalDistance` (the learned graph-critic distance),
+            :class:`LineOfSightDistance` (an oracle) or any callable, an ``nn.Module`` included. It is
+            not registered as a submodule (its parameters belong to the learner): it is not part of
+            ``state_dict()`` or ``parameters()``, ``.to()`` does not move it, and assigning
+            ``planner.distance`` replaces it for the next build and query. With the graph's
+            ``build_autocast_dtype`` set, it needs ``with_autocast`` (:class:`AutocastDistance`).
         goal_dim (int): the size of goals, subgoals and waypoints.
 
     Keyword Args:
-        cutoff (float): edge threshold in steps (graph edges and query connections). Defaults
-            to ``30.0``.
-        max_landmarks (int): landmarks selected by farthest point sampling. Defaults to ``300``.
-        early_stop (float): FPS stops once the largest remaining min-distance is below this.
-            Defaults to ``10.0``.
-        min_landmarks (int, optional): FPS early stopping needs at least this many landmarks.
-            Defaults to ``max_landmarks // 10``.
-        nn_factor (float): also keep edges shorter than ``nn_factor`` times a landmark's nearest
-            neighbour distance. Defaults to ``1.2``.
-        start_fallback_factor (float): connect a state with no landmark within ``cutoff`` to the
-            landmarks within this factor of its smallest landmark distance. Defaults to ``1.5``.
         reach_radius (float): a waypoint counts as reached within this Euclidean distance in goal
             space. Defaults to ``0.5``.
         max_path_length (int): landmarks stored per plan; a longer path is cut and replanned
             (from the state reached) once its stored part is used up. Defaults to ``32``.
-        chunk_size (int): maximum number of pairs per distance call. Defaults to ``65536``.
-        fps_strategy (str): ``"lazy"`` or ``"dense"`` farthest point sampling (same landmarks).
-            Defaults to ``"lazy"``.
-        fps_proxy (str, callable or None): evaluation-order heuristic of lazy FPS (cost only, the
-            landmarks are the same). Defaults to ``"goal"`` (see :class:`LandmarkGraph`).
-        fps_lazy_batch (int): candidates refreshed per round of lazy FPS. Defaults to ``64``.
-        build_autocast_dtype (torch.dtype, optional): ``torch.bfloat16`` (or ``torch.float16``)
-            builds the graph with ``distance.with_autocast(dtype)``, e.g. a reduced-precision
-            :class:`~torchrl_dhrl.modules.GoalDistance`: about 2x faster rebuilds on a CPU with
-            bfloat16 units, at about 0.1% median relative distance error (see
-            :class:`LandmarkGraph`); queries keep the full precision. Needs a distance with
-            ``with_autocast`` (TypeError otherwise). Defaults to ``None`` (full precision).
         observation_key (NestedKey): Defaults to ``"observation"``.
         achieved_goal_key (NestedKey): Defaults to ``"achieved_goal"``.
         subgoal_key (NestedKey): Defaults to ``"subgoal"``.
@@ -122,7 +105,8 @@ class GraphPlanner(UnregisteredAttributes, Transform):
         >>> import torch
         >>> from tensordict import TensorDict
         >>> dist = lambda s, g: (g - s[..., :2]).norm(dim=-1)  # one unit of distance per step
-        >>> planner = GraphPlanner(dist, goal_dim=2, cutoff=1.5, max_landmarks=20, early_stop=0.9)
+        >>> graph = LandmarkGraph(cutoff=1.5, max_landmarks=20, early_stop=0.9)
+        >>> planner = GraphPlanner(graph, dist, goal_dim=2)
         >>> xs = torch.linspace(0, 5, 51)
         >>> candidates = torch.stack([xs, torch.zeros_like(xs)], -1)
         >>> planner = planner.build(candidates, candidates.clone())
@@ -145,22 +129,12 @@ class GraphPlanner(UnregisteredAttributes, Transform):
 
     def __init__(
         self,
-        distance: DistanceFn,
+        graph: LandmarkGraph,
+        distance: TemporalDistance,
         goal_dim: int,
         *,
-        cutoff: float = 30.0,
-        max_landmarks: int = 300,
-        early_stop: float = 10.0,
-        min_landmarks: int | None = None,
-        nn_factor: float = 1.2,
-        start_fallback_factor: float = 1.5,
         reach_radius: float = 0.5,
         max_path_length: int = 32,
-        chunk_size: int = DEFAULT_CHUNK_SIZE,
-        fps_strategy: str = "lazy",
-        fps_proxy: str | ProxyFn | None = "goal",
-        fps_lazy_batch: int = DEFAULT_LAZY_BATCH,
-        build_autocast_dtype: torch.dtype | None = None,
         observation_key: NestedKey = "observation",
         achieved_goal_key: NestedKey = "achieved_goal",
         subgoal_key: NestedKey = "subgoal",
@@ -168,6 +142,11 @@ class GraphPlanner(UnregisteredAttributes, Transform):
         waypoint_key: NestedKey = "waypoint",
         state_key: NestedKey = "planner",
     ) -> None:
+        if not isinstance(graph, LandmarkGraph):
+            raise TypeError(
+                "`graph` must be a LandmarkGraph, e.g. GraphPlanner(LandmarkGraph(cutoff=30.0, "
+                f"max_landmarks=300), distance, goal_dim), got {type(graph).__name__}."
+            )
         if isinstance(goal_dim, bool) or not isinstance(goal_dim, int) or goal_dim < 1:
             raise ValueError(f"`goal_dim` must be a positive int, got {goal_dim!r}.")
         if (
@@ -202,41 +181,22 @@ class GraphPlanner(UnregisteredAttributes, Transform):
         self.goal_dim = goal_dim
         self.reach_radius = float(reach_radius)
         self.max_path_length = max_path_length
-        self.graph = LandmarkGraph(
-            cutoff=cutoff,
-            max_landmarks=max_landmarks,
-            early_stop=early_stop,
-            min_landmarks=min_landmarks,
-            nn_factor=nn_factor,
-            start_fallback_factor=start_fallback_factor,
-            chunk_size=chunk_size,
-            fps_strategy=fps_strategy,
-            fps_proxy=fps_proxy,
-            fps_lazy_batch=fps_lazy_batch,
-            build_autocast_dtype=build_autocast_dtype,
-        )
+        self.graph = graph
         self.distance = distance
-        check_supports_autocast(distance, build_autocast_dtype)
+        check_supports_autocast(distance, graph.build_autocast_dtype)
 
     # ------------------------------------------------------------------ distance and graph
-    @property
-    def distance(self) -> DistanceFn:
+    # stored outside nn.Module registration (`_unregistered` routes assignments of an nn.Module here too):
+    # the learner owns (and checkpoints) its parameters
+    distance = callable_attribute(
+        "distance",
+        "(states, goals) -> steps",
         """The temporal distance used to build and query the graph (not a registered submodule).
 
-        Any callable ``distance(states, goals) -> steps``, an ``nn.Module`` included; assigning a new
-        one takes effect at the next :meth:`build` or query.
-        """
-        return self.__dict__["_distance"]
-
-    @distance.setter
-    def distance(self, value: DistanceFn) -> None:
-        if not callable(value):
-            raise TypeError(
-                f"`distance` must be callable (states, goals) -> steps, got {type(value).__name__}."
-            )
-        # stored outside nn.Module registration (`_unregistered` routes assignments of an nn.Module
-        # here too): the learner owns (and checkpoints) its parameters
-        self.__dict__["_distance"] = value
+        Any :class:`TemporalDistance` ``distance(states, goals) -> steps``, an ``nn.Module`` included;
+        assigning a new one takes effect at the next :meth:`build` or query.
+        """,
+    )
 
     @property
     def cutoff(self) -> float:
@@ -348,7 +308,7 @@ class GraphPlanner(UnregisteredAttributes, Transform):
         Examples:
             >>> from torchrl.envs import TransformedEnv
             >>> from torchrl.testing.mocking_classes import ContinuousActionVecMockEnv
-            >>> planner = GraphPlanner(lambda s, g: (g - s[..., :2]).norm(dim=-1), goal_dim=2)
+            >>> planner = GraphPlanner(LandmarkGraph(), lambda s, g: (g - s[..., :2]).norm(dim=-1), goal_dim=2)
             >>> env = TransformedEnv(ContinuousActionVecMockEnv(), planner.make_tensordict_primer())
             >>> env.reset()["planner", "has_plan"]
             tensor([False])

@@ -40,8 +40,12 @@ from .diagnostics import (
     visible_offsets,
 )
 from .evaluation import EvaluationResult, ModuleTimer, evaluate, goal_as_waypoint, record_video
-from .goal_shift import GoalShiftOnReset
-from .hierarchy_diagnostics import HIERARCHY_DIAG_KEYS, hierarchy_diagnostics, subgoal_segments
+from .hierarchy_diagnostics import (
+    HIERARCHY_DIAG_KEYS,
+    LEARNED_DISTANCE_DIAG_KEYS,
+    hierarchy_diagnostics,
+    subgoal_segments,
+)
 from .maze_diagnostics import (
     GraphDiagnosis,
     MazeGeometry,
@@ -55,7 +59,6 @@ from .maze_diagnostics import (
     spearman_correlation,
     start_subgoal,
 )
-from .oracle import LineOfSightDistance
 from .plots import graph_path_to_goal, plot_distance_scatter, plot_episode, plot_success_curve
 from .threads import available_cpus, resolve_threads, set_threads
 from .updates import LossUpdater, NonFiniteLossError
@@ -66,12 +69,11 @@ __all__ = [
     "DHRLAgent",
     "DISTANCES",
     "EvaluationResult",
-    "GoalShiftOnReset",
     "GraphDiagnosis",
     "HIERARCHY_DIAG_KEYS",
+    "LEARNED_DISTANCE_DIAG_KEYS",
     "LOGGER_BACKENDS",
     "LOW_LEVEL_KEYS",
-    "LineOfSightDistance",
     "LossUpdater",
     "MazeGeometry",
     "ModuleTimer",

@@ -16,7 +16,6 @@ from typing import Any
 import torch
 from tensordict.nn import TensorDictSequential
 from torchrl.collectors import Collector
-from torchrl.data import TensorDictReplayBuffer
 from torchrl.envs import Compose, EnvBase, TransformedEnv
 
 from torchrl_dhrl.data import (
@@ -24,22 +23,28 @@ from torchrl_dhrl.data import (
     FutureGoalRelabel,
     HighLevelTransitionBuilder,
     HindsightSubgoalRelabel,
+    RelabelReplayBuffer,
     SparseGoalReward,
 )
-from torchrl_dhrl.envs import make_env
+from torchrl_dhrl.envs import GoalEnvError, check_goal_env, make_env
+from torchrl_dhrl.envs.transforms import AngleFeatures
 from torchrl_dhrl.modules import (
     GaussianUniformExplorationModule,
     GoalConditionedCritic,
-    GoalDistance,
     HighLevelPolicy,
     LowLevelActor,
 )
 from torchrl_dhrl.objectives import HighLevelLoss, SQGCLoss, make_optimizers
-from torchrl_dhrl.planner import FrontierGoalShifting, GraphPlanner
+from torchrl_dhrl.planner import (
+    FrontierGoalShifting,
+    GoalDistance,
+    GoalShiftOnReset,
+    GraphPlanner,
+    LandmarkGraph,
+    LineOfSightDistance,
+)
 
 from .config import BUILD_DTYPES, UPDATE_DTYPES, ConfigError
-from .goal_shift import GoalShiftOnReset
-from .oracle import LineOfSightDistance
 from .updates import LossUpdater
 
 __all__ = [
@@ -216,17 +221,24 @@ def make_agent(cfg: Mapping, env: EnvBase, device: torch.device) -> DHRLAgent:
         actor_update_interval=high["actor_update_interval"],
     )
     planner_cfg = cfg["planner"]
-    planner = GraphPlanner(
-        make_graph_distance(cfg, sqgc_loss),
-        goal_dim,
+    graph = LandmarkGraph(
         cutoff=planner_cfg["cutoff"],
         max_landmarks=planner_cfg["max_landmarks"],
         early_stop=planner_cfg["early_stop"],
-        reach_radius=planner_cfg["reach_radius"],
         build_autocast_dtype=BUILD_DTYPES[planner_cfg["build_dtype"]],
+    )
+    planner = GraphPlanner(
+        graph, make_graph_distance(cfg, sqgc_loss), goal_dim, reach_radius=planner_cfg["reach_radius"]
     ).to(device)
     policy = TensorDictSequential(high_policy, planner, TensorDictSequential(actor, exploration))
     return DHRLAgent(high_policy, actor, exploration, sqgc_loss, high_loss, planner, policy)
+
+
+def observation_transforms(cfg: Mapping) -> list:
+    """The observation transforms of the configuration (``angle_features``: :class:`AngleFeatures`), to append to
+    every env the agent acts in (training, evaluation and diagnosis envs alike)."""
+    indices = cfg.get("angle_features")
+    return [AngleFeatures(indices)] if indices else []
 
 
 def make_environment(
@@ -238,22 +250,34 @@ def make_environment(
 ) -> EnvBase:
     """The batched env (``eval``: ``eval_episodes`` envs on the test goals), with the agent's primers.
 
-    Without ``agent`` the bare env is returned (used to read the specs before the agent exists).
+    Without ``agent`` the bare env (with the :func:`observation_transforms` only) is returned (used to read the
+    specs before the agent exists), after
+    :func:`~torchrl_dhrl.envs.check_goal_env` (with ``goal_indices``) has checked that it meets the goal-env
+    contract: any env registered with :func:`~torchrl_dhrl.envs.register_env` that does can be trained.
     Training envs get frontier-based goal shifting when ``fgs.enabled``.
+
+    Raises:
+        ConfigError: when the env does not meet the contract (the message names the key).
     """
     num_envs = cfg["schedule"]["eval_episodes"] if eval else cfg["num_envs"]
     seed = cfg["seed"] + (10_000 if eval else 0)
-    env = make_env(
-        cfg["env_name"],
-        num_envs=num_envs,
-        seed=seed,
-        device=device,
-        eval=eval,
-        max_episode_steps=cfg["episode_length"],
-    )
+    try:
+        env = make_env(
+            cfg["env_name"],
+            num_envs=num_envs,
+            seed=seed,
+            device=device,
+            eval=eval,
+            max_episode_steps=cfg["episode_length"],
+        )
+        if agent is None:  # the whole contract once, with a short rollout that draws no random numbers
+            check_goal_env(env, goal_indices=_goal_indices(cfg))
+    except GoalEnvError as err:
+        raise ConfigError(f"env_name={cfg['env_name']}: {err}") from err
     if agent is None:
-        return env
-    transforms = [agent.high_policy.make_primer(), agent.planner.make_primer()]
+        features = observation_transforms(cfg)
+        return TransformedEnv(env, Compose(*features)) if features else env
+    transforms = [*observation_transforms(cfg), agent.high_policy.make_primer(), agent.planner.make_primer()]
     if cfg["fgs"]["enabled"] and not eval:
         fgs = FrontierGoalShifting(
             agent.planner,
@@ -287,27 +311,25 @@ def make_collector(env: EnvBase, agent: DHRLAgent, episode_length: int) -> Colle
 
 
 def make_replay_buffers(cfg: Mapping, agent: DHRLAgent, device: torch.device):
-    """The low-level buffer (time-major ``[T, num_envs]`` storage, extended with ``[num_envs, T]`` batches), the
-    high-level one (a transition builder turns low-level batches into one transition per subgoal) and their
-    relabelling steps. ``low.buffer_size`` and ``high.buffer_size`` count transitions, whatever ``num_envs``.
+    """The low-level buffer (time-major ``[T, num_envs]`` storage, extended with ``[num_envs, T]`` batches) and
+    the high-level one (a transition builder turns low-level batches into one transition per subgoal), both
+    :class:`~torchrl_dhrl.data.RelabelReplayBuffer` s whose ``sample()`` returns relabelled batches.
+    ``low.buffer_size`` and ``high.buffer_size`` count transitions, whatever ``num_envs``.
 
     Returns:
-        ``(low_rb, low_relabel, high_rb, high_relabel)``.
+        ``(low_rb, high_rb)``.
     """
     low, high = cfg["low"], cfg["high"]
     reward = SparseGoalReward(low["reward_threshold"])
     # ``max_size`` counts transitions (elements of the ``[T, num_envs]`` storage), not time steps
-    low_rb = TensorDictReplayBuffer(
+    low_rb = RelabelReplayBuffer(
         storage=CompactLazyTensorStorage(low["buffer_size"], ndim=2, device=device),
+        relabel=[
+            FutureGoalRelabel(
+                reward, her_ratio=(low["her_ratio"], 1.0), window=low["her_window"], goal_key="waypoint"
+            )
+        ],
         batch_size=low["batch_size"],
-    )
-    low_relabel = FutureGoalRelabel(
-        low_rb, reward, her_ratio=(low["her_ratio"], 1.0), window=low["her_window"], goal_key="waypoint"
-    )
-    high_rb = TensorDictReplayBuffer(
-        storage=CompactLazyTensorStorage(high["buffer_size"], device=device),
-        transform=HighLevelTransitionBuilder(reward_fn=reward),
-        batch_size=high["batch_size"],
     )
     far_threshold = high["far_from_graph_factor"] * cfg["planner"]["cutoff"]
     distance_from_graph = (
@@ -316,9 +338,8 @@ def make_replay_buffers(cfg: Mapping, agent: DHRLAgent, device: torch.device):
         if high["gradual_penalty"] is not None and cfg["planner"]["enabled"]
         else None
     )
-    high_relabel = Compose(
+    high_relabel = [
         FutureGoalRelabel(
-            high_rb,
             reward,
             her_ratio=high["her_ratio"],
             window=high["her_window"],
@@ -336,18 +357,22 @@ def make_replay_buffers(cfg: Mapping, agent: DHRLAgent, device: torch.device):
             gradual_penalty=high["gradual_penalty"],
             far_from_graph_threshold=far_threshold,
         ),
+    ]
+    high_rb = RelabelReplayBuffer(
+        storage=CompactLazyTensorStorage(high["buffer_size"], device=device),
+        transform=HighLevelTransitionBuilder(reward_fn=reward),
+        relabel=high_relabel,
+        batch_size=high["batch_size"],
     )
-    return low_rb, low_relabel, high_rb, high_relabel
+    return low_rb, high_rb
 
 
 def make_updaters(cfg: Mapping, agent: DHRLAgent, buffers) -> tuple[LossUpdater, LossUpdater]:
-    """The low-level (SQGC) and high-level updaters with their Adam optimisers."""
-    low_rb, low_relabel, high_rb, high_relabel = buffers
+    """The low-level (SQGC) and high-level updaters with their Adam optimisers, sampling ``buffers``
+    (``(low_rb, high_rb)`` from :func:`make_replay_buffers`)."""
+    low_rb, high_rb = buffers
     updaters = []
-    for level, loss, rb, relabel in (
-        ("low", agent.sqgc_loss, low_rb, low_relabel),
-        ("high", agent.high_loss, high_rb, high_relabel),
-    ):
+    for level, loss, rb in (("low", agent.sqgc_loss, low_rb), ("high", agent.high_loss, high_rb)):
         c = cfg[level]
         optimizers = make_optimizers(loss, actor_lr=c["actor_lr"], critic_lr=c["critic_lr"])
         updaters.append(
@@ -355,7 +380,6 @@ def make_updaters(cfg: Mapping, agent: DHRLAgent, buffers) -> tuple[LossUpdater,
                 loss,
                 rb,
                 optimizers,
-                relabel=relabel,
                 polyak=c["polyak"],
                 target_update_interval=c["target_update_interval"],
                 cudagraphs=cfg.get("cudagraphs", False),

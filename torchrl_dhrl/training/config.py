@@ -5,12 +5,13 @@ from __future__ import annotations
 import difflib
 import fnmatch
 import importlib.util
+import math
 from collections.abc import Mapping
 from typing import Any
 
 import torch
 
-from torchrl_dhrl.modules.distance import TWIN_CHOICES
+from torchrl_dhrl.planner.distances import TWIN_CHOICES
 from torchrl_dhrl.planner.fgs import FGS_TRIGGERS, FGS_WEIGHTINGS
 
 __all__ = [
@@ -142,14 +143,37 @@ def _check_run_keys(cfg: Mapping) -> None:
         )
 
 
+def _check_angle_features(cfg: Mapping, name: str, obs_dim: int | None) -> None:
+    """``angle_features``: null or distinct observation indices (in range when ``obs_dim`` is known) outside
+    ``goal_indices``."""
+    angles, goals = _get(cfg, "angle_features"), _get(cfg, "goal_indices")
+    if angles is None:
+        return
+    bound = math.inf if obs_dim is None else obs_dim
+    if (
+        not isinstance(angles, (list, tuple))
+        or not angles
+        or len(set(angles)) != len(angles)
+        or any(isinstance(i, bool) or not isinstance(i, int) or not 0 <= i < bound for i in angles)
+        or set(angles) & set(goals or ())
+    ):
+        where = "" if obs_dim is None else f" in [0, {obs_dim})"
+        raise ConfigError(
+            f"`angle_features` must be null or distinct observation indices{where} outside `goal_indices` "
+            f"({name}'s continuous joint angles, e.g. [4, 6] for Reacher3D), got {angles!r}."
+        )
+
+
 def _check_against_env(cfg: Mapping, name: str) -> None:
     """Sizes that must agree with the environment's spec (read without building it) and with each other."""
     from torchrl_dhrl.envs import ENVS
 
     spec = ENVS.get(name)
-    if spec is None:  # a name outside torchrl_dhrl.envs (``env_names`` given): nothing to compare with
+    if spec is None:  # a registered user env (or ``env_names`` given): its sizes are checked when it is built
+        _check_angle_features(cfg, name, None)
         return
     goal_dim, obs_dim = spec.goal_dim, spec.obs_dim
+    _check_angle_features(cfg, name, obs_dim)
     indices = _get(cfg, "goal_indices")
     if indices is not None:
         if (
@@ -392,7 +416,8 @@ def validate_config(cfg: Mapping, env_names: tuple[str, ...] | None = None) -> N
 
     Every check runs before any environment, network or file is created, so a typo costs
     nothing. ``env_names`` lists the valid environment names (defaults to every environment of
-    :mod:`torchrl_dhrl.envs`).
+    :mod:`torchrl_dhrl.envs`, built in or registered with :func:`~torchrl_dhrl.envs.register_env`). The
+    sizes of a registered env are checked when it is built (:func:`~torchrl_dhrl.training.make_environment`).
 
     Examples:
         >>> try:
@@ -401,13 +426,15 @@ def validate_config(cfg: Mapping, env_names: tuple[str, ...] | None = None) -> N
         ...     print(err)
         Unknown env_name 'AntMase'; choose one of: AntMaze.
     """
+    hint = ""
     if env_names is None:
-        from torchrl_dhrl.envs import ENV_NAMES
+        from torchrl_dhrl.envs import ENV_NAMES, registered_env_names
 
-        env_names = tuple(ENV_NAMES)
+        env_names = (*ENV_NAMES, *registered_env_names())
+        hint = " (or register your own env with torchrl_dhrl.envs.register_env, see docs/goal_env.md)"
     name = _get(cfg, "env_name")
     if name not in env_names:
-        raise ConfigError(f"Unknown env_name {name!r}; choose one of: {', '.join(env_names)}.")
+        raise ConfigError(f"Unknown env_name {name!r}; choose one of: {', '.join(env_names)}{hint}.")
     seed = _number(cfg, "seed", integer=True)
     if not 0 <= seed <= SEED_MAX:
         raise ConfigError(f"`seed` must be an integer in [0, 2**32 - 1] (NumPy's seed range), got {seed}.")

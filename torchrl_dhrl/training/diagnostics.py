@@ -7,16 +7,17 @@ from collections.abc import Sequence
 from typing import NamedTuple
 
 import torch
-from tensordict.nn import TensorDictModule, TensorDictModuleBase, TensorDictSequential
+from tensordict.nn import TensorDictModuleBase
 from torch import Tensor
-from torchrl.envs import EnvBase
+from torchrl.envs import Compose, EnvBase, TransformedEnv
 from torchrl.envs.utils import ExplorationType, set_exploration_type
 
 from torchrl_dhrl.envs import make_env
+from torchrl_dhrl.planner import LineOfSightDistance
 
-from .builders import _obstacle_boxes, make_agent, make_environment
+from .builders import _obstacle_boxes, make_agent, make_environment, observation_transforms
 from .checkpoint import load_checkpoint
-from .oracle import LineOfSightDistance
+from .evaluation import goal_as_waypoint
 
 __all__ = [
     "ReachResult",
@@ -133,10 +134,7 @@ def low_level_reach_test(
     offsets = offsets.to(start.device, start.dtype)
     td = env.reset(td.set("desired_goal", start + offsets))
     goal = td["desired_goal"]
-    waypoint_key = actor.in_keys[1]
-    policy = TensorDictSequential(
-        TensorDictModule(lambda g: g.clone(), in_keys=["desired_goal"], out_keys=[waypoint_key]), actor
-    )
+    policy = goal_as_waypoint(actor)
     with set_exploration_type(ExplorationType.DETERMINISTIC):
         rollout = env.rollout(max_steps, policy, tensordict=td, auto_reset=False, break_when_any_done=False)
     distance = (rollout["next", "achieved_goal"] - goal.unsqueeze(-2)).norm(dim=-1)  # [N, T]
@@ -220,6 +218,9 @@ def reach_test_from_checkpoint(
     if offsets.shape[0] == 0:
         raise ValueError(f"No reach-test goal around the start {start.tolist()} lies inside the goal box.")
     env = make_env(cfg["env_name"], num_envs=offsets.shape[0], seed=seed, device=device)
+    features = observation_transforms(cfg)  # the observation the actor was trained on
+    if features:
+        env = TransformedEnv(env, Compose(*features))
     result = low_level_reach_test(
         env, agent.low_actor, offsets, max_steps=max_steps, reach_radius=planner["reach_radius"]
     )

@@ -9,12 +9,13 @@ and a low level that does not reach the subgoals it is given.
 from __future__ import annotations
 
 import math
+from collections.abc import Callable
 
 import torch
 from tensordict import TensorDictBase
 from tensordict.utils import NestedKey
 
-__all__ = ["HIERARCHY_DIAG_KEYS", "hierarchy_diagnostics", "subgoal_segments"]
+__all__ = ["HIERARCHY_DIAG_KEYS", "LEARNED_DISTANCE_DIAG_KEYS", "hierarchy_diagnostics", "subgoal_segments"]
 
 #: The keys :func:`hierarchy_diagnostics` returns (prefixed ``diag/`` by the recipe).
 HIERARCHY_DIAG_KEYS = (
@@ -25,6 +26,8 @@ HIERARCHY_DIAG_KEYS = (
     "segment_progress",
     "graph_steps",
 )
+#: The keys :func:`hierarchy_diagnostics` adds when given the learned distances.
+LEARNED_DISTANCE_DIAG_KEYS = ("subgoal_learned_distance", "subgoal_graph_distance", "subgoals_far_from_graph")
 
 
 def subgoal_segments(new_subgoal: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
@@ -62,6 +65,10 @@ def hierarchy_diagnostics(
     rollout: TensorDictBase,
     threshold: float,
     *,
+    distance: Callable[[torch.Tensor, torch.Tensor], torch.Tensor] | None = None,
+    distance_from_graph: Callable[[torch.Tensor], torch.Tensor] | None = None,
+    far_threshold: float | None = None,
+    observation_key: NestedKey = "observation",
     achieved_goal_key: NestedKey = "achieved_goal",
     desired_goal_key: NestedKey = "desired_goal",
     subgoal_key: NestedKey = "subgoal",
@@ -82,13 +89,28 @@ def hierarchy_diagnostics(
     and ``graph_steps``: the fraction of steps whose waypoint is not the subgoal itself (the low level
     follows the graph). ``NaN`` where a rollout has no segment (it always has one per row).
 
+    Given the learned distances (env steps), also what the agent believes about its subgoals, to compare
+    with the true offsets above (a learned distance far below ``subgoal_offset / speed`` is a critic that
+    extrapolates optimistically to goals it never reached):
+
+    * ``subgoal_learned_distance``: ``distance(state at the segment's start, s)``;
+    * ``subgoal_graph_distance``: ``distance_from_graph(s)``, the nearest landmark's distance to ``s``
+      (``NaN`` where there is no graph, i.e. where it is infinite);
+    * ``subgoals_far_from_graph``: the fraction of subgoals with ``distance_from_graph(s) > far_threshold``:
+      those the gradual penalty punishes (the recipe passes ``far_from_graph_factor x cutoff``).
+
     Args:
         rollout (TensorDictBase): the rollout, e.g. :attr:`EvaluationResult.rollout`.
         threshold (float): the "reached" radius (the recipe passes the sparse-reward threshold).
 
     Keyword Args:
-        achieved_goal_key, desired_goal_key, subgoal_key, new_subgoal_key, waypoint_key (NestedKey): the
-            rollout's entries. Default to the recipe's names.
+        distance (callable, optional): ``distance(states, goals)``, e.g. ``GraphPlanner.distance``.
+        distance_from_graph (callable, optional): ``distance_from_graph(goals)``, e.g.
+            ``GraphPlanner.distance_from_graph``.
+        far_threshold (float, optional): the gradual penalty's "far from the graph" distance (needs
+            ``distance_from_graph``).
+        observation_key, achieved_goal_key, desired_goal_key, subgoal_key, new_subgoal_key, waypoint_key
+            (NestedKey): the rollout's entries. Default to the recipe's names.
 
     Examples:
         >>> import torch
@@ -107,6 +129,11 @@ def hierarchy_diagnostics(
         (1.5, 2.5, 0.5, 2.0)
         >>> d["graph_steps"]  # the first step chases a waypoint short of its subgoal
         0.25
+        >>> steps = lambda states, goals: (goals - states[..., :2]).norm(dim=-1) / 0.5  # 0.5 goal units per step
+        >>> d = hierarchy_diagnostics(rollout.set("observation", ag[:-1])[None], 0.5, distance=steps,
+        ...     distance_from_graph=lambda goals: (goals[..., 0] - 4.0).abs(), far_threshold=0.5)
+        >>> d["subgoal_learned_distance"], d["subgoal_graph_distance"], d["subgoals_far_from_graph"]
+        (5.0, 1.5, 1.0)
     """
     if rollout.ndim < 1:
         raise ValueError("`rollout` must have a time dimension (batch_size [..., T]).")
@@ -127,7 +154,7 @@ def hierarchy_diagnostics(
     a0, a1 = flat(achieved_goal_key)[starts], flat(("next", achieved_goal_key))[ends]
     end_distance = (a1 - subgoal).norm(dim=-1)
     waypoint, step_subgoal = flat(waypoint_key), flat(subgoal_key)
-    return {
+    out = {
         "subgoal_goal_distance": _mean((subgoal - goal).norm(dim=-1)),
         "subgoal_offset": _mean((subgoal - a0).norm(dim=-1)),
         "subgoal_end_distance": _mean(end_distance),
@@ -135,3 +162,14 @@ def hierarchy_diagnostics(
         "segment_progress": _mean((a0 - goal).norm(dim=-1) - (a1 - goal).norm(dim=-1)),
         "graph_steps": _mean((waypoint != step_subgoal).any(-1)),
     }
+    if distance is not None:
+        out["subgoal_learned_distance"] = _mean(distance(flat(observation_key)[starts], subgoal))
+    if distance_from_graph is not None:
+        from_graph = distance_from_graph(subgoal).float()
+        finite = torch.isfinite(from_graph)
+        out["subgoal_graph_distance"] = _mean(from_graph[finite]) if bool(finite.all()) else math.nan
+        if far_threshold is not None:
+            out["subgoals_far_from_graph"] = (
+                _mean(from_graph > far_threshold) if bool(finite.all()) else math.nan
+            )
+    return out

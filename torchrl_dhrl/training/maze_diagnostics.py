@@ -26,7 +26,7 @@ from tensordict import TensorDict, TensorDictBase
 from tensordict.nn import TensorDictModuleBase
 from torch import Tensor
 
-from .oracle import LineOfSightDistance
+from torchrl_dhrl.planner import LineOfSightDistance
 
 __all__ = [
     "GraphDiagnosis",
@@ -666,8 +666,8 @@ def maze_epoch_diagnostics(
         >>> import torch
         >>> from tensordict import TensorDict
         >>> from torchrl_dhrl.modules import HighLevelActor
-        >>> from torchrl_dhrl.planner import GraphPlanner
-        >>> planner = GraphPlanner(lambda s, g: (g - s[..., :2]).norm(dim=-1), goal_dim=2)  # no graph yet
+        >>> from torchrl_dhrl.planner import GraphPlanner, LandmarkGraph
+        >>> planner = GraphPlanner(LandmarkGraph(), lambda s, g: (g - s[..., :2]).norm(dim=-1), goal_dim=2)  # no graph
         >>> actor = HighLevelActor(6, 2, [-2.0, -2.0], [10.0, 10.0], num_cells=(8,))
         >>> rollout = TensorDict(observation=torch.zeros(1, 3, 6), desired_goal=torch.zeros(1, 3, 2),
         ...                      subgoal=torch.zeros(1, 3, 2), waypoint=torch.zeros(1, 3, 2),

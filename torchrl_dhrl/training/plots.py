@@ -5,16 +5,13 @@ from __future__ import annotations
 from collections.abc import Mapping, Sequence
 from pathlib import Path
 
-import matplotlib
+import numpy as np
+import torch
+from matplotlib.figure import Figure  # no pyplot: no global figure registry, no backend chosen at import
+from tensordict import TensorDictBase
 
-matplotlib.use("Agg")
-import matplotlib.pyplot as plt  # noqa: E402
-import numpy as np  # noqa: E402
-import torch  # noqa: E402
-from tensordict import TensorDictBase  # noqa: E402
-
-from torchrl_dhrl.envs import plot_env  # noqa: E402
-from torchrl_dhrl.planner import GraphPlanner  # noqa: E402
+from torchrl_dhrl.envs import plot_env
+from torchrl_dhrl.planner import GraphPlanner
 
 __all__ = ["graph_path_to_goal", "plot_distance_scatter", "plot_episode", "plot_success_curve"]
 
@@ -46,7 +43,8 @@ def plot_episode(
         [episode[0]["achieved_goal"].reshape(1, -1).cpu().numpy(), graph_path_to_goal(planner, start, goal)]
     )
     has_graph = planner.has_graph
-    fig, ax = plt.subplots(figsize=(5, 5))
+    fig = Figure(figsize=(5, 5))
+    ax = fig.subplots()
     plot_env(
         env_name,
         trajectory=trajectory.cpu().numpy(),
@@ -60,7 +58,6 @@ def plot_episode(
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
     fig.savefig(path, dpi=100, bbox_inches="tight")
-    plt.close(fig)
     return path
 
 
@@ -74,7 +71,8 @@ def plot_success_curve(
     """Saves success rate (final state and any time) against env steps; ``reference`` maps steps to
     the paper's success rates, drawn as crosses."""
     steps = [h["env_steps"] for h in history]
-    fig, ax = plt.subplots(figsize=(6, 4))
+    fig = Figure(figsize=(6, 4))
+    ax = fig.subplots()
     ax.plot(steps, [h["eval/success"] for h in history], marker="o", label="final-state success")
     ax.plot(steps, [h["eval/any_success"] for h in history], ls="--", alpha=0.7, label="any-time success")
     if reference:
@@ -105,7 +103,8 @@ def plot_distance_scatter(
     not connect (``inf``) are left out of the ``graph`` series.
     """
     true = torch.as_tensor(true).double().cpu()
-    fig, ax = plt.subplots(figsize=(5.5, 4.5))
+    fig = Figure(figsize=(5.5, 4.5))
+    ax = fig.subplots()
     learned = torch.as_tensor(learned).double().cpu()
     ax.scatter(true.numpy(), learned.numpy(), s=6, alpha=0.4, label="learned d(i, j)")
     if graph is not None:
@@ -131,11 +130,10 @@ def plot_distance_scatter(
 
 
 def _save(fig, ax, path: str | Path, title: str | None) -> Path:
-    """Titles the axes (if ``title``), writes the figure to ``path`` (parents created) and closes it."""
+    """Titles the axes (if ``title``) and writes the figure to ``path`` (parents created)."""
     if title:
         ax.set_title(title)
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
     fig.savefig(path, dpi=100, bbox_inches="tight")
-    plt.close(fig)
     return path

@@ -1,9 +1,9 @@
-"""One optimisation step of a DHRL loss: sample, relabel, loss, Adam steps, delayed Polyak averaging."""
+"""One optimisation step of a DHRL loss: sample, loss, Adam steps, delayed Polyak averaging."""
 
 from __future__ import annotations
 
 import contextlib
-from collections.abc import Callable, Mapping
+from collections.abc import Mapping
 
 import torch
 from tensordict import TensorDict, TensorDictBase
@@ -24,13 +24,14 @@ class NonFiniteLossError(RuntimeError):
 class LossUpdater:
     """Runs optimisation steps of a DHRL loss (:class:`SQGCLoss` or :class:`HighLevelLoss`) from a buffer.
 
-    Each :meth:`step` samples a batch, applies ``relabel`` (hindsight goals and rewards, which
-    need the sample's storage indices and therefore run after ``rb.sample()``), evaluates the
-    loss, back-propagates the sum of its ``loss_*`` entries, steps the critic optimiser, steps
-    the actor optimiser only when the loss reports ``actor_updated`` (TD3's delayed actor: an
-    Adam step on a zero gradient would still move the weights through its momentum), and
-    applies Polyak averaging ``target <- polyak * target + (1 - polyak) * online`` every
-    ``target_update_interval`` steps (reference: 0.995 every 10 steps). A non-finite loss raises
+    Each :meth:`step` samples a batch with ``replay_buffer.sample()`` (a
+    :class:`~torchrl_dhrl.data.RelabelReplayBuffer` returns it relabelled: hindsight goals,
+    rewards, subgoal tests), evaluates the loss, back-propagates the sum of its ``loss_*``
+    entries, steps the critic optimiser, steps the actor optimiser only when the loss reports
+    ``actor_updated`` (TD3's delayed actor: an Adam step on a zero gradient would still move the
+    weights through its momentum), and applies Polyak averaging
+    ``target <- polyak * target + (1 - polyak) * online`` every ``target_update_interval`` steps
+    (reference: 0.995 every 10 steps). A non-finite loss raises
     :class:`NonFiniteLossError` before any parameter changes.
 
     With ``actor_after_critic_step=True`` (the reference implementation's order) the critic
@@ -64,12 +65,12 @@ class LossUpdater:
 
     Args:
         loss (LossModule): the loss, returning ``loss_*`` entries and a bool ``actor_updated``.
-        replay_buffer (ReplayBuffer): the buffer to sample from (its ``batch_size`` is used).
+        replay_buffer (ReplayBuffer): the buffer to sample from (its ``batch_size`` is used); its samples
+            are fed to the loss as they are.
         optimizers (dict): ``{"actor": ..., "critic": ...}`` as made by
             :func:`~torchrl_dhrl.objectives.make_optimizers`.
 
     Keyword Args:
-        relabel (callable, optional): ``relabel(sample) -> sample``. Defaults to ``None``.
         polyak (float): Polyak coefficient of the target networks. Defaults to ``0.995``.
         target_update_interval (int): steps between target updates. Defaults to ``10``.
         cudagraphs (bool): replay the update as CUDA graphs (see above). Defaults to ``False``.
@@ -81,7 +82,8 @@ class LossUpdater:
     Examples:
         >>> import torch
         >>> from tensordict import TensorDict
-        >>> from torchrl.data import LazyTensorStorage, TensorDictReplayBuffer
+        >>> from torchrl.data import LazyTensorStorage
+        >>> from torchrl_dhrl.data import HindsightSubgoalRelabel, RelabelReplayBuffer
         >>> from torchrl_dhrl.modules import GoalConditionedCritic, HighLevelActor
         >>> from torchrl_dhrl.objectives import HighLevelLoss, make_optimizers
         >>> low, high = [-4.0, -4.0], [20.0, 20.0]
@@ -89,10 +91,12 @@ class LossUpdater:
         >>> critic = GoalConditionedCritic(6, 2, action_low=low, action_high=high, goal_key="desired_goal",
         ...     action_key="subgoal", relative_goal=False, num_cells=(16,))
         >>> loss = HighLevelLoss(actor, critic)
-        >>> rb = TensorDictReplayBuffer(storage=LazyTensorStorage(100), batch_size=8)
+        >>> rb = RelabelReplayBuffer(  # samples come out with HAC actions and rewards
+        ...     storage=LazyTensorStorage(100), relabel=[HindsightSubgoalRelabel()], batch_size=8
+        ... )
         >>> _ = rb.extend(TensorDict({"observation": torch.randn(20, 6), "desired_goal": torch.randn(20, 2),
         ...     "subgoal": torch.rand(20, 2) * 24 - 4, ("next", "observation"): torch.randn(20, 6),
-        ...     ("next", "reward"): -torch.ones(20, 1)}, [20]))
+        ...     ("next", "achieved_goal"): torch.randn(20, 2)}, [20]))
         >>> updater = LossUpdater(loss, rb, make_optimizers(loss))
         >>> metrics = updater.step()
         >>> updater.num_updates, bool(torch.isfinite(metrics["loss_qvalue"]))
@@ -105,7 +109,6 @@ class LossUpdater:
         replay_buffer: ReplayBuffer,
         optimizers: Mapping[str, torch.optim.Optimizer],
         *,
-        relabel: Callable[[TensorDictBase], TensorDictBase] | None = None,
         polyak: float = 0.995,
         target_update_interval: int = 10,
         cudagraphs: bool = False,
@@ -135,7 +138,6 @@ class LossUpdater:
         self.autocast_dtype = autocast_dtype
         self.replay_buffer = replay_buffer
         self.optimizers = dict(optimizers)
-        self.relabel = relabel
         self.target_update_interval = int(target_update_interval)
         self.target_updater = SoftUpdate(loss, eps=polyak)
         self.num_updates = 0
@@ -163,8 +165,7 @@ class LossUpdater:
         return out
 
     def _sample(self) -> TensorDictBase:
-        sample = self.replay_buffer.sample()
-        return sample if self.relabel is None else self.relabel(sample)
+        return self.replay_buffer.sample()
 
     def _step(self) -> TensorDictBase:
         if self.cudagraphs:

@@ -1,19 +1,120 @@
-"""The learned temporal distance of DHRL, Eq. (1), as a batched callable ``(states, goals) -> steps``."""
+"""Temporal distances of the graph level: the :class:`TemporalDistance` protocol and two of its kinds.
+
+Everything in :mod:`torchrl_dhrl.planner` (farthest point sampling,
+:class:`~torchrl_dhrl.planner.LandmarkGraph`, :class:`~torchrl_dhrl.planner.GraphPlanner`,
+:class:`~torchrl_dhrl.planner.FrontierGoalShifting`) and the gradual penalty of the high level (through
+:meth:`~torchrl_dhrl.planner.GraphPlanner.distance_from_graph`) reads the environment through one
+callable, ``distance(states, goals) -> steps``. That callable is the swap point for ablations and new
+ideas:
+
+- :class:`GoalDistance`, DHRL's learned distance (Eq. 1 of the paper, from the graph critics);
+- :class:`LineOfSightDistance`, an oracle (straight-line steps, blocked by obstacle boxes);
+- any function or ``nn.Module`` that follows :class:`TemporalDistance`.
+"""
 
 from __future__ import annotations
 
 import contextlib
 import copy
 import math
+from collections.abc import Sequence
+from typing import Protocol, runtime_checkable
 
 import torch
 from tensordict import TensorDictBase
 from tensordict.nn import TensorDictModule, TensorDictModuleBase
+from torch import Tensor
 from torchrl.envs.utils import ExplorationType, set_exploration_type
 
-from ._utils import check_last_dim, check_positional_keys, run_positional
-from .actors import GoalConditionedActorNet
-from .critics import GoalConditionedCritic, q_to_distance
+from torchrl_dhrl.modules._utils import check_last_dim, check_positional_keys, run_positional
+from torchrl_dhrl.modules.actors import GoalConditionedActorNet
+from torchrl_dhrl.modules.critics import GoalConditionedCritic, q_to_distance
+
+__all__ = [
+    "AUTOCAST_DTYPES",
+    "AutocastDistance",
+    "GoalDistance",
+    "LineOfSightDistance",
+    "TWIN_CHOICES",
+    "TemporalDistance",
+]
+
+
+@runtime_checkable
+class TemporalDistance(Protocol):
+    """The protocol of a graph distance: ``distance(states, goals) -> steps``.
+
+    A temporal distance estimates how many environment steps the low level needs to bring the
+    achieved goal from a *state* to a *goal*: it reads full observations on one side and goal-space
+    points on the other, and need not be symmetric (``d(s_i -> g_j)`` and ``d(s_j -> g_i)`` differ).
+    Plain functions, lambdas, callable objects and ``nn.Module`` instances all qualify; the
+    planner keeps it as a plain attribute (never a submodule: its parameters, if any, belong to whoever
+    trains it, and it is not part of the planner's ``state_dict()``).
+
+    **Shapes.** ``states`` is ``Tensor[..., obs_dim]`` and ``goals`` is ``Tensor[..., goal_dim]``; their
+    leading dims broadcast and the result is one distance per pair, ``Tensor[broadcast(...)]``. The
+    library calls it with
+
+    - aligned pairs: ``states[P, obs_dim]`` and ``goals[P, goal_dim]`` -> ``[P]``;
+    - all pairs of two sets: ``states[M, 1, obs_dim]`` and ``goals[1, N, goal_dim]`` -> ``[M, N]``
+      (in blocks of rows, so that one call sees at most ``LandmarkGraph.chunk_size`` pairs, or ``N``);
+    - single points: ``states[obs_dim]`` and ``goals[goal_dim]`` -> a 0-d tensor (the recipe's
+      ``graph/learned_distance_start_goal`` metric).
+
+    **Values.** A floating tensor of distances in env steps, ``>= 0`` (negative values are clamped to
+    ``0`` where a graph is built), on the device of ``states``. Large values (or ``inf``) mean
+    "unreachable"; ``NaN`` is an error (farthest point sampling and
+    :meth:`~torchrl_dhrl.planner.LandmarkGraph.set_distance_matrix` reject it). The planner calls it under
+    ``torch.no_grad()``.
+
+    **Reduced-precision building** (``LandmarkGraph(build_autocast_dtype=...)``) additionally needs a
+    ``with_autocast(dtype)`` method (:class:`AutocastDistance`); nothing else is ever called.
+
+    Examples:
+        >>> import torch
+        >>> from torchrl_dhrl.planner import GraphPlanner, LandmarkGraph
+        >>> def manhattan(states, goals):  # a user-written distance: 1 step per goal unit
+        ...     return (goals - states[..., :2]).abs().sum(-1)
+        >>> isinstance(manhattan, TemporalDistance)
+        True
+        >>> manhattan(torch.zeros(4, 1, 6), torch.ones(1, 3, 2)).shape
+        torch.Size([4, 3])
+        >>> points = torch.stack([torch.arange(5.0), torch.zeros(5)], -1)  # landmarks 1 step apart
+        >>> planner = GraphPlanner(LandmarkGraph(cutoff=1.5), manhattan, goal_dim=2)
+        >>> planner = planner.build(points, points.clone())
+        >>> planner.plan(points[:1], torch.tensor([[4.0, 0.0]])).cost.item()
+        4.0
+    """
+
+    def __call__(self, states: Tensor, goals: Tensor) -> Tensor:
+        """``Tensor[..., obs_dim], Tensor[..., goal_dim] -> Tensor[...]``, estimated env steps."""
+        ...
+
+
+@runtime_checkable
+class AutocastDistance(TemporalDistance, Protocol):
+    """A :class:`TemporalDistance` with a reduced-precision variant, for ``build_autocast_dtype``.
+
+    ``with_autocast(dtype)`` returns the same distance evaluated in ``dtype`` (``torch.bfloat16`` or
+    ``torch.float16``; ``None``: full precision), e.g. :meth:`GoalDistance.with_autocast`.
+    :class:`~torchrl_dhrl.planner.LandmarkGraph` uses it for the distance evaluations of a rebuild only;
+    queries use the distance as given.
+
+    Examples:
+        >>> import torch
+        >>> from torchrl_dhrl.modules import GoalConditionedCritic, LowLevelActor
+        >>> actor = LowLevelActor(6, 2, action_max=1.0, action_dim=2, num_cells=(8,))
+        >>> critic = GoalConditionedCritic(6, 2, action_max=1.0, action_dim=2, num_cells=(8,))
+        >>> isinstance(GoalDistance(actor, critic), AutocastDistance)
+        True
+        >>> isinstance(lambda s, g: (g - s[..., :2]).norm(dim=-1), AutocastDistance)
+        False
+    """
+
+    def with_autocast(self, dtype: torch.dtype | None) -> TemporalDistance:
+        """The same distance evaluated under ``torch.autocast(dtype)`` (``None``: full precision)."""
+        ...
+
 
 #: Default number of (state, goal) pairs evaluated per forward pass on an accelerator.
 DEFAULT_CHUNK_SIZE = 65536
@@ -31,7 +132,7 @@ TWIN_CHOICES = ("optimistic", "pessimistic")
 def _run_actor(actor: TensorDictModuleBase, states: torch.Tensor, goals: torch.Tensor) -> torch.Tensor:
     """The actor's action for aligned ``states`` and ``goals``.
 
-    The library's actors (a plain ``TensorDictModule`` around a :class:`GoalConditionedActorNet`,
+    The library's actors (a plain ``TensorDictModule`` around a :class:`~torchrl_dhrl.modules.GoalConditionedActorNet`,
     without safety projection or hooks) are called on the tensors directly: the same
     computation without building a TensorDict per call. Other actors go through their in_keys.
     """
@@ -64,8 +165,8 @@ class GoalDistance:
     noise-free action (effectively a value function). By default (``twin="optimistic"``) the
     distance is the smaller of the twin's two distances (the larger Q), as in the reference
     implementation (``min(dist1, dist2)``); ``twin="pessimistic"`` takes the larger distance
-    (the smaller Q, as TD3 does for its targets). This is the distance contract shared by
-    the planner, farthest point sampling, FGS and the gradual penalty::
+    (the smaller Q, as TD3 does for its targets). It follows :class:`AutocastDistance` (a
+    :class:`TemporalDistance` with :meth:`with_autocast`)::
 
         distance(states: Tensor[..., obs_dim], goals: Tensor[..., goal_dim]) -> Tensor[...]
 
@@ -88,13 +189,14 @@ class GoalDistance:
     distances see the largest relative errors (bfloat16, 3x256 trained-like twin critic,
     pessimistic member: 0.1% median, 0.4% p99, 0.6% max; see ``benchmarks/bench_planner.py``).
     Meant for graph building
-    (:class:`~torchrl_dhrl.planner.GraphPlanner`'s ``build_autocast_dtype``); float16 is about
+    (:class:`~torchrl_dhrl.planner.LandmarkGraph`'s ``build_autocast_dtype``); float16 is about
     8x more accurate than bfloat16 but needs activations below 65504 (and is slow on most CPUs).
 
     Args:
         actor (TensorDictModule): the deterministic low-level actor, reading
-            ``(observation, goal)`` in the order of its ``in_keys`` (e.g. :class:`LowLevelActor`).
-        critic (GoalConditionedCritic): the graph critic pair.
+            ``(observation, goal)`` in the order of its ``in_keys`` (e.g. :class:`~torchrl_dhrl.modules.LowLevelActor`).
+        critic (GoalConditionedCritic): the graph critic pair
+            (:class:`~torchrl_dhrl.modules.GoalConditionedCritic`).
 
     Keyword Args:
         gamma (float, optional): the discount of Eq. (1). Defaults to the critic's.
@@ -263,3 +365,91 @@ class GoalDistance:
                     chunks.append(self._evaluate(states_b[index], goals_b[index]))
                 out = torch.cat(chunks)
         return out.reshape(shape).to(out_device)
+
+
+class LineOfSightDistance:
+    """``d(s -> g) = ||g - ag(s)|| / speed`` when the segment ``ag(s) -> g`` is free, else ``blocked``.
+
+    The oracle counterpart of :class:`GoalDistance` (a :class:`TemporalDistance`:
+    ``(states[..., obs_dim], goals[..., goal_dim]) -> steps[...]`` with broadcasting), for the
+    "oracle graph distance" ablation and for tests. A plain Euclidean distance would let graph
+    edges cross the mazes' walls (a 30-step cutoff spans the point agent's 4-unit wall), so
+    segments that intersect an obstacle box (inflated by ``margin``) cost ``blocked`` instead.
+    Intersection uses the slab test, vectorised over pairs and boxes.
+
+    Args:
+        speed (float): goal units covered per env step.
+
+    Keyword Args:
+        boxes (Tensor or sequence, optional): ``[W, 2, goal_dim]`` axis-aligned obstacle boxes
+            (``boxes[:, 0]`` lower corners, ``boxes[:, 1]`` upper corners). Defaults to none.
+        margin (float): inflation of every box (e.g. the agent's radius). Defaults to ``0.0``.
+        goal_indices (sequence of int): where the achieved goal sits in the state. Defaults to
+            ``(0, 1)``.
+        blocked (float): the distance of a blocked pair. Defaults to ``1e4``.
+        chunk_size (int): pairs per evaluation chunk. Defaults to ``65536``.
+
+    Examples:
+        >>> import torch
+        >>> wall = torch.tensor([[[1.0, -5.0], [2.0, 5.0]]])  # a wall between x=1 and x=2
+        >>> d = LineOfSightDistance(0.5, boxes=wall)
+        >>> d(torch.zeros(2, 2), torch.tensor([[0.0, 3.0], [3.0, 0.0]])).tolist()
+        [6.0, 10000.0]
+    """
+
+    def __init__(
+        self,
+        speed: float,
+        *,
+        boxes: Tensor | Sequence | None = None,
+        margin: float = 0.0,
+        goal_indices: Sequence[int] = (0, 1),
+        blocked: float = 1e4,
+        chunk_size: int = 65536,
+    ) -> None:
+        if not speed > 0:
+            raise ValueError(f"`speed` must be > 0, got {speed}.")
+        if margin < 0:
+            raise ValueError(f"`margin` must be >= 0, got {margin}.")
+        self.speed = float(speed)
+        self.goal_indices = list(goal_indices)
+        dim = len(self.goal_indices)
+        boxes = torch.zeros(0, 2, dim) if boxes is None else torch.as_tensor(boxes, dtype=torch.float32)
+        if boxes.ndim != 3 or boxes.shape[1:] != (2, dim):
+            raise ValueError(f"`boxes` must be [W, 2, {dim}], got {tuple(boxes.shape)}.")
+        self.boxes = torch.stack([boxes[:, 0] - margin, boxes[:, 1] + margin], 1)
+        self.blocked = float(blocked)
+        self.chunk_size = int(chunk_size)
+
+    def crosses_obstacle(self, start: Tensor, end: Tensor) -> Tensor:
+        """``[n]`` bool: does the segment ``start -> end`` (``[n, dim]``) cross any (inflated) box?"""
+        boxes = self.boxes.to(start.device, start.dtype)
+        if boxes.shape[0] == 0:
+            return torch.zeros(start.shape[0], dtype=torch.bool, device=start.device)
+        direction = (end - start).unsqueeze(1)  # [n, 1, dim]
+        origin = start.unsqueeze(1)
+        parallel = direction.abs() < 1e-12
+        safe = torch.where(parallel, torch.ones_like(direction), direction)
+        t0 = (boxes[:, 0] - origin) / safe  # [n, W, dim]
+        t1 = (boxes[:, 1] - origin) / safe
+        t_near = torch.minimum(t0, t1)
+        t_far = torch.maximum(t0, t1)
+        inside = (origin >= boxes[:, 0]) & (origin <= boxes[:, 1])  # for axes the segment is parallel to
+        t_near = torch.where(parallel, torch.where(inside, -torch.inf, torch.inf), t_near)
+        t_far = torch.where(parallel, torch.where(inside, torch.inf, -torch.inf), t_far)
+        enter = t_near.amax(-1).clamp_min(0.0)
+        leave = t_far.amin(-1).clamp_max(1.0)
+        return (enter <= leave).any(-1)
+
+    def __call__(self, states: Tensor, goals: Tensor) -> Tensor:
+        achieved = states[..., self.goal_indices]
+        shape = torch.broadcast_shapes(achieved.shape[:-1], goals.shape[:-1])
+        dim = goals.shape[-1]
+        start = achieved.expand(*shape, dim).reshape(-1, dim)
+        end = goals.to(achieved.dtype).expand(*shape, dim).reshape(-1, dim)
+        out = torch.empty(start.shape[0], dtype=achieved.dtype, device=achieved.device)
+        for lo in range(0, start.shape[0], self.chunk_size):
+            s, e = start[lo : lo + self.chunk_size], end[lo : lo + self.chunk_size]
+            steps = (e - s).norm(dim=-1) / self.speed
+            out[lo : lo + self.chunk_size] = torch.where(self.crosses_obstacle(s, e), self.blocked, steps)
+        return out.reshape(shape)
