@@ -13,12 +13,15 @@ Compared, per batch size:
 * ``td3 (ours)`` -- a plain twin-critic TD3 update with the same networks
   (:class:`~torchrl_dhrl.objectives.HighLevelLoss` on the low-level networks is exactly that);
 * ``td3 (torchrl)`` -- :class:`torchrl.objectives.TD3Loss` (vmap over two ``nn.Linear`` MLPs).
+* ``sqgc (generic)`` -- :class:`~torchrl_dhrl.objectives.SQGCLoss` with plain TorchRL critics
+  (``ValueOperator(MLP)``, one member each; the loss stacks the twins' parameters and evaluates them
+  with vmap, as TD3Loss): the price of the generic critic path against the fast path.
 
 * ``sqgc (bf16)`` -- the default SQGC update with its forward pass under bfloat16 autocast, as
   ``LossUpdater(autocast_dtype=torch.bfloat16)`` / the recipe's ``update_dtype=bfloat16`` run it
   (hidden layers in bf16, output layers, targets, losses and Adam in float32);
 
-With ``--device cuda`` a sixth variant runs too:
+With ``--device cuda`` a seventh variant runs too:
 
 * ``sqgc (cudagraph)`` -- the fused SQGC update (critic step; critic + actor step every second call)
   captured in two CUDA graphs with :class:`tensordict.nn.CudaGraphModule` (capturable Adam). It shows
@@ -73,23 +76,29 @@ def _ours(kind: str, device: torch.device):
     actor = LowLevelActor(OBS, GOAL, action_max=AMAX, action_dim=ACT, goal_key="goal", num_cells=CELLS)
 
     def critic():
+        if kind == "generic":
+            mlp = MLP(OBS + GOAL + ACT, 1, num_cells=list(CELLS), activation_class=nn.ReLU)
+            return ValueOperator(mlp, in_keys=["observation", "goal", "action"])
         return GoalConditionedCritic(OBS, GOAL, action_max=AMAX, action_dim=ACT, num_cells=CELLS, gamma=GAMMA)
 
     if kind == "td3":
         loss = HighLevelLoss(actor, critic())
         loss.set_keys(goal="goal", action="action")
     else:
-        fuse = None if kind == "bf16" else kind in ("fused", "cudagraph")  # bf16: the device's default
-        loss = SQGCLoss(actor, critic(), critic(), fuse_critics=fuse)
+        fuse = None if kind in ("bf16", "generic") else kind in ("fused", "cudagraph")  # None: the default
+        loss = SQGCLoss(actor, critic(), critic(), gamma=GAMMA, fuse_critics=fuse)
     loss = loss.to(device)
     optims = make_optimizers(loss)
     SoftUpdate(loss, eps=0.995)
     if kind == "cudagraph":
         return _captured_sqgc_update(loss, optims)
 
-    def update(data):
+    step = [0]
+
+    def update(data):  # the loop owns TD3's actor delay (as LossUpdater): the actor every second update
+        step[0] += 1
         with torch.autocast(device.type, dtype=torch.bfloat16, enabled=kind == "bf16"):
-            out = loss(data)
+            out = loss.loss_terms(data, update_actor=step[0] % 2 == 0)
         total = sum(v for k, v in out.items() if k.startswith("loss_"))
         for opt in optims.values():
             opt.zero_grad(set_to_none=True)
@@ -234,6 +243,7 @@ def main() -> None:
         "td3 (ours)": lambda: _ours("td3", device),
         "td3 (torchrl)": lambda: _torchrl_td3(device),
         "sqgc (bf16)": lambda: _ours("bf16", device),
+        "sqgc (generic)": lambda: _ours("generic", device),
     }
     if device.type == "cuda":
         variants["sqgc (cudagraph)"] = lambda: _ours("cudagraph", device)

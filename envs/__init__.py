@@ -21,8 +21,7 @@ Any other TorchRL env can join them: :func:`check_goal_env` validates the key co
 
 :func:`plot_env` draws any environment with matplotlib (:func:`plot_maze` from above with walls, start
 and test goals; :func:`plot_arm` as a top, front or side projection with the arm, the boards and the goal
-region), with trajectories, landmarks, edges and paths in goal space. The ``Maze*`` names of the core
-classes (:class:`MazeSimulation`, :class:`MazeEnv`, :class:`MazeGoalEnv`) remain as aliases.
+region), with trajectories, landmarks, edges and paths in goal space.
 """
 
 from .agents import AntAgent, MotorControl, PointAgent
@@ -30,7 +29,7 @@ from .arena import build_maze_mjcf, compile_maze_model
 from .arms import ARM_NAMES, ARMS, ArmSpec, build_arm_mjcf, get_arm_spec, ur3_boards
 from .goal_env import GOAL_ENV_KEYS, GoalEnvError, check_goal_env
 from .goals import BoxGoalSampler, FixedGoalSampler, FreeCellGoalSampler, GaussianGoalSampler, GoalSampler
-from .gym_env import GymGoalEnv, MazeGoalEnv, register_gym_envs
+from .gym_env import GymGoalEnv, register_gym_envs
 from .layouts import COMPLEX_MAZE, U_MAZE, MazeLayout, WallBox, bottleneck_walls
 from .mazes import MAZE_NAMES, MAZES, MazeSpec, get_maze_spec
 from .plotting import plot_arm, plot_env, plot_maze
@@ -45,9 +44,9 @@ from .registry import (
     unregister_env,
 )
 from .robots import UR3_DH, PR2Arm, UR3Arm
-from .simulation import GoalSimulation, MazeSimulation, sparse_reward
+from .simulation import GoalSimulation, sparse_reward
 from .task import TaskSpec, lookup_spec
-from .torchrl_env import GoalEnv, MazeEnv, make_env
+from .torchrl_env import GoalEnv, make_env
 
 #: Every registered Gymnasium id, ``dhrl/<name>-v0``, mazes first.
 ALL_GYM_IDS: tuple[str, ...] = tuple(register_gym_envs())
@@ -80,10 +79,7 @@ __all__ = [
     "GymGoalEnv",
     "MAZES",
     "MAZE_NAMES",
-    "MazeEnv",
-    "MazeGoalEnv",
     "MazeLayout",
-    "MazeSimulation",
     "MazeSpec",
     "MotorControl",
     "PR2Arm",

@@ -13,7 +13,7 @@ from .registry import ENVS, get_env_spec
 from .simulation import GoalSimulation
 from .task import OVERVIEW_CAMERA, TaskSpec
 
-__all__ = ["GymGoalEnv", "MazeGoalEnv", "register_gym_envs"]
+__all__ = ["GymGoalEnv", "register_gym_envs"]
 
 
 class GymGoalEnv(gym.Env):
@@ -97,9 +97,6 @@ class GymGoalEnv(gym.Env):
     def task(self) -> TaskSpec:
         """The spec of this environment."""
         return self._sim.spec
-
-    #: The former name of :attr:`task`.
-    maze = task
 
     @property
     def simulation(self) -> GoalSimulation:
@@ -188,10 +185,6 @@ class GymGoalEnv(gym.Env):
 
     def close(self) -> None:
         self._sim.close()
-
-
-#: The former name of :class:`GymGoalEnv`, kept for the maze code that uses it.
-MazeGoalEnv = GymGoalEnv
 
 
 def register_gym_envs() -> list[str]:

@@ -16,7 +16,7 @@ from mujoco import mjtState
 from .registry import get_env_spec
 from .task import GOAL_BODY, OVERVIEW_CAMERA, TaskSpec
 
-__all__ = ["GoalSimulation", "MazeSimulation", "sparse_reward"]
+__all__ = ["GoalSimulation", "sparse_reward"]
 
 # Goals set explicitly may sit this far outside the goal bounds (float round-off of user inputs).
 _GOAL_BOUNDS_TOLERANCE = 1e-6
@@ -379,7 +379,3 @@ class GoalSimulation:
         if self._renderer is not None:
             self._renderer.close()
             self._renderer = None
-
-
-#: The former name of :class:`GoalSimulation`, kept for the maze code that uses it.
-MazeSimulation = GoalSimulation

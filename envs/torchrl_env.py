@@ -13,7 +13,7 @@ from .registry import get_env_factory, get_env_spec
 from .simulation import GoalSimulation
 from .task import OVERVIEW_CAMERA, TaskSpec
 
-__all__ = ["GoalEnv", "MazeEnv", "make_env"]
+__all__ = ["GoalEnv", "make_env"]
 
 
 class GoalEnv(EnvBase):
@@ -106,9 +106,6 @@ class GoalEnv(EnvBase):
         """The spec of this environment (:class:`~torchrl_dhrl.envs.MazeSpec` or
         :class:`~torchrl_dhrl.envs.ArmSpec`)."""
         return self._sim.spec
-
-    #: The former name of :attr:`task`.
-    maze = task
 
     @property
     def simulation(self) -> GoalSimulation:
@@ -259,10 +256,6 @@ class GoalEnv(EnvBase):
     def close(self, *, raise_if_closed: bool = True) -> None:
         self._sim.close()
         super().close(raise_if_closed=raise_if_closed)
-
-
-#: The former name of :class:`GoalEnv`, kept for the maze code that uses it.
-MazeEnv = GoalEnv
 
 
 def make_env(

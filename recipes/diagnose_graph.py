@@ -8,7 +8,7 @@ vs true distances for a few landmark pairs, and saves their scatter plot (``dist
 run directory unless ``--plot`` says otherwise).
 
     python recipes/diagnose_graph.py outputs/<date>/<time>            # the run directory
-    python recipes/diagnose_graph.py run/checkpoint.pt --no-rollout --pairs 12 --plot /tmp/scatter.png
+    python recipes/diagnose_graph.py run/checkpoint --no-rollout --pairs 12 --plot /tmp/scatter.png
 """
 
 from __future__ import annotations
@@ -18,8 +18,37 @@ import math
 from pathlib import Path
 
 import torch
+from dhrl_utils import agent_from_checkpoint, build_environment
 
-from torchrl_dhrl.training import checkpoint_file, graph_diagnosis_from_checkpoint, plot_distance_scatter
+from torchrl_dhrl.training import GraphDiagnosis, checkpoint_file, graph_diagnosis, plot_distance_scatter
+
+
+def graph_diagnosis_from_checkpoint(
+    path,
+    *,
+    rollout: bool = True,
+    max_sources: int | None = 64,
+    resolution: float | None = None,
+    device: str | torch.device = "cpu",
+) -> tuple[GraphDiagnosis, dict]:
+    """:func:`~torchrl_dhrl.training.graph_diagnosis` of a recipe checkpoint's agent (rebuilt from its
+    configuration, graph included) on its evaluation envs; returns the diagnosis and the configuration.
+
+    Raises:
+        ValueError: when the run's env is not a maze.
+    """
+    cfg, agent = agent_from_checkpoint(path, device)
+    env = build_environment(cfg, torch.device(device), eval=True, agent=agent)
+    diagnosis = graph_diagnosis(
+        agent,
+        env,
+        cfg["env_name"],
+        oracle_margin=cfg["planner"]["oracle_margin"],
+        rollout=rollout,
+        max_sources=max_sources,
+        resolution=resolution,
+    )
+    return diagnosis, cfg
 
 
 def pair_table(diagnosis, count: int) -> list[dict]:
@@ -50,7 +79,7 @@ def pair_table(diagnosis, count: int) -> list[dict]:
 
 def main(argv: list[str] | None = None):
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument("checkpoint", help="a checkpoint.pt or the run directory holding it")
+    parser.add_argument("checkpoint", help="a checkpoint or the run directory holding it")
     parser.add_argument("--pairs", type=int, default=8, help="landmark pairs in the table")
     parser.add_argument("--sources", type=int, default=64, help="landmarks whose pairs are compared")
     parser.add_argument(
@@ -65,14 +94,13 @@ def main(argv: list[str] | None = None):
     )
     parser.add_argument("--device", default="cpu")
     args = parser.parse_args(argv)
-    diagnosis = graph_diagnosis_from_checkpoint(
+    diagnosis, cfg = graph_diagnosis_from_checkpoint(
         args.checkpoint,
         rollout=not args.no_rollout,
         max_sources=args.sources,
         resolution=args.resolution,
         device=args.device,
     )
-    cfg = diagnosis.config
     speed = cfg["planner"]["oracle_speed"]
     metrics = diagnosis.metrics
     print(f"{cfg['env_name']}: {metrics['graph/landmarks']} landmarks, {metrics['graph/edges']} edges")

@@ -5,19 +5,60 @@ high level is wrong": the low-level actor of a checkpoint chases fixed goals at 
 the start, in straight-line-reachable directions, with exploration off.
 
     python recipes/diagnose_low_level.py outputs/<date>/<time>            # the run directory
-    python recipes/diagnose_low_level.py run/checkpoint.pt --radii 1 2 4 --steps 120
+    python recipes/diagnose_low_level.py run/checkpoint --radii 1 2 4 --steps 120
 """
 
 from __future__ import annotations
 
 import argparse
+from collections.abc import Sequence
 
-from torchrl_dhrl.training.diagnostics import reach_test_from_checkpoint
+import torch
+from dhrl_utils import agent_from_checkpoint
+
+from torchrl_dhrl.training import reach_test
+
+
+def reach_test_from_checkpoint(
+    path,
+    *,
+    radii: Sequence[float] | None = None,
+    num_directions: int = 16,
+    max_steps: int | None = None,
+    device: str | torch.device = "cpu",
+    seed: int = 0,
+) -> list[dict]:
+    """:func:`~torchrl_dhrl.training.reach_test` for the low-level actor of a recipe checkpoint.
+
+    Defaults follow the run's config: radii ``(0.25, 0.5, 1, 1.5) x cutoff x oracle_speed`` (the goal-space
+    span of a graph edge, at the env's nominal speed), ``max_steps = 3 x cutoff``, the planner's
+    ``reach_radius`` and ``oracle_margin``, the run's ``angle_features``.
+
+    Args:
+        path (str or Path): a checkpoint or the run directory holding it.
+    """
+    cfg, agent = agent_from_checkpoint(path, device)
+    planner = cfg["planner"]
+    if radii is None:
+        span = planner["cutoff"] * planner["oracle_speed"]
+        radii = [f * span for f in (0.25, 0.5, 1.0, 1.5)]
+    return reach_test(
+        agent.low_actor,
+        cfg["env_name"],
+        radii=radii,
+        max_steps=int(max_steps or 3 * planner["cutoff"]),
+        reach_radius=planner["reach_radius"],
+        num_directions=num_directions,
+        oracle_margin=planner["oracle_margin"],
+        angle_features=cfg.get("angle_features"),
+        device=device,
+        seed=seed,
+    )
 
 
 def main(argv: list[str] | None = None) -> list[dict]:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument("checkpoint", help="a checkpoint.pt or the run directory holding it")
+    parser.add_argument("checkpoint", help="a checkpoint or the run directory holding it")
     parser.add_argument("--radii", type=float, nargs="+", default=None, help="goal distances (goal units)")
     parser.add_argument("--directions", type=int, default=16, help="directions per radius")
     parser.add_argument("--steps", type=int, default=None, help="steps per goal (default 3 x cutoff)")

@@ -7,12 +7,14 @@ command line, the one-line message, the exit status 2 and the files left untouch
 from __future__ import annotations
 
 import os
+import shutil
 import subprocess
 import sys
 
 import pytest
 import torch
 from _recipe import RECIPES, load_recipe, recipe_config
+from dhrl_utils import config_schema
 from torchrl_dhrl.envs import ENV_NAMES
 
 from torchrl_dhrl.training import (
@@ -35,7 +37,7 @@ SMOKE = ("env=PointMaze", "preset=smoke", "plots.every_epochs=0", "device=cpu", 
 
 @pytest.fixture(scope="module")
 def run(tmp_path_factory):
-    """A finished 80-step smoke run (its directory, holding checkpoint.pt)."""
+    """A finished 80-step smoke run (its directory, holding its checkpoint)."""
     path = tmp_path_factory.mktemp("run")
     recipe.train(recipe_config(*SMOKE, "total_steps=80"), run_dir=path)
     return path
@@ -107,7 +109,7 @@ def test_largest_seed_is_valid():
 @pytest.mark.parametrize("env", ENV_NAMES)
 @pytest.mark.parametrize("preset", ["paper", "quick", "smoke"])
 def test_env_and_preset_files_only_set_keys_of_the_schema(env, preset):
-    check_known_keys(recipe_config(f"env={env}", f"preset={preset}"), recipe.config_schema())
+    check_known_keys(recipe_config(f"env={env}", f"preset={preset}"), config_schema())
 
 
 @pytest.mark.parametrize(
@@ -126,7 +128,7 @@ def test_added_keys_are_rejected(override, match, tmp_path):
 
 
 def test_schema_is_read_from_config_yaml():
-    schema = recipe.config_schema()
+    schema = config_schema()
     assert "defaults" not in schema and schema["threads"] is None and "hidden" in schema["low"]
     with pytest.raises(ConfigError, match="`low` is a group of keys"):
         check_known_keys({"low": 5}, schema)
@@ -168,7 +170,9 @@ def test_bad_resume_names_resume_and_the_file(kind, run, tmp_path):
     if kind == "corrupt":
         path.write_bytes(b"garbage" * 100)
     elif kind == "truncated":
-        path.write_bytes((run / "checkpoint.pt").read_bytes()[:4096])
+        shutil.copytree(run / "checkpoint", path)  # a checkpoint directory whose manifest is cut short
+        manifest = path / "manifest.json"
+        manifest.write_bytes(manifest.read_bytes()[:200])
     elif kind == "not_a_checkpoint":
         torch.save({"weights": torch.ones(2)}, path)
     elif kind == "tensor":
@@ -198,7 +202,7 @@ def test_resume_allows_the_mutable_keys(run, tmp_path, capsys):
     out = capsys.readouterr().out
     assert "Threads: 1 intra-op" in out and "threads=1 in the configuration" in out
     assert "Resuming" in out and "total_steps: 80 -> 160" in out and "threads: None -> 1" in out
-    assert resume == run / "checkpoint.pt" and state["counters"]["env_steps"] == 80 and run_dir.is_dir()
+    assert resume == run / "checkpoint" and state["counters"]["env_steps"] == 80 and run_dir.is_dir()
 
 
 def test_load_checkpoint_errors(tmp_path):
@@ -219,7 +223,7 @@ def test_load_checkpoint_errors(tmp_path):
 
 def test_run_dir_with_a_checkpoint_is_not_overwritten(run):
     before = _snapshot(run)
-    with pytest.raises(ConfigError, match="already holds a checkpoint.pt, which this run would overwrite"):
+    with pytest.raises(ConfigError, match="already holds a checkpoint, which this run would overwrite"):
         recipe.train(recipe_config(*SMOKE), run_dir=run)
     assert _snapshot(run) == before
 

@@ -7,6 +7,7 @@ CUDA and resumes a CUDA checkpoint on CPU. Skipped where no CUDA device exists (
 """
 
 import copy
+import shutil
 import warnings
 
 import pytest
@@ -217,7 +218,6 @@ def test_cudagraph_updates_match_eager_updates():
     graph_loss, graph, graph_means = _updater_run(True)
     assert set(graph._graphs) == {False, True}  # both graphs captured (3 eager warm-up calls each)
     assert graph.num_updates == eager.num_updates == 13
-    assert int(graph_loss.update_count) == int(eager_loss.update_count) == 13
     for key in eager_means.keys():
         torch.testing.assert_close(graph_means[key], eager_means[key], rtol=1e-4, atol=1e-5, msg=key)
     eager_state, graph_state = eager_loss.state_dict(), graph_loss.state_dict()
@@ -274,7 +274,7 @@ def test_recipe_every_phase_on_cuda_resumes_on_cuda_and_on_cpu(tmp_path):
     # resume on CUDA and, from a copy of the same checkpoint, on CPU
     cpu_run = tmp_path / "cpu"
     cpu_run.mkdir()
-    (cpu_run / "checkpoint.pt").write_bytes((run / "checkpoint.pt").read_bytes())
+    shutil.copytree(run / "checkpoint", cpu_run / "checkpoint")
     recipe.train(recipe_config(*SMOKE, "device=cuda", "total_steps=480", f"resume={run}"), run_dir=run)
     recipe.train(recipe_config(*SMOKE, "device=cpu", "total_steps=480", f"resume={cpu_run}"), run_dir=cpu_run)
     for path in (run, cpu_run):

@@ -6,11 +6,11 @@ import io
 import pytest
 import torch
 from _recipe import recipe_config
+from dhrl_utils import build_agent, build_replay_buffers
 from tensordict import TensorDict
 from torchrl.data import LazyTensorStorage, TensorDictReplayBuffer
 
 from torchrl_dhrl.data import CompactLazyTensorStorage
-from torchrl_dhrl.training import make_agent, make_environment, make_replay_buffers
 
 
 def _batch(num_envs, steps, start):
@@ -99,8 +99,8 @@ def test_empty_buffer_round_trips():
 def test_recipe_buffers_hold_buffer_size_transitions(num_envs):
     cfg = recipe_config("env=PointMaze", "preset=smoke", f"num_envs={num_envs}", "low.buffer_size=400")
     device = torch.device("cpu")
-    agent = make_agent(cfg, make_environment(cfg, device), device)
-    low_rb, *_ = make_replay_buffers(cfg, agent, device)
+    agent = build_agent(cfg, device)
+    low_rb, _ = build_replay_buffers(cfg, agent, device)
     for k in range(12):  # 12 x 40 steps per env: past capacity for every num_envs
         low_rb.extend(_batch(num_envs, 40, 40 * k))
     assert len(low_rb) == 400
@@ -109,3 +109,41 @@ def test_recipe_buffers_hold_buffer_size_transitions(num_envs):
     # the newest batch overwrote the oldest rows, every env keeps its own column
     assert observation[..., 0].eq(torch.arange(num_envs).float()).all()
     assert observation[..., 1].max() == 479
+
+
+def _disk_bytes(path):
+    return sum(p.stat().st_size for p in path.rglob("*") if p.is_file())
+
+
+def test_training_checkpoint_holds_the_written_rows_only(tmp_path):
+    """``make_checkpoint`` saves the buffers through their ``state_dict``: on disk, the written rows only (the
+    default adapter of a replay buffer, ``dump``, writes the whole allocated capacity)."""
+    from torchrl.checkpoint import Checkpoint
+    from torchrl.collectors import Collector
+    from torchrl_dhrl.envs import make_env
+
+    from torchrl_dhrl.training import load_checkpoint, make_checkpoint, save_checkpoint
+
+    rb = _buffer(CompactLazyTensorStorage, 300_000, 2)
+    _fill(rb, 4)  # 120 of 300k transitions
+    env = make_env("PointMaze", num_envs=1, seed=0, max_episode_steps=4)
+    collector = Collector(env, None, frames_per_batch=4, total_frames=-1)
+    net = torch.nn.Linear(2, 1)
+    registry = make_checkpoint(
+        config={},
+        agent=net,
+        low_updater=net,
+        high_updater=net,
+        low_rb=rb,
+        high_rb=rb,
+        train_env=env,
+        eval_env=env,
+        collector=collector,
+        counters={},
+        history=[],
+    )
+    path = save_checkpoint(registry, tmp_path / "checkpoint")
+    payload = path / Checkpoint.manifest(path)["components"]["low_rb"]["path"]
+    rb.dumps(tmp_path / "dumped")  # what the default adapter of a replay buffer writes
+    assert _disk_bytes(payload) * 100 < _disk_bytes(tmp_path / "dumped")
+    assert load_checkpoint(path)["low_rb"]["_storage"]["_storage"]["observation"].shape[:2] == (40, 3)

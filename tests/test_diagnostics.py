@@ -9,14 +9,16 @@ from tensordict.nn import TensorDictModule
 from torchrl_dhrl.envs import make_env
 
 from torchrl_dhrl.planner import LineOfSightDistance
-from torchrl_dhrl.training.builders import _obstacle_boxes
+from torchrl_dhrl.training import obstacle_boxes
 from torchrl_dhrl.training.diagnostics import (
     low_level_reach_test,
     reach_offsets,
-    reach_test_from_checkpoint,
     summarize_reach,
     visible_offsets,
 )
+
+# the recipe side: a checkpoint's agent rebuilt from its configuration
+reach_test_from_checkpoint = load_recipe("diagnose_low_level").reach_test_from_checkpoint
 
 
 def test_reach_offsets_radii_and_directions():
@@ -64,7 +66,7 @@ def test_scripted_point_reaches_every_visible_goal_in_analytic_time():
     radii = [1.5, 3.0, 6.0]
     offsets = reach_offsets(2, radii, 16)
     # the maze walls, inflated by the nose's reach (1.1 ahead of the centre) so that it cannot hit a wall first
-    walls = LineOfSightDistance(1.0, boxes=_obstacle_boxes("PointMaze"), margin=1.2)
+    walls = LineOfSightDistance(1.0, boxes=obstacle_boxes("PointMaze"), margin=1.2)
     offsets = visible_offsets(torch.zeros(2), offsets, walls)
     env = make_env("PointMaze", num_envs=len(offsets), seed=1)
     result = low_level_reach_test(env, _point_controller(), offsets, max_steps=60, reach_radius=0.5)
@@ -110,7 +112,7 @@ def test_reach_test_from_a_recipe_checkpoint_and_cli(tmp_path, capsys):
     cli = importlib.util.module_from_spec(spec)
     spec.loader.exec_module(cli)
     cli_rows = cli.main(
-        [str(tmp_path / "checkpoint.pt"), "--radii", "1", "2", "--directions", "4", "--steps", "20"]
+        [str(tmp_path / "checkpoint"), "--radii", "1", "2", "--directions", "4", "--steps", "20"]
     )
     assert [row["radius"] for row in cli_rows] == pytest.approx([1.0, 2.0])
     assert "reached" in capsys.readouterr().out

@@ -21,7 +21,6 @@ MODULES = sorted(
 # modules without public classes or functions that would carry an example
 NO_EXAMPLES = {
     "torchrl_dhrl.envs.demo",
-    "torchrl_dhrl.training.builders",  # factories of the recipe: exercised end to end by tests/test_recipe.py
     "torchrl_dhrl.training.plots",  # pictures: tests/test_envs_plotting.py and the recipe tests
 }
 

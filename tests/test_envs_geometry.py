@@ -13,8 +13,8 @@ from torchrl_dhrl.envs import (
     BoxGoalSampler,
     FixedGoalSampler,
     FreeCellGoalSampler,
+    GoalSimulation,
     MazeLayout,
-    MazeSimulation,
     WallBox,
     bottleneck_walls,
     compile_maze_model,
@@ -161,11 +161,11 @@ def test_ant_sized_probe_cannot_pass_walls():
     torso_radius = get_maze_spec("AntMaze").agent.torso_radius
     tolerance = 0.05
     push = 50.0
-    sim = MazeSimulation("AntMazeSmall")
+    sim = GoalSimulation("AntMazeSmall")
     path = _push_ant(sim, (7.0, 0.0), (push, 0.0))
     assert path[:, 0].max() <= 10.0 - torso_radius + tolerance  # outer wall face at x = 10
     assert path[-1, 0] > 9.0  # it did reach the wall
-    sim = MazeSimulation("AntMazeBottleneck")
+    sim = GoalSimulation("AntMazeBottleneck")
     path = _push_ant(sim, (13.5, 4.5), (0.0, push))
     assert path[:, 1].max() <= 7.0 - torso_radius + tolerance  # thin wall face at y = 7
     assert path[-1, 1] > 6.0

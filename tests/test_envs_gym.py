@@ -11,7 +11,7 @@ import pytest
 import torch
 from gymnasium.utils.env_checker import check_env
 from tensordict import TensorDict
-from torchrl_dhrl.envs import GYM_IDS, MAZE_NAMES, MazeGoalEnv, get_maze_spec, make_env
+from torchrl_dhrl.envs import GYM_IDS, MAZE_NAMES, GymGoalEnv, get_maze_spec, make_env
 
 
 def test_registered_ids():
@@ -83,11 +83,11 @@ def test_reset_options_and_errors():
     with pytest.raises(ValueError, match="action of shape"):
         env.step(np.zeros(2))
     with pytest.raises(ValueError, match="render_mode"):
-        MazeGoalEnv("AntMaze", render_mode="human")
+        GymGoalEnv("AntMaze", render_mode="human")
 
 
 def test_time_limit_is_truncation():
-    env = MazeGoalEnv("AntMaze", max_episode_steps=3)
+    env = GymGoalEnv("AntMaze", max_episode_steps=3)
     env.reset(seed=0)
     flags = [env.step(env.action_space.sample())[2:4] for _ in range(3)]
     assert flags == [(False, False), (False, False), (False, True)]
@@ -98,7 +98,7 @@ def test_time_limit_is_truncation():
 
 def test_gym_and_torchrl_share_the_simulation():
     """Same state and actions -> the same observations through both front ends (float64 vs float32)."""
-    gym_env = MazeGoalEnv("AntMaze")
+    gym_env = GymGoalEnv("AntMaze")
     obs, _ = gym_env.reset(seed=0)
     rl_env = make_env("AntMaze")
     rl_env.reset()

@@ -5,7 +5,7 @@ from __future__ import annotations
 import mujoco
 import numpy as np
 import pytest
-from torchrl_dhrl.envs import AntAgent, MazeSimulation, PointAgent, compile_maze_model
+from torchrl_dhrl.envs import AntAgent, GoalSimulation, PointAgent, compile_maze_model
 
 ANT_MAZES = ["AntMazeSmall", "AntMaze", "AntMazeBottleneck", "AntMazeComplex"]
 
@@ -66,7 +66,7 @@ def test_ant_collides_only_with_floor_and_walls():
 
 def test_point_free_motion_matches_reference_kinematics():
     """In free space one env step moves the point by 0.2 * forward along the new heading, as the reference."""
-    sim = MazeSimulation("PointMaze")
+    sim = GoalSimulation("PointMaze")
     _place_point(sim, 6.0, 0.0, 0.0)
     yaw = 0.0
     x, y = 6.0, 0.0
@@ -88,7 +88,7 @@ def test_point_free_motion_matches_reference_kinematics():
 )
 def test_point_cannot_tunnel_through_walls(start, heading, axis, limit):
     """Driving the point straight into a wall at full speed for 500 steps: it stops at the face."""
-    sim = MazeSimulation("PointMaze")
+    sim = GoalSimulation("PointMaze")
     _place_point(sim, *start, heading)
     agent = sim.agent
     reach = agent.nose_offset + agent.nose_half_size[0]  # the nose tip leads
@@ -123,7 +123,7 @@ def test_point_model_facts():
 )
 def test_ant_random_rollout_is_stable(name):
     """600 random steps (the full episode length) on 3 envs: finite, torso height bounded, it moves."""
-    sim = MazeSimulation(name, 3, seed=0)
+    sim = GoalSimulation(name, 3, seed=0)
     sim.reset()
     start = sim.observation.copy()
     rng = np.random.default_rng(0)
@@ -143,7 +143,7 @@ def test_ant_random_rollout_is_stable(name):
 
 def test_reset_noise_statistics():
     """qpos ~ init + U(-0.1, 0.1) (quaternion renormalised), qvel ~ N(0, 0.1)."""
-    sim = MazeSimulation("AntMaze", 400, seed=0)
+    sim = GoalSimulation("AntMaze", 400, seed=0)
     sim.reset()
     qpos, qvel = sim.observation[:, :15], sim.observation[:, 15:]
     init = np.array(AntAgent().init_qpos)
@@ -155,7 +155,7 @@ def test_reset_noise_statistics():
 
 
 def test_simulation_errors():
-    sim = MazeSimulation("AntMaze", 2)
+    sim = GoalSimulation("AntMaze", 2)
     with pytest.raises(ValueError, match="actions of shape"):
         sim.step(np.zeros((2, 3)))
     with pytest.raises(ValueError, match="finite"):
@@ -165,8 +165,8 @@ def test_simulation_errors():
     with pytest.raises(ValueError, match="shape"):
         sim.reset(goals=np.zeros((3, 2)))
     with pytest.raises(ValueError, match="num_envs"):
-        MazeSimulation("AntMaze", 0)
+        GoalSimulation("AntMaze", 0)
     with pytest.raises(ValueError, match="max_episode_steps"):
-        MazeSimulation("AntMaze", max_episode_steps=0)
+        GoalSimulation("AntMaze", max_episode_steps=0)
     with pytest.raises(ValueError, match="Valid names"):
-        MazeSimulation("AntMazeHuge")
+        GoalSimulation("AntMazeHuge")

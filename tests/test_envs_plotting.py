@@ -14,7 +14,7 @@ import pytest  # noqa: E402
 import torch  # noqa: E402
 from matplotlib.collections import LineCollection  # noqa: E402
 from matplotlib.patches import Rectangle  # noqa: E402
-from torchrl_dhrl.envs import MAZE_NAMES, MazeGoalEnv, get_maze_spec, make_env, plot_maze  # noqa: E402
+from torchrl_dhrl.envs import MAZE_NAMES, GymGoalEnv, get_maze_spec, make_env, plot_maze  # noqa: E402
 from torchrl_dhrl.envs.demo import main as demo_main  # noqa: E402
 
 
@@ -104,7 +104,7 @@ def test_offscreen_rendering():
     assert frame.shape == (64, 96, 3) and frame.dtype == torch.uint8 and frame.float().std() > 1.0
     tracked = env.render(0, width=64, height=64, camera="ant/track")
     assert tracked.shape == (64, 64, 3)
-    gym_env = MazeGoalEnv("PointMaze", render_mode="rgb_array", width=80, height=80)
+    gym_env = GymGoalEnv("PointMaze", render_mode="rgb_array", width=80, height=80)
     gym_env.reset(seed=0)
     assert gym_env.render().shape == (80, 80, 3)
     gym_env.close()

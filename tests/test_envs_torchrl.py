@@ -9,7 +9,7 @@ import torch
 from tensordict import TensorDict
 from torchrl.collectors import Collector
 from torchrl.envs.utils import check_env_specs, step_mdp
-from torchrl_dhrl.envs import MAZE_NAMES, MazeEnv, get_maze_spec, make_env, sparse_reward
+from torchrl_dhrl.envs import MAZE_NAMES, GoalEnv, get_maze_spec, make_env, sparse_reward
 
 
 @pytest.mark.parametrize("num_envs", [1, 3])
@@ -205,7 +205,7 @@ def test_errors():
     td = env.reset()
     with pytest.raises(ValueError, match="expects an 'action' of shape"):
         env.step(td.set("action", torch.zeros(2, 2)))
-    assert isinstance(make_env("dhrl/AntMaze-v0"), MazeEnv)
+    assert isinstance(make_env("dhrl/AntMaze-v0"), GoalEnv)
 
 
 @pytest.mark.skipif(not torch.cuda.is_available(), reason="needs a CUDA device")

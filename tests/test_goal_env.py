@@ -277,7 +277,7 @@ def test_recipe_smoke_run_on_a_registered_user_env(registered, tmp_path):
     )  # mazes only
     assert summary["eval/success"] == float(rows[-1]["eval/success"])
     assert len(list((tmp_path / "episodes").glob("epoch_*.png"))) == 6  # drawn without a scene
-    state = load_checkpoint(tmp_path / "checkpoint.pt")
+    state = load_checkpoint(tmp_path / "checkpoint")
     assert state["counters"]["env_steps"] == 480 and state["config"]["env_name"] == NAME
 
 
@@ -291,4 +291,4 @@ def test_recipe_stops_on_a_registered_env_that_breaks_the_contract(registered, t
     register_env(NAME, lambda **kw: make_point_square(cls=_FloatSuccess, **kw), overwrite=True)
     with pytest.raises(ConfigError, match=r"env_name=PointSquare: _FloatSuccess: a rollout's 'is_success'"):
         recipe.train(recipe_config(*smoke), run_dir=tmp_path)
-    assert not (tmp_path / "metrics.csv").exists() and not (tmp_path / "checkpoint.pt").exists()
+    assert not (tmp_path / "metrics.csv").exists() and not (tmp_path / "checkpoint").exists()

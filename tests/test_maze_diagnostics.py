@@ -397,6 +397,6 @@ def test_recipe_logs_diag_columns_and_the_tool_reads_the_checkpoint(tmp_path, ca
     pairs = diagnosis.pairs
     assert pairs["true"].shape == pairs["learned"].shape == pairs["graph"].shape and pairs["true"].numel() > 0
     # without the evaluation rollout: the subgoal fractions are NaN, the graph numbers the same
-    quick, _ = cli.main([str(run / "checkpoint.pt"), "--no-rollout", "--pairs", "0", "--plot", str(plot)])
+    quick, _ = cli.main([str(run / "checkpoint"), "--no-rollout", "--pairs", "0", "--plot", str(plot)])
     assert math.isnan(quick.metrics["diag/subgoals_in_walls"])
     assert quick.metrics["diag/distance_rank_corr"] == diagnosis.metrics["diag/distance_rank_corr"]

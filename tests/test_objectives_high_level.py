@@ -1,4 +1,4 @@
-"""HighLevelLoss: TD3 targets on subgoals scaled from the box, clamps, delayed actor, target nets."""
+"""HighLevelLoss: TD3 targets on subgoals scaled from the box, clamps, the actor term, target nets."""
 
 import copy
 import warnings
@@ -6,6 +6,7 @@ import warnings
 import pytest
 import torch
 from tensordict import TensorDict
+from torchrl.modules import MLP, ValueOperator
 from torchrl.objectives import SoftUpdate
 
 from torchrl_dhrl.modules import GoalConditionedCritic, HighLevelPolicy
@@ -74,12 +75,14 @@ def test_value_loss_matches_manual_with_clamp():
     torch.testing.assert_close(out["target"], y.mean())
 
 
-def test_actor_loss_uses_scaled_subgoal_penalty_and_delay():
+def test_actor_loss_uses_scaled_subgoal_penalty_and_forward_computes_it():
     actor, critic = _nets()
     loss = HighLevelLoss(actor, critic, action_l2=0.3)
     data = _batch()
+    # the delay is LossUpdater's (tests/test_training_units.py): forward trains the actor on every call
     flags = [bool(loss(data)["actor_updated"]) for _ in range(3)]
-    assert flags == [False, True, False]
+    assert flags == [True, True, True]
+    assert not bool(loss.loss_terms(data, update_actor=False)["actor_updated"])
     loss_actor, meta = loss.actor_loss(data)
     td = actor(TensorDict({"observation": data["observation"], "desired_goal": data["desired_goal"]}, [48]))
     sg = td["subgoal_proposal"]
@@ -93,7 +96,7 @@ def test_actor_loss_uses_scaled_subgoal_penalty_and_delay():
 
 def test_gradient_isolation_soft_update_and_state_dict():
     actor, critic = _nets()
-    loss = HighLevelLoss(actor, critic, actor_update_interval=1)
+    loss = HighLevelLoss(actor, critic)
     updater = SoftUpdate(loss, eps=0.5)
     out = loss(_batch())
     out["loss_qvalue"].backward()
@@ -115,7 +118,7 @@ def test_gradient_isolation_soft_update_and_state_dict():
         loss.target_critic_network_params["module", "ensemble", "layers", "0", "weight"],
     )
     actor2, critic2 = _nets(seed=9)
-    loss2 = HighLevelLoss(actor2, critic2, actor_update_interval=1, target_noise_std=0.0)
+    loss2 = HighLevelLoss(actor2, critic2, target_noise_std=0.0)
     loss2.load_state_dict(copy.deepcopy(loss.state_dict()))
     loss.target_noise_std = 0.0
     data = _batch(seed=3)
@@ -144,3 +147,41 @@ def test_high_level_keys_and_errors():
     data = _batch().rename_key_("desired_goal", "g")
     loss.set_keys(goal="g")
     assert torch.isfinite(loss(data)["loss_qvalue"])
+
+
+def test_value_operator_critic_matches_manual_td3():
+    """Any TensorDictModule critic: one member, the loss stacks the twin; the subgoal box is the actor's."""
+    actor, _ = _nets()
+    mlp = MLP(in_features=OBS + 2 * GOAL, out_features=1, num_cells=[32], activation_class=torch.nn.ReLU)
+    # ValueOperator names its output "state_value" unless an in_key is "action": name it for the loss
+    critic = ValueOperator(
+        mlp, in_keys=["observation", "desired_goal", "subgoal"], out_keys=["state_action_value"]
+    )
+    loss = HighLevelLoss(actor, critic, gamma=GAMMA, target_noise_std=0.0)
+    torch.testing.assert_close(loss.action_loc - loss.action_scale, LOW)  # from the actor's spec
+    data = _batch()
+    out = loss(data)
+    params, target = loss.critic_network_params, loss.target_critic_network_params
+
+    def q(p, sg):
+        td = TensorDict(
+            {"observation": data["observation"], "desired_goal": data["desired_goal"], "subgoal": sg}, [48]
+        )
+        return torch.stack([_member(p[i], td) for i in range(2)])
+
+    def _member(p, td):
+        with p.to_module(loss.critic_network):
+            return loss.critic_network(td.clone())["state_action_value"].squeeze(-1)
+
+    with torch.no_grad():
+        td = TensorDict(
+            {"observation": data["next", "observation"], "desired_goal": data["desired_goal"]}, [48]
+        )
+        sg = actor(td)["subgoal_proposal"]
+        nxt = TensorDict(
+            {"observation": data["next", "observation"], "desired_goal": data["desired_goal"], "subgoal": sg},
+            [48],
+        )
+        bootstrap = torch.stack([_member(target[i], nxt) for i in range(2)]).min(0).values
+        y = (data["next", "reward"].squeeze(-1) + GAMMA * bootstrap).clamp(-80.0, 0.0)
+    torch.testing.assert_close(out["loss_qvalue"], ((q(params, data["subgoal"]) - y) ** 2).mean(-1).sum())

@@ -1,4 +1,4 @@
-"""SQGCLoss: targets, clamps, gradient isolation, delayed actor updates, target nets and checkpoints."""
+"""SQGCLoss: targets, clamps, gradient isolation, a side-effect-free forward, target nets and checkpoints."""
 
 import copy
 import warnings
@@ -6,9 +6,12 @@ import warnings
 import pytest
 import torch
 from tensordict import TensorDict
+from tensordict.nn import TensorDictModule
+from torchrl.data import Bounded
+from torchrl.modules import MLP, ValueOperator
 from torchrl.objectives import SoftUpdate
 
-from torchrl_dhrl.modules import GoalConditionedCritic, LowLevelActor
+from torchrl_dhrl.modules import GoalConditionedCritic, LowLevelActor, q_to_distance
 from torchrl_dhrl.objectives import SQGCLoss, make_optimizers
 from torchrl_dhrl.planner import GoalDistance
 
@@ -88,7 +91,7 @@ def test_fused_and_separate_critics_give_identical_gradients():
     grads = []
     for fuse in (True, False):
         actor, pc, gc = _nets()
-        loss = SQGCLoss(actor, pc, gc, target_noise_std=0.0, fuse_critics=fuse, actor_update_interval=1)
+        loss = SQGCLoss(actor, pc, gc, target_noise_std=0.0, fuse_critics=fuse)
         out = loss(_batch())
         (out["loss_policy_qvalue"] + out["loss_graph_qvalue"] + out["loss_actor"]).backward()
         grads.append({k: p.grad.clone() for k, p in loss.named_parameters()})
@@ -116,7 +119,7 @@ def _grad_norms(loss):
 )
 def test_gradients_reach_only_their_parameters(entry, receives):
     actor, pc, gc = _nets()
-    loss = SQGCLoss(actor, pc, gc, actor_update_interval=1)
+    loss = SQGCLoss(actor, pc, gc)
     out = loss(_batch())
     out[entry].backward()
     norms = _grad_norms(loss)
@@ -124,18 +127,25 @@ def test_gradients_reach_only_their_parameters(entry, receives):
         assert (value > 0) == (group in receives), (entry, norms)
 
 
-def test_delayed_actor_update_and_actor_loss_value():
+def test_forward_is_side_effect_free_and_actor_loss_value():
+    # TD3's delayed actor is LossUpdater's schedule (tests/test_training_units.py): forward computes
+    # every term on every call and keeps no count; loss_terms(update_actor=False) skips the actor term.
     actor, pc, gc = _nets()
-    loss = SQGCLoss(actor, pc, gc, actor_update_interval=2, action_l2=0.5)
+    loss = SQGCLoss(actor, pc, gc, action_l2=0.5, target_noise_std=0.0)
     data = _batch()
-    flags = []
-    for _ in range(4):
-        out = loss(data)
-        flags.append(bool(out["actor_updated"]))
-        if not flags[-1]:
-            assert out["loss_actor"] == 0 and not out["loss_actor"].requires_grad
-    assert flags == [False, True, False, True]
-    assert int(loss.update_count) == 4
+    state = copy.deepcopy(loss.state_dict())
+    outs = [loss(data) for _ in range(3)]
+    assert all(bool(o["actor_updated"]) and o["loss_actor"].requires_grad for o in outs)
+    for o in outs[1:]:
+        for key in outs[0].keys():
+            assert torch.equal(o[key], outs[0][key]), key
+    assert state.keys() == loss.state_dict().keys() and "update_count" not in state
+    for key, value in loss.state_dict().items():
+        assert torch.equal(value, state[key]), key
+    skipped = loss.loss_terms(data, update_actor=False)
+    assert not bool(skipped["actor_updated"])
+    assert skipped["loss_actor"] == 0 and not skipped["loss_actor"].requires_grad
+    out = outs[-1]
     # Actor loss = -Q_1(s, pi(s, g)) + l2 * mean((a / amax)^2), computed independently.
     td = actor(TensorDict({"observation": data["observation"], "waypoint": data["goal"]}, data.shape))
     q1 = pc(td)["state_action_value"][:, 0]
@@ -193,7 +203,6 @@ def test_state_dict_round_trip_resumes_exactly():
     optims2 = make_optimizers(loss2)
     for k, o in optims2.items():
         o.load_state_dict(optim_state[k])
-    assert int(loss2.update_count) == 3
     data = _batch(seed=5)
     out1, out2 = loss(data), loss2(data)
     for key in out1.keys():
@@ -286,8 +295,8 @@ def test_constructor_errors():
     wide = GoalConditionedCritic(OBS, GOAL, action_max=5.0, action_dim=ACT, num_cells=(8,))
     with pytest.raises(ValueError, match="box"):
         SQGCLoss(actor, wide, copy.deepcopy(wide))
-    with pytest.raises(ValueError, match="actor_update_interval"):
-        SQGCLoss(actor, pc, gc, actor_update_interval=0)
+    with pytest.raises(TypeError, match="actor_update_interval"):  # the schedule is LossUpdater's
+        SQGCLoss(actor, pc, gc, actor_update_interval=2)
     with pytest.raises(ValueError, match="loss_function"):
         SQGCLoss(actor, pc, gc, loss_function="huber")
     with pytest.raises(NotImplementedError):
@@ -340,7 +349,7 @@ def test_loss_follows_dtype_conversion_like_a_device_move():
     # ``loss.to(...)`` converts the loss's parameters and the buffers swapped into the networks
     # (goal indices, action boxes): float64 stands in for a device move on a CPU-only machine.
     actor, pc, gc = _nets()
-    loss = SQGCLoss(actor, pc, gc, actor_update_interval=1).double()
+    loss = SQGCLoss(actor, pc, gc).double()
     out = loss(_batch().double())
     assert out["loss_policy_qvalue"].dtype == torch.float64
     assert out["loss_actor"].dtype == torch.float64
@@ -353,6 +362,181 @@ def test_actor_with_exploration_is_evaluated_noise_free():
 
     actor, pc, gc = _nets()
     data = _batch()
-    plain = SQGCLoss(actor, pc, gc, actor_update_interval=1)
-    wrapped = SQGCLoss(make_low_level_policy(actor), pc, gc, actor_update_interval=1)
+    plain = SQGCLoss(actor, pc, gc)
+    wrapped = SQGCLoss(make_low_level_policy(actor), pc, gc)
     torch.testing.assert_close(plain.actor_loss(data)[0], wrapped.actor_loss(data)[0])
+
+
+# ---------------------------------------------------------------- any TensorDictModule critic
+def _value_operator(out_key="state_action_value", goal_key="waypoint"):
+    mlp = MLP(
+        in_features=OBS + GOAL + ACT, out_features=1, num_cells=[32, 32], activation_class=torch.nn.ReLU
+    )
+    return ValueOperator(mlp, in_keys=["observation", goal_key, "action"], out_keys=[out_key])
+
+
+def _stacked_q(loss, name, observation, goal, action, params=None):
+    """Q of each stacked member, one member at a time through the critic's keys: ``[E, n]``."""
+    critic = getattr(loss, name)
+    params = getattr(loss, f"{name}_params") if params is None else params
+    td = TensorDict(
+        dict(zip(critic.in_keys, (observation, goal, action), strict=True)), observation.shape[:-1]
+    )
+    values = []
+    for i in range(params.shape[0]):
+        with params[i].to_module(critic):
+            values.append(critic(td.clone())["state_action_value"].squeeze(-1))
+    return torch.stack(values)
+
+
+@pytest.mark.parametrize("members", [None, 3])
+def test_value_operator_critics_match_manual_td3(members):
+    torch.manual_seed(0)
+    actor = LowLevelActor(OBS, GOAL, action_max=AMAX, action_dim=ACT, num_cells=(32, 32))
+    loss = SQGCLoss(
+        actor,
+        _value_operator(),
+        _value_operator(),
+        gamma=GAMMA,
+        num_qvalue_nets=members,
+        target_noise_std=0.0,
+    )
+    updater = SoftUpdate(loss, eps=0.5)  # before the first call, as LossUpdater builds it
+    e = members or 2
+    assert loss.policy_critic_params.batch_size == (e,) and not loss.fusing
+    assert not torch.equal(
+        loss.policy_critic_params[0]["module", "0", "weight"],
+        loss.policy_critic_params[1]["module", "0", "weight"],
+    )
+    reward = torch.cat([torch.full((16, 1), 5.0), torch.full((16, 1), -150.0)])
+    data = _batch(32, reward=reward, graph_reward=reward.flip(0))
+    out = loss(data)
+    for name, goal, rkey, lo in (
+        ("policy_critic", "goal", "reward", -80.0),
+        ("graph_critic", "graph_goal", "graph_reward", None),
+    ):
+        with torch.no_grad():
+            nxt = actor(
+                TensorDict({"observation": data["next", "observation"], "waypoint": data[goal]}, [32])
+            )
+            target_params = getattr(loss, f"target_{name}_params")
+            bootstrap = (
+                _stacked_q(loss, name, nxt["observation"], data[goal], nxt["action"], target_params)
+                .min(0)
+                .values
+            )
+            y = (data["next", rkey].squeeze(-1) + GAMMA * bootstrap).clamp(lo, 0.0)
+        q = _stacked_q(loss, name, data["observation"], data[goal], data["action"])
+        assert q.shape == (e, 32)
+        key = name.split("_")[0]
+        torch.testing.assert_close(out[f"loss_{key}_qvalue"], ((q - y) ** 2).mean(-1).sum())
+        torch.testing.assert_close(out[f"{key}_target"], y.mean())
+    # the actor follows the first policy member, the critic detached
+    td = actor(TensorDict({"observation": data["observation"], "waypoint": data["goal"]}, [32]))
+    q1 = _stacked_q(loss, "policy_critic", data["observation"], data["goal"], td["action"])[0]
+    torch.testing.assert_close(out["loss_actor"], -q1.mean() + 0.01 * (td["action"] / AMAX).pow(2).mean())
+    out["loss_actor"].backward()
+    assert all(p.grad is None for n, p in loss.named_parameters() if "critic" in n)
+    # the loss's stacked parameters are trained and Polyak-averaged like any others
+    optims = make_optimizers(loss)
+    before = loss.target_graph_critic_params.clone()
+    sum(v for k, v in loss(data).items() if k.startswith("loss_")).backward()
+    for opt in optims.values():
+        opt.step()
+    updater.step()
+    assert not torch.equal(
+        before["module", "0", "weight"], loss.target_graph_critic_params["module", "0", "weight"]
+    )
+
+
+def test_goal_distance_from_loss_with_stacked_critics():
+    torch.manual_seed(0)
+    actor = LowLevelActor(OBS, GOAL, action_max=AMAX, action_dim=ACT, num_cells=(32, 32))
+    loss = SQGCLoss(actor, _value_operator(), _value_operator(), gamma=GAMMA)
+    states, goals = torch.randn(6, 1, OBS), torch.randn(1, 5, GOAL)
+    s, g = states.expand(6, 5, OBS).reshape(30, OBS), goals.expand(6, 5, GOAL).reshape(30, GOAL)
+    with torch.no_grad():
+        a = actor(TensorDict({"observation": s, "waypoint": g}, [30]))["action"]
+        q = _stacked_q(loss, "graph_critic", s, g, a)
+    for twin, member in (("optimistic", q.max(0).values), ("pessimistic", q.min(0).values)):
+        expected = q_to_distance(member, GAMMA).reshape(6, 5)
+        torch.testing.assert_close(GoalDistance.from_loss(loss, twin=twin)(states, goals), expected)
+        torch.testing.assert_close(
+            GoalDistance.from_loss(loss, twin=twin, chunk_size=7)(states, goals), expected
+        )
+
+
+def test_hooked_goal_conditioned_critic_is_called_on_its_keys_with_identical_results():
+    actor, pc, gc = _nets()
+    data = _batch()
+    fast = SQGCLoss(actor, pc, gc, target_noise_std=0.0)
+    torch.manual_seed(0)
+    reference = fast(data)
+    distance = GoalDistance.from_loss(fast)(torch.randn(4, OBS), torch.randn(4, GOAL))
+    seen = []
+    gc.register_forward_hook(lambda module, args, out: seen.append(module.in_keys))  # leaves the fast path
+    keyed = SQGCLoss(actor, pc, gc, target_noise_std=0.0, fuse_critics=True)
+    assert not keyed.fusing  # only fast-path critics fuse
+    torch.manual_seed(0)
+    out = keyed(data)
+    assert seen and seen[0] == gc.in_keys  # called as a TensorDictModule, on its own keys
+    for key in reference.keys():
+        torch.testing.assert_close(out[key], reference[key], rtol=0, atol=0, msg=key)
+    torch.testing.assert_close(
+        GoalDistance.from_loss(keyed)(torch.randn(4, OBS), torch.randn(4, GOAL)), distance
+    )
+
+
+def test_critic_contract_errors_and_value_key():
+    torch.manual_seed(0)
+    actor, pc, _ = _nets()
+    with pytest.raises(TypeError, match="three distinct keys"):
+        SQGCLoss(
+            actor, pc, ValueOperator(torch.nn.Identity(), in_keys=["observation", "observation", "action"])
+        )
+    with pytest.raises(ValueError, match="num_qvalue_nets"):
+        SQGCLoss(actor, pc, copy.deepcopy(pc), num_qvalue_nets=3)
+    with pytest.raises(ValueError, match="gamma"):
+        SQGCLoss(actor, _value_operator(), _value_operator(), gamma=1.5)
+    assert SQGCLoss(actor, _value_operator(), _value_operator()).gamma == 0.99  # no critic holds one
+    with pytest.raises(ValueError, match="gamma"):  # a GoalConditionedCritic's gamma is checked
+        SQGCLoss(actor, pc, _value_operator(), gamma=0.9)
+    # the action box: from the actor's spec, else `action_spec`; boxes that disagree are rejected
+    plain_actor = TensorDictModule(  # no spec: the loss cannot know its box
+        _ConcatTanh(OBS + GOAL, ACT, AMAX), in_keys=["observation", "waypoint"], out_keys=["action"]
+    )
+    with pytest.raises(ValueError, match="action box"):
+        SQGCLoss(plain_actor, _value_operator(), _value_operator())
+    spec = Bounded(-AMAX, AMAX, (ACT,))
+    loss = SQGCLoss(plain_actor, _value_operator(), _value_operator(), action_spec=spec)
+    torch.testing.assert_close(loss.action_scale, torch.full((ACT,), AMAX))
+    assert torch.isfinite(loss(_batch())["loss_actor"])
+    with pytest.raises(ValueError, match="box"):
+        SQGCLoss(actor, _value_operator(), _value_operator(), action_spec=Bounded(-1.0, 1.0, (ACT,)))
+    # the value is read at tensor_keys.state_action_value
+    loss = SQGCLoss(actor, _value_operator("q"), _value_operator("q"))
+    with pytest.raises(KeyError, match="state_action_value"):
+        loss(_batch())
+    loss.set_keys(state_action_value="q")
+    assert torch.isfinite(loss(_batch())["loss_policy_qvalue"])
+
+
+def test_critics_read_the_goal_under_their_own_keys():
+    # the loss writes each pair's goal under the critic's goal key: the names are the critic's business
+    torch.manual_seed(0)
+    actor = LowLevelActor(OBS, GOAL, action_max=AMAX, action_dim=ACT, num_cells=(32, 32))
+    a, b = _value_operator(goal_key="goal"), _value_operator(goal_key=("nested", "g"))
+    loss = SQGCLoss(actor, a, b, gamma=GAMMA, target_noise_std=0.0)
+    data = _batch()
+    out = loss(data)
+    q = _stacked_q(loss, "graph_critic", data["observation"], data["graph_goal"], data["action"])
+    torch.testing.assert_close(out["graph_q"], q.mean())
+
+
+class _ConcatTanh(torch.nn.Module):
+    def __init__(self, n_in, n_out, bound):
+        super().__init__()
+        self.linear, self.bound = torch.nn.Linear(n_in, n_out), bound
+
+    def forward(self, observation, goal):
+        return self.bound * torch.tanh(self.linear(torch.cat([observation, goal], -1)))

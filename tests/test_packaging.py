@@ -91,3 +91,32 @@ def test_readme_has_two_setup_commands_and_ci_runs_the_test_one():
     # CI runs exactly the README's test command (after its venv activation prefix)
     test_cmd = test.split("&&")[-1].strip()
     assert test_cmd in ci.splitlines(), (test_cmd, ci)
+
+
+def test_everything_the_readme_calls_public_is_importable_from_the_package():
+    """The names the README's table lists for the first five parts (envs, modules, objectives, planner, data),
+    with ``LossUpdater`` and ``evaluate``, are attributes of ``torchrl_dhrl`` itself; the 0.1 aliases are gone."""
+    import importlib
+
+    import torchrl_dhrl
+
+    text = (ROOT / "README.md").read_text()
+    parts = ("envs", "modules", "objectives", "planner", "data")
+    listed = {"LossUpdater", "evaluate"}
+    for part in parts:
+        row = re.search(rf"^\| `torchrl_dhrl\.{part}`[^\n]*", text, re.M)
+        assert row, part
+        homes = [importlib.import_module(f"torchrl_dhrl.{part}")]
+        if part == "envs":
+            homes.append(importlib.import_module("torchrl_dhrl.envs.transforms"))
+        for token in re.findall(r"`([A-Za-z_]\w*)(?:\(|`)", row.group(0)):
+            if any(token in getattr(home, "__all__", ()) for home in homes):
+                listed.add(token)
+    assert {"make_env", "plot_env", "AngleFeatures", "GraphPlanner", "RelabelReplayBuffer"} <= listed
+    missing = sorted(name for name in listed if name not in torchrl_dhrl.__all__)
+    assert not missing, missing
+    envs = importlib.import_module("torchrl_dhrl.envs")
+    for alias in ("MazeEnv", "MazeSimulation", "MazeGoalEnv"):
+        assert not hasattr(envs, alias), alias
+    assert not hasattr(envs.GoalEnv, "maze") and not hasattr(envs.GymGoalEnv, "maze")
+    assert "count_hops" in importlib.import_module("torchrl_dhrl.planner").__all__

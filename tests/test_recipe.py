@@ -3,13 +3,16 @@ ablation switches and the command line."""
 
 import csv
 import os
+import shutil
 import signal
 import subprocess
 import sys
 
+import numpy as np
 import pytest
 import torch
 from _recipe import RECIPES, load_recipe, recipe_config
+from tensordict import TensorDict
 from torchrl_dhrl.envs import ENV_NAMES
 
 from torchrl_dhrl.training import ConfigError, load_checkpoint
@@ -48,7 +51,7 @@ def test_smoke_every_phase(env, tmp_path):
     assert len(list((tmp_path / "episodes").glob("epoch_*.png"))) == 6
     assert (tmp_path / "success_curve.png").stat().st_size > 1000
     assert (tmp_path / "logs" / f"dhrl_{env}_seed0" / "scalars" / "eval" / "success.csv").exists()
-    state = load_checkpoint(tmp_path / "checkpoint.pt")
+    state = load_checkpoint(tmp_path / "checkpoint")
     assert state["counters"]["env_steps"] == 480 and state["counters"]["graph_builds"] == 5
     assert len(state["low_rb"]["_storage"]["_storage"]["observation"]) > 0
 
@@ -71,7 +74,7 @@ def test_resume_continues_exactly(tmp_path):
     halves = tmp_path / "halves"
     recipe.train(recipe_config(*overrides, "total_steps=240"), run_dir=halves)
     recipe.train(recipe_config(*overrides, "total_steps=480", f"resume={halves}"), run_dir=halves)
-    a, b = load_checkpoint(straight / "checkpoint.pt"), load_checkpoint(halves / "checkpoint.pt")
+    a, b = load_checkpoint(straight / "checkpoint"), load_checkpoint(halves / "checkpoint")
     assert {k: v for k, v in a["counters"].items() if k != "wall_s"} == {
         k: v for k, v in b["counters"].items() if k != "wall_s"
     }
@@ -86,6 +89,35 @@ def test_resume_continues_exactly(tmp_path):
         busy = float(row["time/collect_s"]) + float(row["time/update_s"])
         rate = (int(row["env_steps"]) - 240) / busy
         assert float(row["env_steps_per_s"]) == pytest.approx(rate, rel=1e-4)
+
+
+def test_a_0_2_0_checkpoint_resumes_exactly(tmp_path):
+    """A 0.2.0 ``checkpoint.pt`` (one ``torch.save`` dictionary, with the collector's copy of the policy and the
+    carrier apart) resumes to the straight run's parameters, bit for bit; new checkpoints hold the policy once."""
+    overrides = ("env=PointMaze", *SMOKE, "plots.every_epochs=0", "device=cpu")
+    straight, halves, old = tmp_path / "straight", tmp_path / "halves", tmp_path / "old"
+    recipe.train(recipe_config(*overrides, "total_steps=480"), run_dir=straight)
+    recipe.train(recipe_config(*overrides, "total_steps=240"), run_dir=halves)
+    state = load_checkpoint(halves)
+    assert "policy_state_dict" not in state["collector"]  # the agent's components hold the policy
+    # the same state as 0.2.0 saved it
+    collector = dict(state["collector"])
+    carrier = TensorDict(collector.pop("carrier"), batch_size=[2])
+    policy = {"module.0.weight": torch.zeros(1)}  # ignored: the agent's entry holds the policy
+    rng = state["rng"]
+    numpy_state = (rng["numpy"][0], rng["numpy"][1].numpy().astype(np.uint32), *rng["numpy"][2:])
+    legacy = {
+        **state,
+        "collector": {**collector, "policy_state_dict": policy},
+        "carrier": carrier,
+        "rng": {"python": rng["python"], "numpy": numpy_state, "torch": rng["torch_cpu"]},
+    }
+    old.mkdir()
+    shutil.copy(halves / "metrics.csv", old / "metrics.csv")
+    torch.save(legacy, old / "checkpoint.pt")
+    recipe.train(recipe_config(*overrides, "total_steps=480", f"resume={old}"), run_dir=old)
+    a, b = _flat(load_checkpoint(straight)["agent"]), _flat(load_checkpoint(old / "checkpoint")["agent"])
+    assert a.keys() == b.keys() and all(torch.equal(a[k], b[k]) for k in a)
 
 
 @pytest.mark.parametrize(
@@ -150,8 +182,8 @@ def test_bfloat16_updates_reach_both_updaters(tmp_path, monkeypatch):
         run_dir=halves,
     )
     a, b = (
-        _flat(load_checkpoint(tmp_path / "bf16" / "checkpoint.pt")["agent"]),
-        _flat(load_checkpoint(halves / "checkpoint.pt")["agent"]),
+        _flat(load_checkpoint(tmp_path / "bf16" / "checkpoint")["agent"]),
+        _flat(load_checkpoint(halves / "checkpoint")["agent"]),
     )
     assert a.keys() == b.keys() and all(torch.equal(a[k], b[k]) for k in a)
 
@@ -218,7 +250,7 @@ def test_ctrl_c_saves_a_checkpoint_that_resumes(tmp_path, monkeypatch):
     cfg = recipe_config("env=PointMaze", *SMOKE, "plots.every_epochs=0")
     with pytest.raises(KeyboardInterrupt):
         recipe.train(cfg, run_dir=tmp_path)
-    state = load_checkpoint(tmp_path / "checkpoint.pt")
+    state = load_checkpoint(tmp_path / "checkpoint")
     assert state["counters"]["env_steps"] == 240  # batch 3 was collected and stored before the interrupt
     assert (tmp_path / "success_curve.png").stat().st_size > 1000  # the curve so far is drawn too
     monkeypatch.setattr(LossUpdater, "run", real_run)
@@ -252,13 +284,13 @@ def test_a_signal_mid_update_stops_at_the_batch_end_and_resumes_exactly(signum, 
     with pytest.raises(KeyboardInterrupt):
         recipe.train(recipe_config(*overrides, "total_steps=480"), run_dir=halves)
     assert (signal.getsignal(signal.SIGINT), signal.getsignal(signal.SIGTERM)) == before  # handlers restored
-    state = load_checkpoint(halves / "checkpoint.pt")
+    state = load_checkpoint(halves / "checkpoint")
     assert state["counters"]["env_steps"] == 240 and state["low_updater"]["num_updates"] == 160
     monkeypatch.setattr(LossUpdater, "_step", real_step)
     recipe.train(recipe_config(*overrides, "total_steps=480", f"resume={halves}"), run_dir=halves)
     a, b = (
-        _flat(load_checkpoint(straight / "checkpoint.pt")["agent"]),
-        _flat(load_checkpoint(halves / "checkpoint.pt")["agent"]),
+        _flat(load_checkpoint(straight / "checkpoint")["agent"]),
+        _flat(load_checkpoint(halves / "checkpoint")["agent"]),
     )
     assert a.keys() == b.keys() and all(torch.equal(a[k], b[k]) for k in a)
 
@@ -279,22 +311,24 @@ def test_nan_stops_with_a_message_and_keeps_the_last_good_checkpoint(tmp_path, m
     cfg = recipe_config("env=PointMaze", *SMOKE, "plots.every_epochs=0")
     with pytest.raises(SystemExit, match="non-finite loss.*last good checkpoint"):
         recipe.train(cfg, run_dir=tmp_path)
-    state = load_checkpoint(tmp_path / "checkpoint.pt")
+    state = load_checkpoint(tmp_path / "checkpoint")
     assert state["counters"]["env_steps"] == 240  # the checkpoint of the 3rd batch's epoch
 
 
 def test_flat_evaluation_uses_the_same_goals_and_changes_nothing_else(tmp_path, monkeypatch):
     """``schedule.eval_flat``: the low level alone on the main evaluation's test goals (Reacher3D draws them at
     random), and every other metric as without it."""
+    from torchrl_dhrl.training import epoch as epoch_end
+
     goals = []
-    evaluate = recipe.evaluate
+    evaluate = epoch_end.evaluate
 
     def recording(env, policy, steps, **kwargs):
         result = evaluate(env, policy, steps, **kwargs)
         goals.append(result.rollout["desired_goal"][:, 0].clone())
         return result
 
-    monkeypatch.setattr(recipe, "evaluate", recording)
+    monkeypatch.setattr(epoch_end, "evaluate", recording)
     overrides = ("env=Reacher3D", *SMOKE, "total_steps=240", "plots.every_epochs=0", "device=cpu")
     recipe.train(recipe_config(*overrides, "schedule.eval_flat=true"), run_dir=tmp_path / "flat")
     with_flat, goals = goals, []

@@ -7,6 +7,9 @@ episode (offset >= 1, as the reference), the policy batch 80% of them (the rest 
 goals). The reward is DHRL's: ``0`` when the *next* cell is the goal, ``-1`` otherwise, and
 the agent can stay at the goal, so the optimal return from ``k`` cells away is ``k - 1``
 rewards of ``-1``: Eq. (1) recovers ``max(|x - g| - 1, 0)`` steps.
+
+The same holds with a plain TorchRL critic (``ValueOperator(MLP)``, twin made by the loss's stacked
+parameters) in place of :class:`~torchrl_dhrl.modules.GoalConditionedCritic`.
 """
 
 import warnings
@@ -14,6 +17,8 @@ import warnings
 import pytest
 import torch
 from tensordict import TensorDict
+from torch import nn
+from torchrl.modules import MLP, ValueOperator
 from torchrl.objectives import SoftUpdate
 
 from torchrl_dhrl.modules import GoalConditionedCritic, LowLevelActor
@@ -69,17 +74,24 @@ def _random_walk_data(n_episodes, her_ratio=0.8):
     )
 
 
-def _train_and_measure(num_cells, n_updates, seed):
+def _goal_conditioned_critic(num_cells):
+    return GoalConditionedCritic(
+        1, 1, action_max=1.0, action_dim=1, goal_indices=(0,), num_cells=num_cells, gamma=GAMMA
+    )
+
+
+def _value_operator_critic(num_cells):
+    """A plain TorchRL critic: one Q member on ``cat(observation, goal, action)`` (ReLU, as DHRL's critics;
+    torchrl's default Tanh learns this sparse-reward Q far more slowly)."""
+    mlp = MLP(in_features=3, out_features=1, num_cells=list(num_cells), activation_class=nn.ReLU)
+    return ValueOperator(mlp, in_keys=["observation", "goal", "action"])
+
+
+def _train_and_measure(num_cells, n_updates, seed, make_critic=_goal_conditioned_critic):
     torch.manual_seed(seed)
     data = _random_walk_data(1000)
     actor = LowLevelActor(1, 1, action_max=1.0, action_dim=1, goal_indices=(0,), num_cells=num_cells)
-
-    def critic():
-        return GoalConditionedCritic(
-            1, 1, action_max=1.0, action_dim=1, goal_indices=(0,), num_cells=num_cells, gamma=GAMMA
-        )
-
-    loss = SQGCLoss(actor, critic(), critic())
+    loss = SQGCLoss(actor, make_critic(num_cells), make_critic(num_cells), gamma=GAMMA)
     updater = SoftUpdate(loss, tau=0.2)
     optims = make_optimizers(loss, actor_lr=1e-3, critic_lr=3e-3)
     distance = GoalDistance.from_loss(loss)
@@ -87,9 +99,9 @@ def _train_and_measure(num_cells, n_updates, seed):
     states, goals = _obs(cells)[:, None], _obs(cells)[None]
     truth = ((cells[:, None] - cells[None]).abs() - 1).clamp(min=0).float()
     initial_error = (distance(states, goals) - truth).abs().mean().item()
-    for _ in range(n_updates):
+    for step in range(1, n_updates + 1):
         batch = data[torch.randint(0, data.shape[0], (256,))]
-        out = loss(batch)
+        out = loss.loss_terms(batch, update_actor=step % 2 == 0)  # the loop owns TD3's actor delay
         sum(v for k, v in out.items() if k.startswith("loss_")).backward()
         for opt in optims.values():
             opt.step()
@@ -121,3 +133,20 @@ def test_graph_distance_converges_on_chain_longer(seed):
     assert mae < 0.6, mae
     assert max_err < 1.4, max_err
     assert corr > 0.985, corr
+
+
+def test_value_operator_critic_learns_the_chain_distances():
+    """SQGCLoss with plain ``ValueOperator`` critics (no distance parameterisation, no relative goal input):
+    the graph distance converges as with the library's critic."""
+    with warnings.catch_warnings():
+        warnings.filterwarnings("ignore", message="No target network updater")
+        # one member per critic (the loss stacks the twin), no relative goal input, no distance output:
+        # wider than the quick test above and the same thresholds. Seeds 0-2: mae 0.25-0.47, max error
+        # 0.87-1.91, corr 0.988-0.997 (seed 1: 0.25, 0.99, 0.992)
+        initial, mae, max_err, corr = _train_and_measure(
+            (64, 64), 600, seed=1, make_critic=_value_operator_critic
+        )
+    assert initial > 1.5
+    assert mae < 1.0, mae
+    assert max_err < 2.0, max_err
+    assert corr > 0.98, corr

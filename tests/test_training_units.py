@@ -23,44 +23,79 @@ from torchrl_dhrl.planner import (
     LineOfSightDistance,
 )
 from torchrl_dhrl.training import (
+    CHECKPOINT_COMPONENTS,
     LossUpdater,
     NonFiniteLossError,
     evaluate,
-    get_rng_state,
     load_checkpoint,
+    make_checkpoint,
+    restore_checkpoint,
     save_checkpoint,
-    set_rng_state,
 )
 
 
 # ---------------------------------------------------------------- checkpoints
+def _registry(weight: float, counters: dict, history: list):
+    """A checkpoint registry of small stand-ins: a linear layer for the state-dict components."""
+    from torchrl.collectors import Collector
+
+    net = torch.nn.Linear(3, 1)
+    torch.nn.init.constant_(net.weight, weight)
+    env = make_env("PointMaze", num_envs=1, seed=0, max_episode_steps=4)
+    collector = Collector(env, None, frames_per_batch=4, total_frames=-1)
+    parts = dict.fromkeys(("agent", "low_updater", "high_updater", "low_rb", "high_rb"), net)
+    registry = make_checkpoint(
+        config={"seed": 0},
+        train_env=env,
+        eval_env=env,
+        collector=collector,
+        counters=counters,
+        history=history,
+        **parts,
+    )
+    return registry, net
+
+
 def test_checkpoint_round_trip_and_atomicity(tmp_path, monkeypatch):
-    path = tmp_path / "run" / "checkpoint.pt"
-    save_checkpoint({"step": 1, "w": torch.arange(3.0)}, path)
+    path = tmp_path / "run" / "checkpoint"
+    counters, history = {"step": 1}, [{"loss": 0.5}]
+    registry, net = _registry(1.0, counters, history)
+    save_checkpoint(registry, path)
     loaded = load_checkpoint(path)
-    assert loaded["step"] == 1 and torch.equal(loaded["w"], torch.arange(3.0))
-    assert oct(os.stat(path).st_mode & 0o777) == "0o644"
+    assert sorted(loaded) == sorted(CHECKPOINT_COMPONENTS)
+    assert loaded["counters"]["step"] == 1 and torch.equal(loaded["agent"]["weight"], torch.ones(1, 3))
 
-    real_save = torch.save
+    from torchrl.checkpoint import StateDictCheckpointAdapter
 
-    def crash(obj, file, *args, **kwargs):  # writes part of the file, then dies
-        real_save(obj, file, *args, **kwargs)
-        raise KeyboardInterrupt
+    real_save = StateDictCheckpointAdapter.save
+    calls = {"n": 0}
 
-    monkeypatch.setattr(torch, "save", crash)
+    def crash(self, component, path, **kwargs):  # writes some components, then dies
+        calls["n"] += 1
+        if calls["n"] == 3:
+            raise KeyboardInterrupt
+        return real_save(self, component, path, **kwargs)
+
+    counters["step"] = 2
+    torch.nn.init.constant_(net.weight, 2.0)
+    monkeypatch.setattr(StateDictCheckpointAdapter, "save", crash)
     with pytest.raises(KeyboardInterrupt):
-        save_checkpoint({"step": 2}, path)
+        save_checkpoint(registry, path)
     monkeypatch.undo()
-    assert load_checkpoint(path)["step"] == 1  # the previous checkpoint survives
-    assert [p.name for p in path.parent.iterdir()] == ["checkpoint.pt"]  # no temporary file left
+    loaded = load_checkpoint(path)  # the previous checkpoint survives, whole
+    assert loaded["counters"]["step"] == 1 and torch.equal(loaded["agent"]["weight"], torch.ones(1, 3))
+    assert [p.name for p in path.parent.iterdir()] == ["checkpoint"]  # no staging directory left
+    restore_checkpoint(registry, path)
+    assert counters == {"step": 1} and torch.equal(net.weight, torch.ones(1, 3))
     with pytest.raises(FileNotFoundError, match="No checkpoint"):
         load_checkpoint(tmp_path / "missing.pt")
 
 
-def test_rng_state_round_trip():
-    state = get_rng_state()
+def test_rng_state_round_trip(tmp_path):
+    registry, _ = _registry(1.0, {}, [])
+    path = save_checkpoint(registry, tmp_path / "checkpoint")
     first = (random.random(), np.random.rand(), torch.rand(3))
-    set_rng_state(state)
+    restore_checkpoint(registry, path)
     second = (random.random(), np.random.rand(), torch.rand(3))
     assert first[0] == second[0] and first[1] == second[1] and torch.equal(first[2], second[2])
 
@@ -158,19 +193,51 @@ def test_updater_stops_on_nan_before_changing_parameters():
         LossUpdater(loss, rb, {"critic": None})
 
 
-def test_loss_terms_equal_forward_with_the_counted_decision():
-    """``loss_terms(td, update_actor)`` (the CUDA-graph entry point) is ``forward`` minus the counting."""
+def test_loss_terms_equal_forward_with_the_decision_given():
+    """``loss_terms(td, update_actor)`` (the entry point of LossUpdater and of the CUDA graphs) is ``forward``
+    with the actor term switched; neither counts anything."""
     loss, rb = _high_level_setup(batch=16)
     data = rb.sample()
+    state = {k: v.clone() for k, v in loss.state_dict().items()}
     for call in range(1, 5):
+        update_actor = call % 2 == 0
         torch.manual_seed(call)
-        out = loss(data)  # counts: the actor is updated on even calls
+        out = loss(data)  # every term, every call
         torch.manual_seed(call)
-        terms = loss.loss_terms(data, update_actor=call % 2 == 0)
-        assert bool(out["actor_updated"]) == (call % 2 == 0) and terms.keys() == out.keys()
+        terms = loss.loss_terms(data, update_actor=update_actor)
+        assert bool(out["actor_updated"]) and bool(terms["actor_updated"]) == update_actor
+        assert terms.keys() == out.keys()
         for key in out.keys():
-            assert torch.equal(out[key], terms[key]), key
-    assert int(loss.update_count) == 4  # loss_terms does not count
+            if update_actor or key not in ("loss_actor", "actor_updated"):
+                assert torch.equal(out[key], terms[key]), key
+    assert state.keys() == loss.state_dict().keys()  # no count in the loss
+    assert all(torch.equal(v, loss.state_dict()[k]) for k, v in state.items())
+
+
+@pytest.mark.parametrize("interval", [1, 2, 3])
+def test_updater_owns_the_delayed_actor_schedule_and_resumes_it(interval):
+    torch.manual_seed(0)
+    loss, rb = _high_level_setup()
+    updater = LossUpdater(loss, rb, make_optimizers(loss), actor_update_interval=interval)
+    flags = [bool(updater.step()["actor_updated"]) for _ in range(5)]
+    assert flags == [k % interval == 0 for k in range(1, 6)]
+    state = updater.state_dict()
+    other_loss, other_rb = _high_level_setup()
+    resumed = LossUpdater(other_loss, other_rb, make_optimizers(other_loss), actor_update_interval=interval)
+    resumed.load_state_dict(state)
+    assert resumed.actor_update_due() == (6 % interval == 0)
+    assert [bool(resumed.step()["actor_updated"]) for _ in range(3)] == [k % interval == 0 for k in (6, 7, 8)]
+    with pytest.raises(ValueError, match="actor_update_interval"):
+        LossUpdater(loss, rb, make_optimizers(loss), actor_update_interval=0)
+
+
+def test_old_checkpoints_with_the_loss_step_count_still_load():
+    loss, _ = _high_level_setup()
+    state = loss.state_dict()
+    state["update_count"] = torch.tensor(7)  # written before the schedule moved to LossUpdater
+    other, _ = _high_level_setup()
+    other.load_state_dict(state)
+    assert all(torch.equal(v, other.state_dict()[k]) for k, v in loss.state_dict().items())
 
 
 def test_updater_cudagraphs_needs_a_cuda_loss():

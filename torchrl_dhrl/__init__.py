@@ -4,13 +4,14 @@ Layout mirrors the algorithm's levels and TorchRL's kinds of parts:
 ``modules`` (actors, exploration, critics), ``objectives`` (SQGC and high-level losses),
 ``planner`` (temporal distances, landmark graph and edge rules, shortest paths, ``GraphPlanner`` transform,
 FGS), ``data`` (relabelling for both replay buffers) and ``envs`` (the paper's MuJoCo tasks, the goal-env
-contract ``check_goal_env`` and ``register_env`` for user environments); from ``training`` (the recipe's
-machinery) the update step ``LossUpdater`` and ``evaluate``.
+contract ``check_goal_env``, ``register_env`` for user environments, ``plot_env`` and the ``AngleFeatures``
+transform); from ``training`` (the recipe's machinery) the update step ``LossUpdater`` and ``evaluate``.
 """
 
 from torchrl_dhrl.data import *  # noqa: F403
 from torchrl_dhrl.data import __all__ as _data_all
-from torchrl_dhrl.envs import check_goal_env, make_env, register_env
+from torchrl_dhrl.envs import check_goal_env, make_env, plot_env, register_env
+from torchrl_dhrl.envs.transforms import AngleFeatures
 from torchrl_dhrl.modules import *  # noqa: F403
 from torchrl_dhrl.modules import __all__ as _modules_all
 from torchrl_dhrl.objectives import *  # noqa: F403
@@ -22,11 +23,13 @@ from torchrl_dhrl.training import LossUpdater, NonFiniteLossError, evaluate
 __version__ = "0.2.0"
 
 __all__ = [
+    "AngleFeatures",
     "LossUpdater",
     "NonFiniteLossError",
     "check_goal_env",
     "evaluate",
     "make_env",
+    "plot_env",
     "register_env",
     *_data_all,
     *_modules_all,

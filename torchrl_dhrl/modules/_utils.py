@@ -6,7 +6,7 @@ from collections.abc import Sequence
 
 import torch
 from tensordict import TensorDict
-from tensordict.nn import TensorDictModuleBase
+from tensordict.nn import TensorDictModule, TensorDictModuleBase
 from tensordict.utils import NestedKey
 from torch import nn
 from torchrl.data import Bounded, Composite, TensorSpec
@@ -178,6 +178,24 @@ def check_positional_keys(module: TensorDictModuleBase, n_in: int, role: str) ->
             f"in that order and write its output first; got in_keys={in_keys}, out_keys={out_keys}. "
             "Pass the network itself (e.g. LowLevelActor), not a sequence that also plans or holds subgoals."
         )
+
+
+def routes_tensors_only(module: TensorDictModuleBase) -> bool:
+    """Whether calling ``module`` on a tensordict only routes its in_keys to ``module.module`` and back.
+
+    True for a :class:`~tensordict.nn.TensorDictModule` (or :class:`~torchrl.modules.Actor`) whose
+    ``forward`` is not overridden, without safety projection and without forward hooks on it or its
+    network: evaluating ``module.module`` on the tensors is then the same computation, without building
+    a TensorDict. The fast paths of the losses and of ``GoalDistance`` rely on it.
+    """
+    net = getattr(module, "module", None)
+    return (
+        type(module).forward is TensorDictModule.forward
+        and isinstance(net, nn.Module)
+        and not getattr(module, "safe", False)
+        and not (module._forward_hooks or module._forward_pre_hooks)
+        and not (net._forward_hooks or net._forward_pre_hooks)
+    )
 
 
 def run_positional(module: TensorDictModuleBase, *inputs: torch.Tensor) -> torch.Tensor:

@@ -6,17 +6,27 @@ import math
 from collections.abc import Sequence
 
 import torch
-from tensordict.nn import TensorDictModule
+from tensordict import TensorDict, TensorDictBase
+from tensordict.nn import TensorDictModule, TensorDictModuleBase
 from tensordict.utils import NestedKey
 from torch import nn
 from torch.nn import functional as F
 from torchrl.data import TensorSpec
 
-from ._utils import box_loc_scale, check_last_dim, goal_input, register_goal_indices, resolve_box
+from ._utils import (
+    box_loc_scale,
+    check_last_dim,
+    goal_input,
+    register_goal_indices,
+    resolve_box,
+    routes_tensors_only,
+)
 from .actors import DEFAULT_NUM_CELLS
 from .ensemble import EnsembleMLP
 
 PARAMETERIZATIONS = ("distance", "q")
+#: The default discount (the reference's); the losses and GoalDistance use it for critics that hold none.
+DEFAULT_GAMMA = 0.99
 
 
 def _check_gamma(gamma: float) -> float:
@@ -115,7 +125,7 @@ class GoalConditionedCriticNet(nn.Module):
         num_cells: Sequence[int] = DEFAULT_NUM_CELLS,
         activation_class: type[nn.Module] = nn.ReLU,
         parameterization: str = "distance",
-        gamma: float = 0.99,
+        gamma: float = DEFAULT_GAMMA,
     ) -> None:
         super().__init__()
         if parameterization not in PARAMETERIZATIONS:
@@ -176,10 +186,21 @@ class GoalConditionedCriticNet(nn.Module):
 class GoalConditionedCritic(TensorDictModule):
     """A goal-conditioned twin critic as a :class:`~tensordict.nn.TensorDictModule`.
 
-    Reads ``observation``, a goal and an action and writes ``state_action_value`` with
-    shape ``[*batch, num_nets]`` (one column per member of the twin; the members share one
-    stacked-weight network, evaluated in a single batched matmul per layer). See
+    Reads ``observation_key``, ``goal_key`` and ``action_key`` (its ``in_keys``, in that order) and
+    writes ``out_key`` with shape ``[*batch, num_nets]`` (one column per member of the twin; the
+    members share one stacked-weight network, evaluated in a single batched matmul per layer). See
     :class:`GoalConditionedCriticNet` for the inputs and the distance parameterisation.
+
+    The DHRL losses (:class:`~torchrl_dhrl.objectives.SQGCLoss`,
+    :class:`~torchrl_dhrl.objectives.HighLevelLoss`) and
+    :class:`~torchrl_dhrl.planner.GoalDistance` call their critics on these keys: they write the
+    state, the goal the critic is trained or queried on and the action under the critic's
+    ``in_keys`` and read the value back (at their ``state_action_value`` key, ``out_key``'s default), so
+    one critic class serves any batch layout (the low-level policy and graph critics read two different
+    goals of the same batch). Unless hooks are
+    registered on it, a ``GoalConditionedCritic`` is evaluated on the tensors directly instead
+    (the same computation, without building a TensorDict; the losses then also stack both twins
+    of :class:`~torchrl_dhrl.objectives.SQGCLoss` into one ensemble off the CPU).
 
     The same class serves both levels: at the low level the action box is the action
     spec (the critic sees ``action / action_max``); at the high level the "action" is the
@@ -203,10 +224,12 @@ class GoalConditionedCritic(TensorDictModule):
         activation_class (type): hidden activation. Defaults to ``nn.ReLU``.
         parameterization (str): ``"distance"`` (default) or ``"q"``.
         gamma (float): discount. Defaults to ``0.99``.
-        observation_key (NestedKey): Defaults to ``"observation"``.
-        goal_key (NestedKey): Defaults to ``"waypoint"``.
-        action_key (NestedKey): Defaults to ``"action"``.
-        out_key (NestedKey): Defaults to ``"state_action_value"``.
+        observation_key (NestedKey): where the state is read. Defaults to ``"observation"``.
+        goal_key (NestedKey): where the goal is read (the waypoint at the low level, the final goal at
+            the high level). Defaults to ``"waypoint"``.
+        action_key (NestedKey): where the action (the subgoal at the high level) is read. Defaults to
+            ``"action"``.
+        out_key (NestedKey): where the member values are written. Defaults to ``"state_action_value"``.
 
     Examples:
         >>> import torch
@@ -234,7 +257,7 @@ class GoalConditionedCritic(TensorDictModule):
         num_cells: Sequence[int] = DEFAULT_NUM_CELLS,
         activation_class: type[nn.Module] = nn.ReLU,
         parameterization: str = "distance",
-        gamma: float = 0.99,
+        gamma: float = DEFAULT_GAMMA,
         observation_key: NestedKey = "observation",
         goal_key: NestedKey = "waypoint",
         action_key: NestedKey = "action",
@@ -274,3 +297,117 @@ class GoalConditionedCritic(TensorDictModule):
     @property
     def parameterization(self) -> str:
         return self.module.parameterization
+
+
+def check_critic(critic, role: str) -> None:
+    """Checks the critic contract of the DHRL losses and of ``GoalDistance``.
+
+    A critic is a :class:`~tensordict.nn.TensorDictModuleBase` reading three distinct keys -- the
+    observation, the goal and the action, in that order -- and writing its value. Raises a
+    ``TypeError`` naming ``role`` otherwise.
+    """
+    in_keys = getattr(critic, "in_keys", None)
+    out_keys = getattr(critic, "out_keys", None)
+    if (
+        not isinstance(critic, TensorDictModuleBase)
+        or in_keys is None
+        or len(in_keys) != 3
+        or len(set(in_keys)) != 3
+        or not out_keys
+    ):
+        raise TypeError(
+            f"`{role}` must be a critic TensorDictModule reading three distinct keys (observation, goal, "
+            "action, in that order) and writing its value: a GoalConditionedCritic, or e.g. "
+            "ValueOperator(MLP(...), in_keys=['observation', 'goal', 'action']); got "
+            f"{type(critic).__name__} with in_keys={in_keys}, out_keys={out_keys}."
+        )
+
+
+def runs_on_tensors(critic: TensorDictModuleBase) -> bool:
+    """Whether ``critic`` takes the fast path: a :class:`GoalConditionedCritic` without hooks.
+
+    Its stacked twin is then evaluated on the tensors (``features`` -> ``q_from_features``), the
+    computation its ``forward`` does, without building a TensorDict.
+    """
+    return (
+        isinstance(critic, GoalConditionedCritic)
+        and type(critic.module) is GoalConditionedCriticNet
+        and routes_tensors_only(critic)
+    )
+
+
+def _one_value(value: torch.Tensor, batch: torch.Size) -> torch.Tensor:
+    """A single-member critic's output ``[*batch, 1]`` (or ``[*batch]``) as ``[*batch]``."""
+    if value.shape == (*batch, 1):
+        return value.squeeze(-1)
+    if value.shape != batch:
+        raise ValueError(
+            f"A critic other than GoalConditionedCritic is one member and must write one value per sample, "
+            f"[*batch, 1] or [*batch] with batch {tuple(batch)}; got shape {tuple(value.shape)}. The losses "
+            "make the twin by stacking its parameters (`num_qvalue_nets`)."
+        )
+    return value
+
+
+def _critic_input(critic, observation, goal, action) -> TensorDict:
+    return TensorDict(
+        dict(zip(critic.in_keys, (observation, goal, action), strict=True)), batch_size=observation.shape[:-1]
+    )
+
+
+def _read_value(td, value_key: NestedKey, critic) -> torch.Tensor:
+    value = td.get(value_key, None)
+    if value is None:
+        raise KeyError(
+            f"The critic {type(critic).__name__} (out_keys={critic.out_keys}) wrote no {value_key!r} entry: "
+            "point the loss at the critic's value with `loss.set_keys(state_action_value=...)` (GoalDistance: "
+            "`value_key=`)."
+        )
+    return value
+
+
+def critic_values(
+    critic: TensorDictModuleBase,
+    observation: torch.Tensor,
+    goal: torch.Tensor,
+    action: torch.Tensor,
+    value_key: NestedKey = "state_action_value",
+) -> torch.Tensor:
+    """The values of every member of ``critic`` (with its current parameters), members first: ``[E, *batch]``.
+
+    ``observation``, ``goal`` and ``action`` share the leading ``batch`` dims. A
+    :class:`GoalConditionedCritic` holds its members (output ``[*batch, num_nets]``); any other
+    critic is one member (``E = 1``) writing ``[*batch, 1]`` or ``[*batch]`` at ``value_key``.
+    """
+    if runs_on_tensors(critic):
+        net = critic.module
+        return net.q_from_features(net.features(observation, goal, action))
+    value = _read_value(critic(_critic_input(critic, observation, goal, action)), value_key, critic)
+    if isinstance(critic, GoalConditionedCritic):
+        return value.movedim(-1, 0)
+    return _one_value(value, observation.shape[:-1]).unsqueeze(0)
+
+
+def stacked_critic_values(
+    critic: TensorDictModuleBase,
+    params: TensorDictBase,
+    observation: torch.Tensor,
+    goal: torch.Tensor,
+    action: torch.Tensor,
+    value_key: NestedKey = "state_action_value",
+    randomness: str = "error",
+) -> torch.Tensor:
+    """The values of ``E`` members whose parameters are stacked along dim 0 of ``params``: ``[E, *batch]``.
+
+    The members (single-member critics, e.g. a :class:`~torchrl.modules.ValueOperator` whose
+    parameters a loss stacked with ``convert_to_functional(..., expand_dim=E)``) are evaluated with
+    :func:`torch.vmap` over ``params`` on the same inputs, as in :class:`~torchrl.objectives.TD3Loss`.
+    """
+    batch = observation.shape[:-1]
+
+    def member(observation, goal, action, member_params):
+        with member_params.to_module(critic):
+            td = critic(_critic_input(critic, observation, goal, action))
+        return _one_value(_read_value(td, value_key, critic), batch)
+
+    return torch.vmap(member, (None, None, None, 0), randomness=randomness)(observation, goal, action, params)

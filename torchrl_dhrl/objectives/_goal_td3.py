@@ -8,14 +8,25 @@ import torch
 from tensordict import TensorDict, TensorDictBase, TensorDictParams
 from tensordict.nn import TensorDictModule
 from tensordict.utils import NestedKey
+from torchrl.data import TensorSpec
 from torchrl.envs.utils import set_exploration_type
 from torchrl.objectives import LossModule
 from torchrl.objectives.utils import distance_loss
 
-from torchrl_dhrl.modules._utils import check_positional_keys, run_positional
-from torchrl_dhrl.modules.critics import GoalConditionedCritic, q_to_distance
+from torchrl_dhrl.modules._utils import box_loc_scale, check_positional_keys, resolve_box, run_positional
+from torchrl_dhrl.modules.critics import (
+    DEFAULT_GAMMA,
+    GoalConditionedCritic,
+    check_critic,
+    critic_values,
+    q_to_distance,
+    runs_on_tensors,
+    stacked_critic_values,
+)
 
 LOSS_FUNCTIONS = ("l2", "l1", "smooth_l1")
+#: Members stacked from a single-member critic when ``num_qvalue_nets`` is not given (the TD3 twin).
+DEFAULT_NUM_QVALUE_NETS = 2
 
 
 @dataclass
@@ -52,11 +63,46 @@ def _same_architecture(a: GoalConditionedCritic, b: GoalConditionedCritic) -> bo
     return shapes_a == shapes_b
 
 
+def _actor_box(actor: TensorDictModule) -> tuple[torch.Tensor, torch.Tensor] | None:
+    """``(low, high)`` of the actor's bounded output spec, or ``None`` when it has none."""
+    spec = getattr(actor, "spec", None)
+    if spec is None:
+        return None
+    try:
+        entry = spec[actor.out_keys[0]]
+    except (KeyError, TypeError):
+        return None
+    space = getattr(entry, "space", None)
+    if space is None or not hasattr(space, "low"):
+        return None
+    return space.low, space.high
+
+
+def _drop_legacy_update_count(module, state_dict, prefix, *args) -> None:
+    """Checkpoints written before the delayed-actor count moved to ``LossUpdater`` hold ``update_count``."""
+    state_dict.pop(f"{prefix}update_count", None)
+
+
 class _GoalConditionedTD3Base(LossModule):
     """Common parts of :class:`SQGCLoss` and :class:`HighLevelLoss`.
 
-    Subclasses register their critics with :meth:`_register_critic` and describe, per
-    call, which critic is trained on which goal/reward (:class:`_CriticGroup`).
+    Subclasses register their critics with :meth:`_init_common` and describe, per call, which
+    critic is trained on which goal/reward (:class:`_CriticGroup`).
+
+    **Critics.** Each critic is a TensorDictModule reading ``(observation, goal, action)`` from its
+    three ``in_keys`` (in that order, any names) and writing its value at
+    ``tensor_keys.state_action_value``; the loss writes its batch's state, the critic's goal and the
+    action under those keys and reads the value back. Two kinds:
+
+    - a :class:`~torchrl_dhrl.modules.GoalConditionedCritic` holds its members (the stacked-weight
+      twin, output ``[*B, num_nets]``); without hooks it is evaluated on the tensors directly (the
+      fast path, optionally fused across critics);
+    - any other critic is one member (output ``[*B, 1]``): the loss stacks ``num_qvalue_nets``
+      copies of its parameters (``convert_to_functional(..., expand_dim=num_qvalue_nets)``, fresh
+      draws as in :class:`~torchrl.objectives.TD3Loss`) and evaluates them with :func:`torch.vmap`.
+
+    The loss keeps no step count: which calls train the actor (TD3's delay) is the caller's
+    decision (:meth:`loss_terms`; :class:`~torchrl_dhrl.training.LossUpdater` owns the schedule).
     """
 
     actor_network: TensorDictModule
@@ -66,29 +112,38 @@ class _GoalConditionedTD3Base(LossModule):
     def _init_common(
         self,
         actor_network: TensorDictModule,
-        critics: dict[str, GoalConditionedCritic],
+        critics: dict[str, TensorDictModule],
         *,
         gamma: float | None,
+        num_qvalue_nets: int | None,
+        action_spec: TensorSpec | None,
         action_l2: float,
         target_noise_std: float,
         target_noise_clip: float | None,
         target_action_clamp: bool,
-        actor_update_interval: int,
         use_terminated: bool,
         loss_function: str,
         fuse_critics: bool | None,
     ) -> None:
         check_positional_keys(actor_network, 2, "actor_network")
-        first = next(iter(critics.values()))
         for name, critic in critics.items():
-            if not isinstance(critic, GoalConditionedCritic):
-                raise TypeError(
-                    f"`{name}` must be a GoalConditionedCritic (stacked-weight twin), got {type(critic).__name__}."
+            check_critic(critic, name)
+        if num_qvalue_nets is not None and (
+            isinstance(num_qvalue_nets, bool) or not isinstance(num_qvalue_nets, int) or num_qvalue_nets < 1
+        ):
+            raise ValueError(f"`num_qvalue_nets` must be a positive int or None, got {num_qvalue_nets!r}.")
+        own = {name: c for name, c in critics.items() if isinstance(c, GoalConditionedCritic)}
+        for name, critic in own.items():
+            if num_qvalue_nets is not None and num_qvalue_nets != critic.num_nets:
+                raise ValueError(
+                    f"`num_qvalue_nets`={num_qvalue_nets} differs from `{name}`'s {critic.num_nets} members: a "
+                    "GoalConditionedCritic holds its twin (set `num_nets` when building it)."
                 )
-            if critic.gamma != first.gamma:
-                raise ValueError(f"All critics must share one gamma; got {critic.gamma} and {first.gamma}.")
-        critic_gamma = first.gamma
-        if gamma is not None and abs(float(gamma) - critic_gamma) > 1e-12:
+        gammas = {critic.gamma for critic in own.values()}
+        if len(gammas) > 1:
+            raise ValueError(f"All critics must share one gamma; got {sorted(gammas)}.")
+        critic_gamma = gammas.pop() if gammas else None
+        if gamma is not None and critic_gamma is not None and abs(float(gamma) - critic_gamma) > 1e-12:
             raise ValueError(
                 f"`gamma`={gamma} differs from the critics' gamma={critic_gamma}: the distance "
                 "parameterisation and Eq. (1) need the same discount. Build the critics with that gamma."
@@ -99,60 +154,79 @@ class _GoalConditionedTD3Base(LossModule):
             raise ValueError(f"`target_noise_std` must be >= 0, got {target_noise_std}.")
         if target_noise_clip is not None and target_noise_clip <= 0:
             raise ValueError(f"`target_noise_clip` must be > 0 or None, got {target_noise_clip}.")
-        if not isinstance(actor_update_interval, int) or actor_update_interval < 1:
-            raise ValueError(
-                f"`actor_update_interval` must be a positive int, got {actor_update_interval!r}."
-            )
         if loss_function not in LOSS_FUNCTIONS:
             raise ValueError(f"`loss_function` must be one of {LOSS_FUNCTIONS}, got {loss_function!r}.")
 
-        net = first.module
-        self._check_actor_box(
-            actor_network, net.action_loc - net.action_scale, net.action_loc + net.action_scale
-        )
+        action_loc, action_scale = self._action_box(actor_network, own, action_spec)
         self.convert_to_functional(actor_network, "actor_network", create_target_params=True)
+        members = DEFAULT_NUM_QVALUE_NETS if num_qvalue_nets is None else num_qvalue_nets
         for name, critic in critics.items():
-            self.convert_to_functional(critic, name, create_target_params=True)
-        self.register_buffer("action_loc", net.action_loc.detach().clone())
-        self.register_buffer("action_scale", net.action_scale.detach().clone())
-        self.register_buffer("update_count", torch.zeros((), dtype=torch.long))
-        self._update_count_mirror = 0
-        self.register_load_state_dict_post_hook(self._refresh_count_mirror)
+            expand = None if name in own else members  # a single-member critic: stack its parameters
+            self.convert_to_functional(critic, name, expand_dim=expand, create_target_params=True)
+        self.register_buffer("action_loc", action_loc.detach().clone())
+        self.register_buffer("action_scale", action_scale.detach().clone())
+        self.register_load_state_dict_pre_hook(_drop_legacy_update_count)
+        if critic_gamma is None:  # no critic holds a discount: the loss's (Eq. (1) needs it too)
+            critic_gamma = DEFAULT_GAMMA if gamma is None else float(gamma)
+            if not 0.0 < critic_gamma < 1.0:
+                raise ValueError(f"`gamma` must be in (0, 1), got {gamma}.")
         self.gamma = critic_gamma
         self.action_l2 = float(action_l2)
         self.target_noise_std = float(target_noise_std)
         self.target_noise_clip = target_noise_clip
         self.target_action_clamp = bool(target_action_clamp)
-        self.actor_update_interval = actor_update_interval
         self.use_terminated = use_terminated
         self.loss_function = loss_function
         names = list(critics)
         self._critic_names = names
-        self._ensemble_keys = {name: _ensemble_keys(getattr(self, f"{name}_params")) for name in names}
-        self._fusable = len(critics) > 1 and all(_same_architecture(first, c) for c in critics.values())
+        self._stacked = {name: name not in own for name in names}
+        self._ensemble_keys = {
+            name: _ensemble_keys(getattr(self, f"{name}_params")) for name in names if name in own
+        }
+        fast = [runs_on_tensors(c) for c in critics.values()]
+        first = next(iter(critics.values()))
+        self._fusable = (
+            len(critics) > 1 and all(fast) and all(_same_architecture(first, c) for c in critics.values())
+        )
         self.fuse_critics = fuse_critics
 
-    @staticmethod
-    def _check_actor_box(actor: TensorDictModule, low: torch.Tensor, high: torch.Tensor) -> None:
-        spec = getattr(actor, "spec", None)
-        if spec is None:
-            return
-        out_key = actor.out_keys[0]
-        try:
-            entry = spec[out_key]
-        except (KeyError, TypeError):
-            return
-        space = getattr(entry, "space", None)
-        if space is None or not hasattr(space, "low"):
-            return
-        if not (
-            torch.allclose(space.low.to(low), low, atol=1e-5)
-            and torch.allclose(space.high.to(high), high, atol=1e-5)
-        ):
+    def _action_box(
+        self,
+        actor: TensorDictModule,
+        own: dict[str, GoalConditionedCritic],
+        action_spec: TensorSpec | None,
+    ) -> tuple[torch.Tensor, torch.Tensor]:
+        """The action box ``(loc, scale)``: from the critics that hold one, else ``action_spec``, else the actor's spec.
+
+        All the boxes given must agree (the critics scale their action input with theirs, the loss clamps
+        and penalises with it).
+        """
+        boxes = [
+            (f"`{name}`'s action box", c.module.action_loc, c.module.action_scale) for name, c in own.items()
+        ]
+        if action_spec is not None:
+            low, high = resolve_box(spec=action_spec, key=self.tensor_keys.action)
+            boxes.append(("`action_spec`", *box_loc_scale(low, high)))
+        actor_box = _actor_box(actor)
+        if actor_box is not None:
+            boxes.append(("the actor's box", *box_loc_scale(*actor_box)))
+        if not boxes:
             raise ValueError(
-                f"The actor's box [{space.low.tolist()}, {space.high.tolist()}] differs from the critics' "
-                f"action box [{low.tolist()}, {high.tolist()}]: build both from the same bounds."
+                f"{type(self).__name__} needs the action box (target clamp, action penalty): pass "
+                "`action_spec` (a Bounded spec), an actor with a bounded spec, or a GoalConditionedCritic."
             )
+        name, loc, scale = boxes[0]
+        for other, other_loc, other_scale in boxes[1:]:
+            if not (
+                torch.allclose(other_loc.to(loc), loc, atol=1e-5)
+                and torch.allclose(other_scale.to(scale), scale, atol=1e-5)
+            ):
+                raise ValueError(
+                    f"{other[0].upper()}{other[1:]} [{(other_loc - other_scale).tolist()}, "
+                    f"{(other_loc + other_scale).tolist()}] differs from {name} [{(loc - scale).tolist()}, "
+                    f"{(loc + scale).tolist()}]: build both from the same bounds."
+                )
+        return loc, scale
 
     # ------------------------------------------------------------------ keys
     def _forward_value_estimator_keys(self, **kwargs) -> None:
@@ -197,7 +271,8 @@ class _GoalConditionedTD3Base(LossModule):
     def fusing(self) -> bool:
         """Whether the critics run as one stacked ensemble on this call.
 
-        ``fuse_critics=None`` (auto) fuses off the CPU only: on CPU the fused four-member
+        Only ``GoalConditionedCritic`` critics on the fast path (no hooks) with the same architecture
+        can be fused. ``fuse_critics=None`` (auto) fuses off the CPU only: on CPU the fused four-member
         ensemble measured a few percent slower (larger activations fall out of cache, and the
         computation is matmul-bound anyway); on accelerators one launch per layer instead of
         two is the point.
@@ -224,6 +299,30 @@ class _GoalConditionedTD3Base(LossModule):
         low, high = self.action_loc - self.action_scale, self.action_loc + self.action_scale
         return torch.maximum(torch.minimum(action, high), low)
 
+    def _critic_q(
+        self,
+        name: str,
+        params: TensorDictBase,
+        observation: torch.Tensor,
+        goal: torch.Tensor,
+        action: torch.Tensor,
+    ) -> torch.Tensor:
+        """Q of every member of one critic, with ``params``, on its keys: ``[E, N]``.
+
+        Stacked single-member critics run under :func:`torch.vmap` over their parameters; a
+        ``GoalConditionedCritic`` runs once with ``params`` swapped in (on the tensors directly when it
+        has no hooks). Everything runs inside ``to_module``, so the critics' buffers follow the loss's
+        device.
+        """
+        module = getattr(self, name)
+        value_key = self.tensor_keys.state_action_value
+        if self._stacked[name]:
+            return stacked_critic_values(
+                module, params, observation, goal, action, value_key, randomness=self.vmap_randomness
+            )
+        with params.to_module(module):
+            return critic_values(module, observation, goal, action, value_key)
+
     def _q_members(
         self,
         names: list[str],
@@ -233,9 +332,7 @@ class _GoalConditionedTD3Base(LossModule):
         """Q of every member of each named critic on its own ``(observation, goal, action)``: ``[E_i, N]`` each.
 
         When :attr:`fusing`, the ensembles' weights are concatenated along the member dim
-        and all critics run as one stacked ensemble (one batched matmul per layer). The
-        features are computed inside ``to_module`` so the critics' buffers follow the
-        loss's device.
+        and all critics run as one stacked ensemble (one batched matmul per layer).
         """
         if len(names) > 1 and self.fusing:
             fused = TensorDict()
@@ -258,12 +355,7 @@ class _GoalConditionedTD3Base(LossModule):
                 )
                 q = net.q_from_features(x, per_member=True)
             return list(q.split(sizes, 0))
-        out = []
-        for name, p, inp in zip(names, params, inputs, strict=True):
-            module = getattr(self, name)
-            with p.to_module(module):
-                out.append(module.module.q_from_features(module.module.features(*inp)))
-        return out
+        return [self._critic_q(n, p, *inp) for n, p, inp in zip(names, params, inputs, strict=True)]
 
     def _critic_terms(
         self,
@@ -304,13 +396,16 @@ class _GoalConditionedTD3Base(LossModule):
         """``-Q_1(s, pi(s, g) | g) + action_l2 * mean(scaled_action^2)``, critic parameters detached."""
         action = self._actor(self.actor_network_params, observation, goal)
         params = getattr(self, f"{critic_name}_params")
-        first = TensorDict()
-        for key in params.keys(True, True):
-            value = params.get(key)
-            first.set(key, value.detach()[:1] if key in self._ensemble_keys[critic_name] else value)
+        if self._stacked[critic_name]:
+            first = params.detach()[0]  # the first stacked member
+        else:  # the first member of the critic's own ensemble
+            first = TensorDict()
+            for key in params.keys(True, True):
+                value = params.get(key)
+                first.set(key, value.detach()[:1] if key in self._ensemble_keys[critic_name] else value)
         module = getattr(self, critic_name)
         with first.to_module(module):
-            q1 = module.module.q_from_features(module.module.features(observation, goal, action))[0]
+            q1 = critic_values(module, observation, goal, action, self.tensor_keys.state_action_value)[0]
         scaled = (action - self.action_loc) / self.action_scale
         penalty = scaled.pow(2).mean()
         loss = -q1.mean() + self.action_l2 * penalty
@@ -321,10 +416,13 @@ class _GoalConditionedTD3Base(LossModule):
         raise NotImplementedError
 
     def loss_terms(self, tensordict: TensorDictBase, update_actor: bool) -> TensorDictBase:
-        """:meth:`forward` with the delayed-actor decision given instead of counted.
+        """:meth:`forward` with the actor term on (``update_actor=True``) or off (a constant 0).
 
-        Creates no tensor from host data and reads nothing back, so it can be captured in a CUDA graph
-        (one graph per value of ``update_actor``; see :class:`~torchrl_dhrl.training.LossUpdater`).
+        TD3's delayed actor is the caller's schedule (:class:`~torchrl_dhrl.training.LossUpdater`'s
+        ``actor_update_interval``): on steps without an actor update pass ``False``, which skips the
+        actor's forward pass and gives ``loss_actor`` no gradient. Free of side effects; creates no
+        tensor from host data and reads nothing back, so it can be captured in a CUDA graph (one graph
+        per value of ``update_actor``).
         """
         entries = self._value_entries(tensordict)
         device = self.action_loc.device
@@ -338,19 +436,16 @@ class _GoalConditionedTD3Base(LossModule):
             batch_size=[],
         )
 
-    def _due_actor_update(self) -> bool:
-        """Counts a call and says whether the actor is updated on it (every ``actor_update_interval``-th).
+    def forward(self, tensordict: TensorDictBase) -> TensorDictBase:
+        """All loss terms (critic losses, ``loss_actor``) and the diagnostics, as :class:`~torchrl.objectives.TD3Loss`.
 
-        The count lives in the ``update_count`` buffer (saved with the state dict) and in a
-        Python mirror, so no device synchronisation is needed to read it.
+        ``loss_terms(tensordict, update_actor=True)``: sum the ``loss_*`` entries and back-propagate
+        once; the critic losses reach only the critics (targets are computed without gradient) and
+        the actor loss only the actor (critic parameters are detached there). ``forward`` keeps no
+        count: for TD3's delayed actor call :meth:`loss_terms` with ``update_actor=False`` on the
+        steps without an actor update, as :class:`~torchrl_dhrl.training.LossUpdater` does.
         """
-        self._update_count_mirror += 1
-        self.update_count.add_(1)
-        return self._update_count_mirror % self.actor_update_interval == 0
-
-    @staticmethod
-    def _refresh_count_mirror(module, incompatible_keys) -> None:
-        module._update_count_mirror = int(module.update_count)
+        return self.loss_terms(tensordict, update_actor=True)
 
     def _diagnostics(self, prefix: str | None, q: torch.Tensor, target: torch.Tensor) -> dict:
         """Mean Q, mean target and mean Eq. (1) distance (of the pessimistic member) of a critic pair."""

@@ -8,8 +8,7 @@ import torch
 from tensordict import TensorDictBase, TensorDictParams
 from tensordict.nn import TensorDictModule
 from tensordict.utils import NestedKey
-
-from torchrl_dhrl.modules.critics import GoalConditionedCritic
+from torchrl.data import TensorSpec
 
 from ._goal_td3 import _CriticGroup, _GoalConditionedTD3Base
 
@@ -27,9 +26,11 @@ class HighLevelLoss(_GoalConditionedTD3Base):
         y = \mathrm{clamp}\big(r + \gamma \min_k Q'_k(s', \mathrm{clip}(\pi'(s', g) + \epsilon) \mid g),
         -\mathrm{clip\_return}, 0\big)
 
-    and the actor loss (every ``actor_update_interval``-th call) is
-    ``-Q_1(s, pi(s, g) | g) + action_l2 * mean(scaled_subgoal^2)``. As at the low level the
-    bootstrap ignores ``done`` (episodes only truncate) unless ``use_terminated=True``.
+    and the actor loss is ``-Q_1(s, pi(s, g) | g) + action_l2 * mean(scaled_subgoal^2)``. As at the
+    low level the bootstrap ignores ``done`` (episodes only truncate) unless ``use_terminated=True``,
+    and the delayed actor is the training loop's schedule (:meth:`forward` computes every term;
+    ``loss_terms(batch, update_actor=False)`` skips the actor's, as
+    :class:`~torchrl_dhrl.training.LossUpdater` does on its off steps).
     Hindsight relabelling of goals and subgoals, subgoal testing and the gradual penalty are
     the replay buffer's business: this loss reads the rewards it is given.
 
@@ -42,15 +43,25 @@ class HighLevelLoss(_GoalConditionedTD3Base):
         ("next", "reward")         [B, 1]
         ("next", "terminated")     [B, 1]           only with use_terminated=True
 
+    **Critic contract** (as :class:`SQGCLoss`): a TensorDictModule reading
+    ``(observation, goal, subgoal)`` from its three ``in_keys`` in that order and writing a Q value
+    at ``tensor_keys.state_action_value``; the twin is a
+    :class:`~torchrl_dhrl.modules.GoalConditionedCritic`'s own (fast path), or ``num_qvalue_nets``
+    stacked copies of a single-member critic's parameters (vmap; the subgoal box then comes from
+    ``action_spec`` or the actor's spec).
+
     Args:
         actor_network (TensorDictModule): the deterministic high-level actor reading
             ``(observation, goal)`` (e.g. :class:`~torchrl_dhrl.modules.HighLevelActor`, or
             ``HighLevelPolicy.actor``).
-        critic (GoalConditionedCritic): the high-level critic twin.
+        critic (TensorDictModule): the high-level critic twin (see the critic contract).
 
     Keyword Args:
-        gamma (float, optional): checked against the critic's. Defaults to the critic's
-            (reference 0.99).
+        gamma (float, optional): checked against a ``GoalConditionedCritic``'s. Defaults to the
+            critic's, or ``0.99`` (the reference's) for other critics.
+        num_qvalue_nets (int, optional): members stacked from a single-member critic. Defaults to ``2``.
+        action_spec (TensorSpec, optional): the subgoal box, when neither the critic nor the actor
+            holds one.
         clip_return (float, optional): lower target clamp ``-clip_return``. Defaults to ``80.0``.
         action_l2 (float): weight of the scaled-subgoal penalty. Defaults to ``0.01``.
         target_noise_std (float): std of the target-policy noise in goal units.
@@ -58,7 +69,6 @@ class HighLevelLoss(_GoalConditionedTD3Base):
         target_noise_clip (float, optional): clip of that noise. Defaults to ``None``.
         target_action_clamp (bool): clamp the noisy target action to the action box. Defaults
             to ``False``, as the reference (whose target actions may leave the box by the noise).
-        actor_update_interval (int): TD3 actor delay. Defaults to ``2``.
         use_terminated (bool): mask the bootstrap with ``terminated``. Defaults to ``False``.
         loss_function (str): ``"l2"`` (default), ``"l1"`` or ``"smooth_l1"``.
 
@@ -94,6 +104,8 @@ class HighLevelLoss(_GoalConditionedTD3Base):
             reward (NestedKey): read at ``("next", reward)``. Defaults to ``"reward"``.
             terminated (NestedKey): read at ``("next", terminated)`` with ``use_terminated``.
                 Defaults to ``"terminated"``.
+            state_action_value (NestedKey): where the critic writes its value. Defaults to
+                ``"state_action_value"``.
         """
 
         observation: NestedKey = "observation"
@@ -101,6 +113,7 @@ class HighLevelLoss(_GoalConditionedTD3Base):
         action: NestedKey = "subgoal"
         reward: NestedKey = "reward"
         terminated: NestedKey = "terminated"
+        state_action_value: NestedKey = "state_action_value"
 
     tensor_keys: _AcceptedKeys
     default_keys = _AcceptedKeys
@@ -114,15 +127,16 @@ class HighLevelLoss(_GoalConditionedTD3Base):
     def __init__(
         self,
         actor_network: TensorDictModule,
-        critic: GoalConditionedCritic,
+        critic: TensorDictModule,
         *,
         gamma: float | None = None,
+        num_qvalue_nets: int | None = None,
+        action_spec: TensorSpec | None = None,
         clip_return: float | None = 80.0,
         action_l2: float = 0.01,
         target_noise_std: float = 0.05,
         target_noise_clip: float | None = None,
         target_action_clamp: bool = False,
-        actor_update_interval: int = 2,
         use_terminated: bool = False,
         loss_function: str = "l2",
     ) -> None:
@@ -133,11 +147,12 @@ class HighLevelLoss(_GoalConditionedTD3Base):
             actor_network,
             {"critic_network": critic},
             gamma=gamma,
+            num_qvalue_nets=num_qvalue_nets,
+            action_spec=action_spec,
             action_l2=action_l2,
             target_noise_std=target_noise_std,
             target_noise_clip=target_noise_clip,
             target_action_clamp=target_action_clamp,
-            actor_update_interval=actor_update_interval,
             use_terminated=use_terminated,
             loss_function=loss_function,
             fuse_critics=False,
@@ -184,10 +199,6 @@ class HighLevelLoss(_GoalConditionedTD3Base):
         return self._actor_terms(
             "critic_network", self._get(td, k.observation, "the state"), self._get(td, k.goal, "the goal")
         )
-
-    def forward(self, tensordict: TensorDictBase) -> TensorDictBase:
-        """``loss_qvalue`` and (every ``actor_update_interval``-th call, else 0) ``loss_actor``, plus diagnostics."""
-        return self.loss_terms(tensordict, update_actor=self._due_actor_update())
 
     def _value_entries(self, tensordict: TensorDictBase) -> dict:
         loss_qvalue, metadata = self.value_loss(tensordict)

@@ -8,8 +8,7 @@ import torch
 from tensordict import TensorDictBase, TensorDictParams
 from tensordict.nn import TensorDictModule
 from tensordict.utils import NestedKey
-
-from torchrl_dhrl.modules.critics import GoalConditionedCritic
+from torchrl.data import TensorSpec
 
 from ._goal_td3 import _CriticGroup, _GoalConditionedTD3Base
 
@@ -37,9 +36,13 @@ class SQGCLoss(_GoalConditionedTD3Base):
 
     clamped to ``[-clip_return, 0]`` for the policy critics and to ``<= 0`` for the graph
     critics (reference). Each member regresses ``y`` (summed over members, mean over
-    samples). The actor loss, every ``actor_update_interval``-th call of :meth:`forward`,
-    is ``-Q_critic,1(s, pi(s, g) | g) + action_l2 * mean((a / action_max)^2)`` on the policy
-    batch, with the critic parameters detached.
+    samples). The actor loss is ``-Q_critic,1(s, pi(s, g) | g) + action_l2 * mean((a / action_max)^2)``
+    on the policy batch, with the critic parameters detached.
+
+    **TD3's delayed actor** is the training loop's schedule, not the loss's: :meth:`forward`
+    computes every term on every call (as :class:`~torchrl.objectives.TD3Loss`) and keeps no
+    count; ``loss_terms(batch, update_actor=False)`` skips the actor term.
+    :class:`~torchrl_dhrl.training.LossUpdater` calls it so (``actor_update_interval``, reference 2).
 
     **No terminal states.** DHRL episodes only truncate, and the reference bootstraps
     through every transition, ignoring ``done``; so does this loss by default.
@@ -57,8 +60,26 @@ class SQGCLoss(_GoalConditionedTD3Base):
         ("next", "graph_reward")      [B, 1]          r(ag_{t+1}, graph_goal)
         ("next", "terminated")        [B, 1]          only read with use_terminated=True
 
-    Sharing the transitions lets the four critics run as one stacked ensemble
-    (``fuse_critics``). Any leading batch shape is accepted (it is flattened).
+    Any leading batch shape is accepted (it is flattened).
+
+    **Critic contract.** Each critic is a :class:`~tensordict.nn.TensorDictModule` reading
+    ``(observation, goal, action)`` from its three ``in_keys``, in that order (their names are the
+    critic's own: the loss writes the batch's state, the pair's goal -- ``goal`` for the policy
+    critics, ``graph_goal`` for the graph critics -- and the action under them), and writing a
+    **Q value** (the return of the -1/0 rewards, in ``(-1/(1-gamma), 0]`` when learnt; Eq. (1) turns
+    it into a distance) at ``tensor_keys.state_action_value``. The twin is either
+
+    * inside the critic: a :class:`~torchrl_dhrl.modules.GoalConditionedCritic` (stacked-weight
+      members, output ``[*B, num_nets]``, its distance parameterisation outputs Q as well). Without
+      hooks it is evaluated on the tensors directly (the fast path: no TensorDict per call, and
+      the four critics can run as one stacked ensemble, ``fuse_critics``); or
+    * made by the loss: any other critic, e.g.
+      ``ValueOperator(MLP(out_features=1), in_keys=["observation", "goal", "action"])``, is one
+      member writing ``[*B, 1]``; the loss stacks ``num_qvalue_nets`` copies of its parameters
+      (``convert_to_functional(..., expand_dim=num_qvalue_nets)``, each copy redrawn as in
+      :class:`~torchrl.objectives.TD3Loss`; the critic module itself is not trained) and evaluates
+      them with :func:`torch.vmap`. The action box then comes from ``action_spec`` or the actor's
+      spec. This path is slower (a TensorDict and a vmap per call, no fusion).
 
     **Devices.** Everything runs where the loss's parameters are; ``loss.to(device)`` moves
     them (they are the networks' own parameters) and the buffers the loss swaps into the
@@ -69,12 +90,18 @@ class SQGCLoss(_GoalConditionedTD3Base):
             ``(observation, goal)`` in the order of its ``in_keys`` and writing the action
             first (e.g. :class:`~torchrl_dhrl.modules.LowLevelActor`). Its parameters are
             shared, not copied: the acting policy follows training.
-        policy_critic (GoalConditionedCritic): the policy critic twin.
-        graph_critic (GoalConditionedCritic): the graph critic twin (same action box and gamma).
+        policy_critic (TensorDictModule): the policy critic twin (see the critic contract).
+        graph_critic (TensorDictModule): the graph critic twin (same action box and gamma).
 
     Keyword Args:
-        gamma (float, optional): checked against the critics' gamma (the critics own it:
-            the distance parameterisation needs it). Defaults to the critics'.
+        gamma (float, optional): the discount. A ``GoalConditionedCritic`` owns its gamma (the
+            distance parameterisation needs it): it is checked against the critics'. Defaults to the
+            critics', or ``0.99`` when no critic holds one.
+        num_qvalue_nets (int, optional): members stacked from a single-member critic. Defaults to
+            ``2``; for a ``GoalConditionedCritic`` it must be ``None`` or its ``num_nets``.
+        action_spec (TensorSpec, optional): the action box (a :class:`~torchrl.data.Bounded`
+            spec, or a composite holding one at the action key), for the target clamp and the action
+            penalty. Defaults to the critics' box, else the actor's spec; all given boxes must agree.
         clip_return (float, optional): lower clamp ``-clip_return`` of the policy critics'
             targets (reference 80); ``None`` for none. Defaults to ``80.0``.
         graph_clip_return (float, optional): lower clamp of the graph critics' targets;
@@ -85,8 +112,6 @@ class SQGCLoss(_GoalConditionedTD3Base):
         target_noise_clip (float, optional): clip of that noise; ``None`` (default) for none.
         target_action_clamp (bool): clamp the noisy target action to the action box. Defaults
             to ``False``, as the reference (whose target actions may leave the box by the noise).
-        actor_update_interval (int): the actor is updated every this many calls of
-            :meth:`forward` (TD3 delay). Defaults to ``2``.
         use_terminated (bool): mask the bootstrap with ``terminated``. Defaults to ``False``.
         sqgc (bool): ``False`` gives the paper's "without SQGC" ablation: the graph critics
             are trained on the policy batch (goal/reward keys) instead of the graph batch.
@@ -97,11 +122,11 @@ class SQGCLoss(_GoalConditionedTD3Base):
             their architectures match; ``False`` evaluates the two twins separately (each
             still one stacked module). ``None`` (default) fuses off the CPU only: on a CPU
             the fused form measured a few percent slower (``benchmarks/bench_losses.py``).
+            Only ``GoalConditionedCritic`` critics on the fast path fuse.
 
-    The counter of :meth:`forward` calls is the ``update_count`` buffer, so a ``state_dict``
-    round trip resumes the actor-update schedule. :meth:`value_loss` and :meth:`actor_loss`
-    are also exposed (like :class:`~torchrl.objectives.TD3Loss`) for loops that step the
-    critics before computing the actor loss.
+    :meth:`value_loss` and :meth:`actor_loss` are also exposed (like
+    :class:`~torchrl.objectives.TD3Loss`) for loops that step the critics before computing the
+    actor loss.
 
     Examples:
         >>> import torch
@@ -124,6 +149,17 @@ class SQGCLoss(_GoalConditionedTD3Base):
         >>> sorted(k for k in out.keys() if k.startswith("loss_"))
         ['loss_actor', 'loss_graph_qvalue', 'loss_policy_qvalue']
         >>> sum(v for k, v in out.items() if k.startswith("loss_")).backward()
+
+        Any TensorDictModule critic works; a plain TorchRL one is one member, the loss stacks the twin:
+
+        >>> from torchrl.modules import MLP, ValueOperator
+        >>> make_plain = lambda: ValueOperator(MLP(in_features=obs_dim + goal_dim + act_dim, out_features=1,
+        ...     num_cells=[32]), in_keys=["observation", "waypoint", "action"])
+        >>> plain = SQGCLoss(actor, make_plain(), make_plain())
+        >>> plain.graph_critic_params.batch_size  # the twin: two stacked parameter sets
+        torch.Size([2])
+        >>> bool(plain.loss_terms(data, update_actor=False)["loss_actor"] == 0)  # a step without the actor
+        True
     """
 
     @dataclass
@@ -143,6 +179,9 @@ class SQGCLoss(_GoalConditionedTD3Base):
                 Defaults to ``"graph_reward"``.
             terminated (NestedKey): read at ``("next", terminated)`` with ``use_terminated``.
                 Defaults to ``"terminated"``.
+            state_action_value (NestedKey): where the critics write their value (read from the
+                critics' output; the fast path evaluates the network directly). Defaults to
+                ``"state_action_value"``.
         """
 
         observation: NestedKey = "observation"
@@ -152,6 +191,7 @@ class SQGCLoss(_GoalConditionedTD3Base):
         graph_goal: NestedKey = "graph_goal"
         graph_reward: NestedKey = "graph_reward"
         terminated: NestedKey = "terminated"
+        state_action_value: NestedKey = "state_action_value"
 
     tensor_keys: _AcceptedKeys
     default_keys = _AcceptedKeys
@@ -179,17 +219,18 @@ class SQGCLoss(_GoalConditionedTD3Base):
     def __init__(
         self,
         actor_network: TensorDictModule,
-        policy_critic: GoalConditionedCritic,
-        graph_critic: GoalConditionedCritic,
+        policy_critic: TensorDictModule,
+        graph_critic: TensorDictModule,
         *,
         gamma: float | None = None,
+        num_qvalue_nets: int | None = None,
+        action_spec: TensorSpec | None = None,
         clip_return: float | None = 80.0,
         graph_clip_return: float | None = None,
         action_l2: float = 0.01,
         target_noise_std: float = 0.05,
         target_noise_clip: float | None = None,
         target_action_clamp: bool = False,
-        actor_update_interval: int = 2,
         use_terminated: bool = False,
         sqgc: bool = True,
         loss_function: str = "l2",
@@ -205,11 +246,12 @@ class SQGCLoss(_GoalConditionedTD3Base):
             actor_network,
             {"policy_critic": policy_critic, "graph_critic": graph_critic},
             gamma=gamma,
+            num_qvalue_nets=num_qvalue_nets,
+            action_spec=action_spec,
             action_l2=action_l2,
             target_noise_std=target_noise_std,
             target_noise_clip=target_noise_clip,
             target_action_clamp=target_action_clamp,
-            actor_update_interval=actor_update_interval,
             use_terminated=use_terminated,
             loss_function=loss_function,
             fuse_critics=fuse_critics,
@@ -286,17 +328,6 @@ class SQGCLoss(_GoalConditionedTD3Base):
         observation = self._get(td, k.observation, "the state")
         goal = self._get(td, k.goal, "the policy-batch goal")
         return self._actor_terms("policy_critic", observation, goal)
-
-    def forward(self, tensordict: TensorDictBase) -> TensorDictBase:
-        """Computes ``loss_policy_qvalue``, ``loss_graph_qvalue`` and (every ``actor_update_interval``-th
-        call, else a constant 0) ``loss_actor``, plus diagnostics and the ``actor_updated`` flag.
-
-        Sum the ``loss_*`` entries and back-propagate once: the critic losses reach only the
-        critics (targets are computed without gradient) and the actor loss only the actor
-        (critic parameters are detached there). On steps without an actor update the actor
-        has no gradient, so optimisers leave it untouched (``zero_grad(set_to_none=True)``).
-        """
-        return self.loss_terms(tensordict, update_actor=self._due_actor_update())
 
     def _value_entries(self, tensordict: TensorDictBase) -> dict:
         return self.value_loss(tensordict)[1]  # the metadata holds both pairs' losses

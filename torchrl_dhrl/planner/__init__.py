@@ -16,7 +16,7 @@ from .fgs import FrontierGoalShifting, GoalShiftOnReset
 from .fps import FarthestPointSamplingResult, farthest_point_sampling
 from .graph import GraphPlan, LandmarkGraph
 from .graph_planner import GraphPlanner
-from .shortest_paths import ShortestPaths, floyd_warshall, reconstruct_paths
+from .shortest_paths import ShortestPaths, count_hops, floyd_warshall, reconstruct_paths
 
 __all__ = [
     "AutocastDistance",
@@ -32,6 +32,7 @@ __all__ = [
     "LineOfSightDistance",
     "ShortestPaths",
     "TemporalDistance",
+    "count_hops",
     "farthest_point_sampling",
     "floyd_warshall",
     "reconstruct_paths",

@@ -22,13 +22,26 @@ from typing import Protocol, runtime_checkable
 
 import torch
 from tensordict import TensorDictBase
-from tensordict.nn import TensorDictModule, TensorDictModuleBase
+from tensordict.nn import TensorDictModuleBase
+from tensordict.utils import NestedKey
 from torch import Tensor
 from torchrl.envs.utils import ExplorationType, set_exploration_type
 
-from torchrl_dhrl.modules._utils import check_last_dim, check_positional_keys, run_positional
+from torchrl_dhrl.modules._utils import (
+    check_last_dim,
+    check_positional_keys,
+    routes_tensors_only,
+    run_positional,
+)
 from torchrl_dhrl.modules.actors import GoalConditionedActorNet
-from torchrl_dhrl.modules.critics import GoalConditionedCritic, q_to_distance
+from torchrl_dhrl.modules.critics import (
+    DEFAULT_GAMMA,
+    GoalConditionedCritic,
+    check_critic,
+    critic_values,
+    q_to_distance,
+    stacked_critic_values,
+)
 
 __all__ = [
     "AUTOCAST_DTYPES",
@@ -136,13 +149,7 @@ def _run_actor(actor: TensorDictModuleBase, states: torch.Tensor, goals: torch.T
     without safety projection or hooks) are called on the tensors directly: the same
     computation without building a TensorDict per call. Other actors go through their in_keys.
     """
-    if (
-        type(actor).forward is TensorDictModule.forward
-        and isinstance(getattr(actor, "module", None), GoalConditionedActorNet)
-        and not getattr(actor, "safe", False)
-        and not actor._forward_hooks
-        and not actor._forward_pre_hooks
-    ):
+    if isinstance(getattr(actor, "module", None), GoalConditionedActorNet) and routes_tensors_only(actor):
         return actor.module(states, goals)
     return run_positional(actor, states, goals)
 
@@ -178,6 +185,17 @@ class GoalDistance:
     ``states``.
     Non-finite values are impossible: see :func:`~torchrl_dhrl.modules.q_to_distance`.
 
+    **Critics.** The critic follows the critic contract of
+    :class:`~torchrl_dhrl.objectives.SQGCLoss`: a TensorDictModule reading
+    ``(observation, goal, action)`` from its three ``in_keys`` in that order and writing Q at
+    ``value_key``. A :class:`~torchrl_dhrl.modules.GoalConditionedCritic` holds the twin and, without
+    hooks, is evaluated on the tensors (the fast path). Any other critic is one member; its twin is
+    ``critic_params`` with a leading member dim (the loss's stacked parameters, as
+    :meth:`from_loss` passes them), evaluated with :func:`torch.vmap`. That generic path builds a
+    TensorDict per chunk and runs every layer (also the output layer) under ``autocast_dtype``; it is
+    slower than the fast path (no dimension checks on the inputs either: the critic does not declare
+    its sizes).
+
     **Reduced precision.** By default everything runs in the parameters' dtype (an enclosing
     ``torch.autocast`` is disabled for the call). With ``autocast_dtype=torch.bfloat16`` (or
     ``torch.float16``) the hidden layers of the actor and the critic run under
@@ -195,8 +213,9 @@ class GoalDistance:
     Args:
         actor (TensorDictModule): the deterministic low-level actor, reading
             ``(observation, goal)`` in the order of its ``in_keys`` (e.g. :class:`~torchrl_dhrl.modules.LowLevelActor`).
-        critic (GoalConditionedCritic): the graph critic pair
-            (:class:`~torchrl_dhrl.modules.GoalConditionedCritic`).
+        critic (TensorDictModule): the graph critic pair
+            (:class:`~torchrl_dhrl.modules.GoalConditionedCritic`), or a single-member critic
+            whose members are the stacked ``critic_params`` (see above).
 
     Keyword Args:
         gamma (float, optional): the discount of Eq. (1). Defaults to the critic's.
@@ -205,12 +224,15 @@ class GoalDistance:
         max_distance (float, optional): an upper clamp on the distance.
         actor_params (TensorDictBase, optional): parameters to swap into ``actor``
             (``TensorDict.to_module``); used by :meth:`from_loss`.
-        critic_params (TensorDictBase, optional): parameters to swap into ``critic``.
+        critic_params (TensorDictBase, optional): parameters to swap into ``critic``; with a
+            leading batch dim, the stacked parameters of the members (vmap).
         autocast_dtype (torch.dtype, optional): ``torch.bfloat16`` or ``torch.float16`` to run
             the networks under ``torch.autocast`` (see above). Defaults to ``None`` (full
             precision). :meth:`with_autocast` gives a copy with another setting.
         twin (str): ``"optimistic"`` (the smaller distance of the twin, the reference's) or
             ``"pessimistic"`` (the larger one). Defaults to ``"optimistic"``.
+        value_key (NestedKey): where a critic called on its keys writes Q. Defaults to
+            ``"state_action_value"`` (:meth:`from_loss`: the loss's ``state_action_value`` key).
 
     Examples:
         >>> import torch
@@ -227,7 +249,7 @@ class GoalDistance:
     def __init__(
         self,
         actor: TensorDictModuleBase,
-        critic: GoalConditionedCritic,
+        critic: TensorDictModuleBase,
         *,
         gamma: float | None = None,
         chunk_size: int | None = None,
@@ -236,12 +258,12 @@ class GoalDistance:
         critic_params: TensorDictBase | None = None,
         autocast_dtype: torch.dtype | None = None,
         twin: str = "optimistic",
+        value_key: NestedKey = "state_action_value",
     ) -> None:
         check_positional_keys(actor, 2, "actor")
         if twin not in TWIN_CHOICES:
             raise ValueError(f"`twin` must be one of {TWIN_CHOICES}, got {twin!r}.")
-        if not isinstance(critic, GoalConditionedCritic):
-            raise TypeError(f"`critic` must be a GoalConditionedCritic, got {type(critic).__name__}.")
+        check_critic(critic, "critic")
         if chunk_size is not None and (
             isinstance(chunk_size, bool) or not isinstance(chunk_size, int) or chunk_size < 1
         ):
@@ -250,7 +272,8 @@ class GoalDistance:
             raise ValueError(f"`max_distance` must be > 0, got {max_distance}.")
         self.actor = actor
         self.critic = critic
-        self.gamma = critic.gamma if gamma is None else float(gamma)
+        own_gamma = critic.gamma if isinstance(critic, GoalConditionedCritic) else DEFAULT_GAMMA
+        self.gamma = own_gamma if gamma is None else float(gamma)
         if not 0.0 < self.gamma < 1.0:
             raise ValueError(f"`gamma` must be in (0, 1), got {self.gamma}.")
         self.chunk_size = chunk_size
@@ -259,6 +282,7 @@ class GoalDistance:
         self.critic_params = critic_params
         self.autocast_dtype = self._check_autocast_dtype(autocast_dtype)
         self.twin = twin
+        self.value_key = value_key
 
     @staticmethod
     def _check_autocast_dtype(dtype: torch.dtype | None) -> torch.dtype | None:
@@ -283,10 +307,13 @@ class GoalDistance:
     def from_loss(cls, loss, **kwargs) -> GoalDistance:
         """Builds the distance from an :class:`~torchrl_dhrl.objectives.SQGCLoss`'s current (non-target) parameters.
 
-        The parameter containers are referenced, not copied: the distance follows training.
-        Keyword arguments are passed to the constructor.
+        The parameter containers are referenced, not copied: the distance follows training. Works with
+        both critic kinds: a ``GoalConditionedCritic`` (fast path) and a single-member critic whose
+        twin is the loss's stacked parameters (vmap, slower). Keyword arguments are passed to the
+        constructor.
         """
         kwargs.setdefault("gamma", loss.gamma)
+        kwargs.setdefault("value_key", loss.tensor_keys.state_action_value)
         return cls(
             loss.actor_network,
             loss.graph_critic,
@@ -296,33 +323,48 @@ class GoalDistance:
         )
 
     @property
-    def observation_dim(self) -> int:
-        return self.critic.module.observation_dim
+    def observation_dim(self) -> int | None:
+        """The critic's observation size (``None``: a critic that does not declare it)."""
+        return self.critic.module.observation_dim if isinstance(self.critic, GoalConditionedCritic) else None
 
     @property
-    def goal_dim(self) -> int:
-        return self.critic.module.goal_dim
+    def goal_dim(self) -> int | None:
+        """The critic's goal size (``None``: a critic that does not declare it)."""
+        return self.critic.module.goal_dim if isinstance(self.critic, GoalConditionedCritic) else None
+
+    @property
+    def _stacked(self) -> bool:
+        """Whether ``critic_params`` stacks the members along a leading dim (evaluated with vmap)."""
+        return self.critic_params is not None and self.critic_params.batch_dims > 0
 
     def _device_dtype(self) -> tuple[torch.device, torch.dtype]:
         """Where (and in which dtype) the critic's weights live: the computation follows them."""
-        if self.critic_params is not None:
-            weight = self.critic_params.get(("module", "ensemble", "layers", "0", "weight"))
-        else:
-            weight = self.critic.module.ensemble.layers[0].weight
+        params = (
+            self.critic_params.values(True, True)
+            if self.critic_params is not None
+            else self.critic.parameters()
+        )
+        floats = [p for p in params if p.is_floating_point()]
+        weight = next((p for p in floats if isinstance(p, torch.nn.Parameter)), floats[0])
         return weight.device, weight.dtype
 
     def _evaluate(self, states: torch.Tensor, goals: torch.Tensor) -> torch.Tensor:
         """Distances of aligned pairs ``[n, obs_dim]``, ``[n, goal_dim]`` -> ``[n]``."""
         action = _run_actor(self.actor, states, goals)
-        # Under autocast the critic's output layer runs in full precision (EnsembleMLP), so the
-        # raw output -- the distance itself with the distance parameterisation -- is not rounded.
-        q = self.critic.module(states, goals, action)
-        member = q.max(-1) if self.twin == "optimistic" else q.min(-1)
+        if self._stacked:
+            q = stacked_critic_values(self.critic, self.critic_params, states, goals, action, self.value_key)
+        else:
+            # A GoalConditionedCritic without hooks runs on the tensors; under autocast its output layer
+            # runs in full precision (EnsembleMLP), so the raw output -- the distance itself with the
+            # distance parameterisation -- is not rounded.
+            q = critic_values(self.critic, states, goals, action, self.value_key)
+        member = q.max(0) if self.twin == "optimistic" else q.min(0)  # over the members, [E, n]
         return q_to_distance(member.values, self.gamma, self.max_distance)
 
     def __call__(self, states: torch.Tensor, goals: torch.Tensor) -> torch.Tensor:
-        check_last_dim("states", states, self.observation_dim)
-        check_last_dim("goals", goals, self.goal_dim)
+        if self.observation_dim is not None:
+            check_last_dim("states", states, self.observation_dim)
+            check_last_dim("goals", goals, self.goal_dim)
         try:
             shape = torch.broadcast_shapes(states.shape[:-1], goals.shape[:-1])
         except RuntimeError as err:
@@ -340,7 +382,7 @@ class GoalDistance:
         )
         swap_critic = (
             contextlib.nullcontext()
-            if self.critic_params is None
+            if self.critic_params is None or self._stacked  # stacked members are swapped in per member
             else self.critic_params.to_module(self.critic)
         )
         chunk_size = self.chunk_size

@@ -1,14 +1,13 @@
-"""Factories that turn a DHRL configuration into TorchRL objects: env, agent, buffers, collector, logger.
+"""Factories of a DHRL run's TorchRL objects: env, agent, replay buffers, updaters, collector, logger.
 
-The recipes (``recipes/dhrl_antmaze.py``) are short loops over what these return; every knob
-comes from the configuration validated by :func:`~torchrl_dhrl.training.validate_config` (see
-``recipes/config/`` for the keys and the reference values).
+They take explicit arguments; the recipe (``recipes/dhrl_antmaze.py``, through ``recipes/dhrl_utils.py``)
+maps its configuration onto them (see ``recipes/config/`` for the keys and the reference values).
 """
 
 from __future__ import annotations
 
 import functools
-from collections.abc import Mapping
+from collections.abc import Mapping, Sequence
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -16,7 +15,9 @@ from typing import Any
 import torch
 from tensordict.nn import TensorDictSequential
 from torchrl.collectors import Collector
+from torchrl.data import ReplayBuffer
 from torchrl.envs import Compose, EnvBase, TransformedEnv
+from torchrl.objectives import LossModule
 
 from torchrl_dhrl.data import (
     CompactLazyTensorStorage,
@@ -26,7 +27,7 @@ from torchrl_dhrl.data import (
     RelabelReplayBuffer,
     SparseGoalReward,
 )
-from torchrl_dhrl.envs import GoalEnvError, check_goal_env, make_env
+from torchrl_dhrl.envs import check_goal_env, make_env
 from torchrl_dhrl.envs.transforms import AngleFeatures
 from torchrl_dhrl.modules import (
     GaussianUniformExplorationModule,
@@ -41,10 +42,9 @@ from torchrl_dhrl.planner import (
     GoalShiftOnReset,
     GraphPlanner,
     LandmarkGraph,
-    LineOfSightDistance,
+    TemporalDistance,
 )
 
-from .config import BUILD_DTYPES, UPDATE_DTYPES, ConfigError
 from .updates import LossUpdater
 
 __all__ = [
@@ -53,10 +53,12 @@ __all__ = [
     "make_agent",
     "make_collector",
     "make_environment",
-    "make_graph_distance",
+    "make_high_level_buffer",
     "make_logger",
-    "make_replay_buffers",
-    "make_updaters",
+    "make_low_level_buffer",
+    "make_updater",
+    "obstacle_boxes",
+    "observation_transforms",
 ]
 
 #: Entries of a collector batch the low-level buffer keeps (relabelling, losses, graph candidates).
@@ -104,188 +106,220 @@ class DHRLAgent:
         self.planner.load_state_dict(state_dict["planner"])
 
 
-def _goal_indices(cfg: Mapping) -> tuple[int, ...] | None:
-    indices = cfg["goal_indices"]
-    return None if indices is None else tuple(int(i) for i in indices)
+def obstacle_boxes(env_name: str) -> torch.Tensor | None:
+    """``[W, 2, goal_dim]`` obstacle boxes in goal space (lower and upper corners): the wall footprints of a
+    maze, the boards of the UR3 arm task; ``None`` for an env without obstacles (or not of this package).
 
-
-def make_graph_distance(cfg: Mapping, sqgc_loss: SQGCLoss):
-    """The planner's distance: the learned graph critics (Eq. 1) or the line-of-sight oracle."""
-    if cfg["planner"]["distance"] == "learned":
-        return GoalDistance.from_loss(sqgc_loss, twin=cfg["planner"]["twin"])
-    indices = _goal_indices(cfg)
-    if indices is None:
-        raise ConfigError(
-            f"planner.distance=oracle needs the achieved goal inside the observation (goal_indices), "
-            f"which {cfg['env_name']} does not provide."
-        )
-    return LineOfSightDistance(
-        cfg["planner"]["oracle_speed"],
-        boxes=_obstacle_boxes(cfg["env_name"]),
-        margin=cfg["planner"]["oracle_margin"],
-        goal_indices=indices,
-    )
-
-
-def _obstacle_boxes(name: str) -> torch.Tensor | None:
-    """``[W, 2, goal_dim]`` obstacle boxes in goal space: maze wall footprints or the UR3's boards."""
+    Examples:
+        >>> obstacle_boxes("PointMaze").shape, obstacle_boxes("Reacher3D")
+        (torch.Size([18, 2, 2]), None)
+    """
     from torchrl_dhrl.envs import ARM_NAMES, MAZE_NAMES, get_arm_spec, get_maze_spec
 
-    if name in MAZE_NAMES:
-        boxes = [wall.xy_bounds for wall in get_maze_spec(name).layout.wall_boxes]
+    if env_name in MAZE_NAMES:
+        boxes = [wall.xy_bounds for wall in get_maze_spec(env_name).layout.wall_boxes]
         return torch.tensor([[[x0, y0], [x1, y1]] for x0, x1, y0, y1 in boxes], dtype=torch.float32)
-    if name in ARM_NAMES and get_arm_spec(name).boards:
-        boards = get_arm_spec(name).boards
+    if env_name in ARM_NAMES and get_arm_spec(env_name).boards:
+        boards = get_arm_spec(env_name).boards
         centre = torch.tensor([b.center for b in boards], dtype=torch.float32)
         half = torch.tensor([b.half_size for b in boards], dtype=torch.float32)
         return torch.stack([centre - half, centre + half], 1)
     return None
 
 
-def make_agent(cfg: Mapping, env: EnvBase, device: torch.device) -> DHRLAgent:
-    """Builds actors, critics, both losses, the graph planner and the acting policy on ``device``."""
+def make_agent(
+    env: EnvBase,
+    device: torch.device | str = "cpu",
+    *,
+    subgoal_low: Sequence[float],
+    subgoal_high: Sequence[float],
+    subgoal_interval: int,
+    subgoal_noise: float = 2.0,
+    goal_indices: Sequence[int] | None = None,
+    low_num_cells: Sequence[int] = (256, 256, 256),
+    relative_goal: bool = False,
+    relative_critic_goal: bool = False,
+    low_gamma: float = 0.99,
+    action_noise: float = 0.1,
+    uniform_prob: float = 0.2,
+    sqgc_loss_kwargs: Mapping[str, Any] | None = None,
+    high_num_cells: Sequence[int] = (256, 256, 256),
+    high_gamma: float = 0.99,
+    high_loss_kwargs: Mapping[str, Any] | None = None,
+    distance: TemporalDistance | None = None,
+    twin: str = "optimistic",
+    cutoff: float = 30.0,
+    max_landmarks: int = 300,
+    early_stop: float = 10.0,
+    build_autocast_dtype: torch.dtype | None = None,
+    reach_radius: float = 0.5,
+) -> DHRLAgent:
+    """Builds both levels (actors, critics, losses), the graph planner and the acting policy on ``device``.
+
+    The sizes come from ``env``'s specs (``observation``, ``achieved_goal``, the action box).
+
+    Args:
+        env (EnvBase): an env of the goal-env contract (e.g. :func:`make_environment` without ``agent``).
+        device (torch.device or str): where the modules live. Defaults to ``"cpu"``.
+
+    Keyword Args:
+        subgoal_low, subgoal_high (sequence of float): the high level's subgoal box (goal space).
+        subgoal_interval (int): ``c_h``, env steps per subgoal.
+        subgoal_noise (float): the high level's Gaussian exploration (goal units). Defaults to ``2.0``.
+        goal_indices (sequence of int, optional): where the achieved goal sits in the observation.
+        low_num_cells, high_num_cells (sequence of int): hidden layers of each level's networks.
+        relative_goal (bool): the low-level actor sees ``waypoint - achieved goal`` (needs ``goal_indices``).
+        relative_critic_goal (bool): the low-level critics do too (the reference's see the waypoint itself).
+        low_gamma, high_gamma (float): discounts, which also set the critics' distance parameterisation.
+        action_noise (float): Gaussian action noise, a fraction of the action box half-width.
+        uniform_prob (float): the probability of a uniform random action.
+        sqgc_loss_kwargs, high_loss_kwargs (dict, optional): keyword arguments of
+            :class:`~torchrl_dhrl.objectives.SQGCLoss` and :class:`~torchrl_dhrl.objectives.HighLevelLoss`
+            (``clip_return``, ``action_l2``, ``target_noise_std``, ``target_action_clamp``, ``sqgc``, ...).
+        distance (TemporalDistance, optional): the planner's distance; defaults to the learned graph
+            critics (Eq. 1), :meth:`GoalDistance.from_loss <torchrl_dhrl.planner.GoalDistance.from_loss>`
+            with ``twin``. Pass e.g. a :class:`~torchrl_dhrl.planner.LineOfSightDistance` for the oracle.
+        cutoff, max_landmarks, early_stop, build_autocast_dtype: the
+            :class:`~torchrl_dhrl.planner.LandmarkGraph`'s.
+        reach_radius (float): a waypoint counts as reached within this distance (goal units).
+
+    Raises:
+        ValueError: when the subgoal box does not match the goal space, or ``relative_goal`` lacks
+            ``goal_indices``.
+
+    Examples:
+        >>> from torchrl_dhrl.training import make_environment
+        >>> env = make_environment("PointMaze")
+        >>> agent = make_agent(env, subgoal_low=[-2.0, -2.0], subgoal_high=[10.0, 10.0], subgoal_interval=10,
+        ...                    goal_indices=[0, 1], relative_goal=True, low_num_cells=(16,), high_num_cells=(16,))
+        >>> type(agent.planner.distance).__name__, agent.low_actor.module.relative_goal
+        ('GoalDistance', True)
+    """
+    device = torch.device(device)
     obs_dim = env.observation_spec["observation"].shape[-1]
     goal_dim = env.observation_spec["achieved_goal"].shape[-1]
-    if len(cfg["high"]["subgoal_low"]) != goal_dim:
-        raise ConfigError(
-            f"high.subgoal_low has {len(cfg['high']['subgoal_low'])} entries; the goal space has {goal_dim}."
+    if len(subgoal_low) != goal_dim or len(subgoal_high) != goal_dim:
+        raise ValueError(
+            f"The subgoal box has {len(subgoal_low)} and {len(subgoal_high)} entries; the goal space has {goal_dim}."
         )
+    if relative_goal and goal_indices is None:
+        raise ValueError(
+            "relative_goal=True needs goal_indices (where the achieved goal sits in the observation)."
+        )
+    indices = None if goal_indices is None else tuple(int(i) for i in goal_indices)
     action_spec = env.action_spec_unbatched.to(device)
-    indices = _goal_indices(cfg)
-    low, high = cfg["low"], cfg["high"]
-    relative = bool(low["relative_goal"])
-    if relative and indices is None:
-        raise ConfigError(
-            f"low.relative_goal=true needs goal_indices, which {cfg['env_name']} does not provide."
-        )
-    common = {"goal_indices": indices, "num_cells": tuple(low["hidden"])}
-    actor = LowLevelActor(obs_dim, goal_dim, action_spec, relative_goal=relative, **common).to(device)
+    common = {"goal_indices": indices, "num_cells": tuple(low_num_cells)}
+    actor = LowLevelActor(obs_dim, goal_dim, action_spec, relative_goal=relative_goal, **common).to(device)
     exploration = GaussianUniformExplorationModule(
-        action_spec, sigma=low["action_noise"], uniform_prob=low["uniform_prob"]
+        action_spec, sigma=action_noise, uniform_prob=uniform_prob
     ).to(device)
-
-    # the reference's low-level critics see the absolute goal even where the actor sees the relative one
-    relative_critic = low["critic_goal"] == "relative"
 
     def critic() -> GoalConditionedCritic:
         return GoalConditionedCritic(
             obs_dim,
             goal_dim,
             action_spec,
-            relative_goal=relative_critic,
-            gamma=low["gamma"],
+            relative_goal=relative_critic_goal,
+            gamma=low_gamma,
             goal_key="goal",
             **common,
         ).to(device)
 
-    sqgc_loss = SQGCLoss(
-        actor,
-        critic(),
-        critic(),
-        clip_return=low["clip_return"],
-        action_l2=low["action_l2"],
-        target_noise_std=low["target_noise"],
-        target_action_clamp=low["target_action_clamp"],
-        actor_update_interval=low["actor_update_interval"],
-        sqgc=low["sqgc"],
-    )
+    sqgc_loss = SQGCLoss(actor, critic(), critic(), **dict(sqgc_loss_kwargs or {}))
     high_policy = HighLevelPolicy(
         obs_dim,
         goal_dim,
-        high["subgoal_low"],
-        high["subgoal_high"],
-        interval=high["c_h"],
-        noise_sigma=high["subgoal_noise"],
+        subgoal_low,
+        subgoal_high,
+        interval=subgoal_interval,
+        noise_sigma=subgoal_noise,
         goal_indices=indices,
-        num_cells=tuple(high["hidden"]),
+        num_cells=tuple(high_num_cells),
     ).to(device)
     high_critic = GoalConditionedCritic(
         obs_dim,
         goal_dim,
-        action_low=high["subgoal_low"],
-        action_high=high["subgoal_high"],
+        action_low=subgoal_low,
+        action_high=subgoal_high,
         goal_indices=indices,
         relative_goal=False,
-        gamma=high["gamma"],
-        num_cells=tuple(high["hidden"]),
+        gamma=high_gamma,
+        num_cells=tuple(high_num_cells),
         goal_key="desired_goal",
         action_key="subgoal",
     ).to(device)
-    high_loss = HighLevelLoss(
-        high_policy.actor,
-        high_critic,
-        clip_return=high["clip_return"],
-        action_l2=high["action_l2"],
-        target_noise_std=high["target_noise"],
-        target_action_clamp=high["target_action_clamp"],
-        actor_update_interval=high["actor_update_interval"],
-    )
-    planner_cfg = cfg["planner"]
+    high_loss = HighLevelLoss(high_policy.actor, high_critic, **dict(high_loss_kwargs or {}))
     graph = LandmarkGraph(
-        cutoff=planner_cfg["cutoff"],
-        max_landmarks=planner_cfg["max_landmarks"],
-        early_stop=planner_cfg["early_stop"],
-        build_autocast_dtype=BUILD_DTYPES[planner_cfg["build_dtype"]],
+        cutoff=cutoff,
+        max_landmarks=max_landmarks,
+        early_stop=early_stop,
+        build_autocast_dtype=build_autocast_dtype,
     )
-    planner = GraphPlanner(
-        graph, make_graph_distance(cfg, sqgc_loss), goal_dim, reach_radius=planner_cfg["reach_radius"]
-    ).to(device)
+    if distance is None:
+        distance = GoalDistance.from_loss(sqgc_loss, twin=twin)
+    planner = GraphPlanner(graph, distance, goal_dim, reach_radius=reach_radius).to(device)
     policy = TensorDictSequential(high_policy, planner, TensorDictSequential(actor, exploration))
     return DHRLAgent(high_policy, actor, exploration, sqgc_loss, high_loss, planner, policy)
 
 
-def observation_transforms(cfg: Mapping) -> list:
-    """The observation transforms of the configuration (``angle_features``: :class:`AngleFeatures`), to append to
-    every env the agent acts in (training, evaluation and diagnosis envs alike)."""
-    indices = cfg.get("angle_features")
-    return [AngleFeatures(indices)] if indices else []
+def observation_transforms(angle_features: Sequence[int] | None = None) -> list:
+    """The observation transforms to append to every env the agent acts in (training, evaluation and
+    diagnosis envs alike): :class:`~torchrl_dhrl.envs.transforms.AngleFeatures` of ``angle_features``
+    (observation indices of continuous joint angles), if any.
+
+    Examples:
+        >>> observation_transforms(), [type(t).__name__ for t in observation_transforms([4, 6])]
+        ([], ['AngleFeatures'])
+    """
+    return [AngleFeatures(angle_features)] if angle_features else []
 
 
 def make_environment(
-    cfg: Mapping,
-    device: torch.device,
+    env_name: str,
+    device: torch.device | str = "cpu",
     *,
-    eval: bool = False,
-    agent: DHRLAgent | None = None,  # noqa: A002
+    num_envs: int = 1,
+    seed: int = 0,
+    eval: bool = False,  # noqa: A002
+    max_episode_steps: int | None = None,
+    goal_indices: Sequence[int] | None = None,
+    angle_features: Sequence[int] | None = None,
+    agent: DHRLAgent | None = None,
+    goal_shifting: Mapping[str, Any] | None = None,
 ) -> EnvBase:
-    """The batched env (``eval``: ``eval_episodes`` envs on the test goals), with the agent's primers.
+    """A batched env of :func:`~torchrl_dhrl.envs.make_env` (``eval``: on the test goals), with the agent's primers.
 
-    Without ``agent`` the bare env (with the :func:`observation_transforms` only) is returned (used to read the
-    specs before the agent exists), after
-    :func:`~torchrl_dhrl.envs.check_goal_env` (with ``goal_indices``) has checked that it meets the goal-env
-    contract: any env registered with :func:`~torchrl_dhrl.envs.register_env` that does can be trained.
-    Training envs get frontier-based goal shifting when ``fgs.enabled``.
+    Without ``agent`` the env meets the goal-env contract or this raises: it is checked with
+    :func:`~torchrl_dhrl.envs.check_goal_env` (with ``goal_indices``; a short rollout that draws no random
+    numbers), so any env registered with :func:`~torchrl_dhrl.envs.register_env` that passes can be trained;
+    the env is returned with the :func:`observation_transforms` only (to read the specs before the agent
+    exists). With ``agent``, the subgoal scheduler's and the planner's primers are appended, and
+    ``goal_shifting`` (the keyword arguments of :class:`~torchrl_dhrl.planner.FrontierGoalShifting`:
+    ``noise``, ``weighting``, ``trigger``) adds frontier-based goal shifting at every reset.
 
     Raises:
-        ConfigError: when the env does not meet the contract (the message names the key).
+        GoalEnvError: when the env does not meet the contract.
+
+    Examples:
+        >>> env = make_environment("PointMaze", num_envs=2, seed=1, max_episode_steps=50)
+        >>> env.batch_size, env.observation_spec["observation"].shape
+        (torch.Size([2]), torch.Size([2, 6]))
     """
-    num_envs = cfg["schedule"]["eval_episodes"] if eval else cfg["num_envs"]
-    seed = cfg["seed"] + (10_000 if eval else 0)
-    try:
-        env = make_env(
-            cfg["env_name"],
-            num_envs=num_envs,
-            seed=seed,
-            device=device,
-            eval=eval,
-            max_episode_steps=cfg["episode_length"],
-        )
-        if agent is None:  # the whole contract once, with a short rollout that draws no random numbers
-            check_goal_env(env, goal_indices=_goal_indices(cfg))
-    except GoalEnvError as err:
-        raise ConfigError(f"env_name={cfg['env_name']}: {err}") from err
-    if agent is None:
-        features = observation_transforms(cfg)
+    env = make_env(
+        env_name,
+        num_envs=num_envs,
+        seed=seed,
+        device=device,
+        eval=eval,
+        max_episode_steps=max_episode_steps,
+    )
+    features = observation_transforms(angle_features)
+    if agent is None:  # the whole contract once, with a short rollout that draws no random numbers
+        check_goal_env(env, goal_indices=None if goal_indices is None else tuple(goal_indices))
         return TransformedEnv(env, Compose(*features)) if features else env
-    transforms = [*observation_transforms(cfg), agent.high_policy.make_primer(), agent.planner.make_primer()]
-    if cfg["fgs"]["enabled"] and not eval:
-        fgs = FrontierGoalShifting(
-            agent.planner,
-            noise=cfg["fgs"]["noise"],
-            weighting=cfg["fgs"]["weighting"],
-            trigger=cfg["fgs"]["trigger"],
-        )
-        transforms.append(GoalShiftOnReset(fgs))
+    transforms = [*features, agent.high_policy.make_primer(), agent.planner.make_primer()]
+    if goal_shifting is not None:
+        transforms.append(GoalShiftOnReset(FrontierGoalShifting(agent.planner, **goal_shifting)))
     return TransformedEnv(env, Compose(*transforms))
 
 
@@ -310,39 +344,78 @@ def make_collector(env: EnvBase, agent: DHRLAgent, episode_length: int) -> Colle
     )
 
 
-def make_replay_buffers(cfg: Mapping, agent: DHRLAgent, device: torch.device):
-    """The low-level buffer (time-major ``[T, num_envs]`` storage, extended with ``[num_envs, T]`` batches) and
-    the high-level one (a transition builder turns low-level batches into one transition per subgoal), both
-    :class:`~torchrl_dhrl.data.RelabelReplayBuffer` s whose ``sample()`` returns relabelled batches.
-    ``low.buffer_size`` and ``high.buffer_size`` count transitions, whatever ``num_envs``.
+def make_low_level_buffer(
+    *,
+    buffer_size: int,
+    batch_size: int,
+    reward_threshold: float,
+    her_ratio: float = 0.8,
+    her_window: int | None = 150,
+    device: torch.device | str = "cpu",
+) -> RelabelReplayBuffer:
+    """The low-level buffer: a time-major ``[T, num_envs]`` :class:`~torchrl_dhrl.data.CompactLazyTensorStorage`
+    (extended with collector batches ``[num_envs, T]``) of ``buffer_size`` transitions, whatever ``num_envs``,
+    whose :meth:`~torchrl_dhrl.data.RelabelReplayBuffer.sample` relabels future goals
+    (:class:`~torchrl_dhrl.data.FutureGoalRelabel`: the waypoint is replaced for ``her_ratio`` of the policy
+    critics' batch and all of the graph critics', within ``her_window`` steps; sparse rewards within
+    ``reward_threshold``).
 
-    Returns:
-        ``(low_rb, high_rb)``.
+    Examples:
+        >>> rb = make_low_level_buffer(buffer_size=1000, batch_size=32, reward_threshold=0.5)
+        >>> rb.storage.ndim, rb.batch_size
+        (2, 32)
     """
-    low, high = cfg["low"], cfg["high"]
-    reward = SparseGoalReward(low["reward_threshold"])
+    reward = SparseGoalReward(reward_threshold)
     # ``max_size`` counts transitions (elements of the ``[T, num_envs]`` storage), not time steps
-    low_rb = RelabelReplayBuffer(
-        storage=CompactLazyTensorStorage(low["buffer_size"], ndim=2, device=device),
+    return RelabelReplayBuffer(
+        storage=CompactLazyTensorStorage(buffer_size, ndim=2, device=device),
         relabel=[
-            FutureGoalRelabel(
-                reward, her_ratio=(low["her_ratio"], 1.0), window=low["her_window"], goal_key="waypoint"
-            )
+            FutureGoalRelabel(reward, her_ratio=(her_ratio, 1.0), window=her_window, goal_key="waypoint")
         ],
-        batch_size=low["batch_size"],
+        batch_size=batch_size,
     )
-    far_threshold = high["far_from_graph_factor"] * cfg["planner"]["cutoff"]
+
+
+def make_high_level_buffer(
+    *,
+    buffer_size: int,
+    batch_size: int,
+    reward_threshold: float,
+    her_ratio: float = 1.0,
+    her_window: int | None = 15,
+    subgoal_test_ratio: float = 0.2,
+    subgoal_test_threshold: float = 1.0,
+    subgoal_miss_penalty: float = 1.3,
+    gradual_penalty: float | None = 5.0,
+    planner: GraphPlanner | None = None,
+    far_from_graph_threshold: float = 90.0,
+    device: torch.device | str = "cpu",
+) -> RelabelReplayBuffer:
+    """The high-level buffer: a :class:`~torchrl_dhrl.data.HighLevelTransitionBuilder` turns low-level batches
+    into one transition per subgoal at ``extend``; :meth:`~torchrl_dhrl.data.RelabelReplayBuffer.sample`
+    relabels future goals (``her_ratio``, ``her_window`` high-level steps) and runs
+    :class:`~torchrl_dhrl.data.HindsightSubgoalRelabel` (HAC action relabelling, subgoal testing and, with
+    ``gradual_penalty`` and a ``planner``, the gradual penalty of subgoals farther than
+    ``far_from_graph_threshold`` from the planner's graph; without a ``planner`` no subgoal is penalised
+    as far from the graph).
+
+    Examples:
+        >>> rb = make_high_level_buffer(buffer_size=1000, batch_size=32, reward_threshold=0.5)
+        >>> type(rb.transform[0]).__name__, rb.batch_size
+        ('HighLevelTransitionBuilder', 32)
+    """
+    reward = SparseGoalReward(reward_threshold)
     distance_from_graph = (
         # exact relative to the threshold, the only thing the penalty reads, at a fraction of the cost
-        functools.partial(agent.planner.distance_from_graph, at_most=far_threshold)
-        if high["gradual_penalty"] is not None and cfg["planner"]["enabled"]
+        functools.partial(planner.distance_from_graph, at_most=far_from_graph_threshold)
+        if gradual_penalty is not None and planner is not None
         else None
     )
-    high_relabel = [
+    relabel = [
         FutureGoalRelabel(
             reward,
-            her_ratio=high["her_ratio"],
-            window=high["her_window"],
+            her_ratio=her_ratio,
+            window=her_window,
             out_keys=["desired_goal"],
             reward_keys=None,
             traj_key="episode_id",
@@ -351,63 +424,65 @@ def make_replay_buffers(cfg: Mapping, agent: DHRLAgent, device: torch.device):
         HindsightSubgoalRelabel(
             distance_from_graph,
             reward,
-            subgoal_test_ratio=high["subgoal_test_ratio"],
-            subgoal_test_threshold=high["subgoal_test_threshold"],
-            subgoal_miss_penalty=high["subgoal_miss_penalty"],
-            gradual_penalty=high["gradual_penalty"],
-            far_from_graph_threshold=far_threshold,
+            subgoal_test_ratio=subgoal_test_ratio,
+            subgoal_test_threshold=subgoal_test_threshold,
+            subgoal_miss_penalty=subgoal_miss_penalty,
+            gradual_penalty=gradual_penalty,
+            far_from_graph_threshold=far_from_graph_threshold,
         ),
     ]
-    high_rb = RelabelReplayBuffer(
-        storage=CompactLazyTensorStorage(high["buffer_size"], device=device),
+    return RelabelReplayBuffer(
+        storage=CompactLazyTensorStorage(buffer_size, device=device),
         transform=HighLevelTransitionBuilder(reward_fn=reward),
-        relabel=high_relabel,
-        batch_size=high["batch_size"],
+        relabel=relabel,
+        batch_size=batch_size,
     )
-    return low_rb, high_rb
 
 
-def make_updaters(cfg: Mapping, agent: DHRLAgent, buffers) -> tuple[LossUpdater, LossUpdater]:
-    """The low-level (SQGC) and high-level updaters with their Adam optimisers, sampling ``buffers``
-    (``(low_rb, high_rb)`` from :func:`make_replay_buffers`)."""
-    low_rb, high_rb = buffers
-    updaters = []
-    for level, loss, rb in (("low", agent.sqgc_loss, low_rb), ("high", agent.high_loss, high_rb)):
-        c = cfg[level]
-        optimizers = make_optimizers(loss, actor_lr=c["actor_lr"], critic_lr=c["critic_lr"])
-        updaters.append(
-            LossUpdater(
-                loss,
-                rb,
-                optimizers,
-                polyak=c["polyak"],
-                target_update_interval=c["target_update_interval"],
-                cudagraphs=cfg.get("cudagraphs", False),
-                autocast_dtype=UPDATE_DTYPES[cfg.get("update_dtype", "float32")],
-                actor_after_critic_step=c["actor_after_critic_step"],
-            )
-        )
-    return updaters[0], updaters[1]
+def make_updater(
+    loss: LossModule,
+    replay_buffer: ReplayBuffer,
+    *,
+    actor_lr: float,
+    critic_lr: float,
+    **kwargs,
+) -> LossUpdater:
+    """A :class:`~torchrl_dhrl.training.LossUpdater` of ``loss`` on ``replay_buffer``'s samples, with the two Adam
+    optimisers of :func:`~torchrl_dhrl.objectives.make_optimizers` (``actor_lr``, ``critic_lr``).
+
+    Keyword Args:
+        **kwargs: those of :class:`~torchrl_dhrl.training.LossUpdater` (``polyak``, ``target_update_interval``,
+            ``cudagraphs``, ``autocast_dtype``, ...).
+    """
+    optimizers = make_optimizers(loss, actor_lr=actor_lr, critic_lr=critic_lr)
+    return LossUpdater(loss, replay_buffer, optimizers, **kwargs)
 
 
-def make_logger(cfg: Mapping, run_dir: Path):
-    """A TorchRL logger: CSV (default, files under ``run_dir/logs``), W&B (offline unless
-    ``logger.wandb_mode=online``) or TensorBoard; ``None`` for ``logger.backend=none``."""
+def make_logger(
+    backend: str,
+    exp_name: str,
+    run_dir: str | Path,
+    *,
+    project: str | None = None,
+    wandb_mode: str = "offline",
+):
+    """A TorchRL logger: ``"csv"`` (files under ``run_dir/logs``), ``"wandb"`` (offline unless
+    ``wandb_mode="online"``) or ``"tensorboard"``; ``None`` for ``"none"``.
+
+    Examples:
+        >>> import tempfile
+        >>> type(make_logger("csv", "dhrl", tempfile.mkdtemp())).__name__, make_logger("none", "dhrl", ".")
+        ('CSVLogger', None)
+    """
     from torchrl.record.loggers import CSVLogger, TensorboardLogger, WandbLogger
 
-    log_cfg = cfg["logger"]
-    backend = log_cfg["backend"]
-    exp_name = log_cfg["exp_name"] or f"dhrl_{cfg['env_name']}_seed{cfg['seed']}"
-    log_dir = str(run_dir / "logs")
+    log_dir = str(Path(run_dir) / "logs")
     if backend == "csv":
         return CSVLogger(exp_name, log_dir=log_dir)
     if backend == "tensorboard":
         return TensorboardLogger(exp_name, log_dir=log_dir)
     if backend == "wandb":
-        return WandbLogger(
-            exp_name,
-            offline=log_cfg["wandb_mode"] != "online",
-            save_dir=log_dir,
-            project=log_cfg["project"],
-        )
-    return None
+        return WandbLogger(exp_name, offline=wandb_mode != "online", save_dir=log_dir, project=project)
+    if backend == "none":
+        return None
+    raise ValueError(f"Unknown logger backend {backend!r}: csv, wandb, tensorboard or none.")

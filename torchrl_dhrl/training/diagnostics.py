@@ -15,15 +15,14 @@ from torchrl.envs.utils import ExplorationType, set_exploration_type
 from torchrl_dhrl.envs import make_env
 from torchrl_dhrl.planner import LineOfSightDistance
 
-from .builders import _obstacle_boxes, make_agent, make_environment, observation_transforms
-from .checkpoint import load_checkpoint
+from .builders import observation_transforms, obstacle_boxes
 from .evaluation import goal_as_waypoint
 
 __all__ = [
     "ReachResult",
     "low_level_reach_test",
     "reach_offsets",
-    "reach_test_from_checkpoint",
+    "reach_test",
     "summarize_reach",
     "visible_offsets",
 ]
@@ -172,42 +171,47 @@ def summarize_reach(result: ReachResult) -> list[dict]:
     return rows
 
 
-def reach_test_from_checkpoint(
-    path,
+def reach_test(
+    low_actor: TensorDictModuleBase,
+    env_name: str,
     *,
-    radii: Sequence[float] | None = None,
+    radii: Sequence[float],
+    max_steps: int,
+    reach_radius: float,
     num_directions: int = 16,
-    max_steps: int | None = None,
+    oracle_margin: float = 0.5,
+    angle_features: Sequence[int] | None = None,
     device: str | torch.device = "cpu",
     seed: int = 0,
 ) -> list[dict]:
-    """:func:`low_level_reach_test` for the low-level actor of a recipe checkpoint, summarised per radius.
+    """:func:`low_level_reach_test` of a low-level actor around ``env_name``'s start, summarised per radius.
 
-    Defaults follow the run's config: radii ``(0.25, 0.5, 1, 1.5) x cutoff x oracle_speed`` (the goal-space
-    span of a graph edge, at the env's nominal speed), ``max_steps = 3 x cutoff``, the planner's
-    ``reach_radius``; goals blocked by the maze walls (or the UR3 boards) or outside the env's goal box are
-    dropped.
+    ``num_directions`` goals per radius around the start of a fresh env; those blocked by the maze walls (or
+    the UR3 boards, inflated by ``oracle_margin``) or outside the env's goal box are dropped. The envs feed
+    the actor the observation it was trained on (``angle_features``, see
+    :func:`~torchrl_dhrl.training.observation_transforms`).
 
-    Args:
-        path (str or Path): a ``checkpoint.pt`` or the run directory holding it.
+    Returns:
+        one row per radius (:func:`summarize_reach`).
+
+    Raises:
+        ValueError: when no goal lies inside the goal box.
+
+    Examples:
+        >>> from torchrl_dhrl.modules import LowLevelActor
+        >>> actor = LowLevelActor(6, 2, action_max=1.0, action_dim=2, num_cells=(8,))
+        >>> rows = reach_test(actor, "PointMaze", radii=[0.5, 1.0], max_steps=5, reach_radius=0.5, num_directions=4)
+        >>> [row["radius"] for row in rows]
+        [0.5, 1.0]
     """
     device = torch.device(device)
-    state = load_checkpoint(path, map_location=device)
-    cfg = state["config"]
-    planner = cfg["planner"]
-    agent = make_agent(cfg, make_environment(cfg, device), device)
-    agent.load_state_dict(state["agent"])
-    if radii is None:
-        span = planner["cutoff"] * planner["oracle_speed"]
-        radii = [f * span for f in (0.25, 0.5, 1.0, 1.5)]
-    max_steps = int(max_steps or 3 * planner["cutoff"])
-    probe = make_env(cfg["env_name"], num_envs=1, seed=seed, device=device)
+    probe = make_env(env_name, num_envs=1, seed=seed, device=device)
     start = probe.reset()["achieved_goal"][0]
     offsets = reach_offsets(start.shape[-1], radii, num_directions, seed=seed)
-    boxes = _obstacle_boxes(cfg["env_name"])
+    boxes = obstacle_boxes(env_name)
     if boxes is not None:
         walls = LineOfSightDistance(
-            1.0, boxes=boxes, margin=planner["oracle_margin"], goal_indices=range(start.shape[-1])
+            1.0, boxes=boxes, margin=oracle_margin, goal_indices=range(start.shape[-1])
         )
         offsets = visible_offsets(start.cpu(), offsets, walls)
     # goals must stay inside the env's goal box (the Reacher3D fingertip starts 2 cm from its edge)
@@ -217,11 +221,9 @@ def reach_test_from_checkpoint(
     offsets = offsets[((goals >= low) & (goals <= high)).all(-1)]
     if offsets.shape[0] == 0:
         raise ValueError(f"No reach-test goal around the start {start.tolist()} lies inside the goal box.")
-    env = make_env(cfg["env_name"], num_envs=offsets.shape[0], seed=seed, device=device)
-    features = observation_transforms(cfg)  # the observation the actor was trained on
+    env = make_env(env_name, num_envs=offsets.shape[0], seed=seed, device=device)
+    features = observation_transforms(angle_features)  # the observation the actor was trained on
     if features:
         env = TransformedEnv(env, Compose(*features))
-    result = low_level_reach_test(
-        env, agent.low_actor, offsets, max_steps=max_steps, reach_radius=planner["reach_radius"]
-    )
+    result = low_level_reach_test(env, low_actor, offsets, max_steps=max_steps, reach_radius=reach_radius)
     return summarize_reach(result)

@@ -9,8 +9,8 @@ The true geometry is a :class:`MazeGeometry`: the maze's wall boxes, its arena a
 occupancy grid (free cells: centre outside every wall box inflated by ``margin``, the agent's
 radius), on which :func:`grid_shortest_paths` computes obstacle-free path lengths by vectorised
 min-plus relaxation (torch only). :func:`maze_epoch_diagnostics` gathers the ``diag/...`` metrics
-the recipe logs after every evaluation, :func:`graph_diagnosis_from_checkpoint` computes them for
-a saved run (``recipes/diagnose_graph.py``).
+the recipe logs after every evaluation, :func:`graph_diagnosis` computes them for a trained agent
+(``recipes/diagnose_graph.py`` rebuilds a saved run's).
 """
 
 from __future__ import annotations
@@ -32,7 +32,7 @@ __all__ = [
     "GraphDiagnosis",
     "MazeGeometry",
     "feasibility_fractions",
-    "graph_diagnosis_from_checkpoint",
+    "graph_diagnosis",
     "graph_quality",
     "grid_moves",
     "grid_shortest_paths",
@@ -698,7 +698,7 @@ def maze_epoch_diagnostics(
 
 
 class GraphDiagnosis(NamedTuple):
-    """Outcome of :func:`graph_diagnosis_from_checkpoint`.
+    """Outcome of :func:`graph_diagnosis`.
 
     Attributes:
         metrics (dict): the ``diag/...`` metrics (:func:`maze_epoch_diagnostics`), with ``graph/landmarks``
@@ -707,70 +707,74 @@ class GraphDiagnosis(NamedTuple):
             ``learned`` (``landmark_distances``, steps) and ``graph`` (all-pairs shortest distances, steps)
             of the landmark pairs entering the rank correlations; empty tensors without a graph.
         landmark_goals (Tensor): ``[K, 2]``.
-        config (dict): the run's configuration.
     """
 
     metrics: dict
     pairs: dict
     landmark_goals: Tensor
-    config: dict
 
 
-def graph_diagnosis_from_checkpoint(
-    path,
+def graph_diagnosis(
+    agent,
+    eval_env,
+    env_name: str,
     *,
+    oracle_margin: float = 0.5,
     rollout: bool = True,
     max_sources: int | None = 64,
     resolution: float | None = None,
-    device: str | torch.device = "cpu",
 ) -> GraphDiagnosis:
-    """:func:`maze_epoch_diagnostics` for the graph and the high level of a recipe checkpoint.
+    """:func:`maze_epoch_diagnostics` for the graph and the high level of a trained agent.
 
-    The agent is rebuilt from the checkpoint's configuration and loaded (the graph with it). With
-    ``rollout`` a deterministic evaluation on the test goals is run (as the recipe does after each epoch)
-    for the subgoal and waypoint fractions; without it they are ``NaN`` and the start state is the first
-    evaluation env's reset state.
+    With ``rollout`` a deterministic evaluation on the test goals of ``eval_env`` is run (as the recipe does
+    after each epoch) for the subgoal and waypoint fractions; without it they are ``NaN`` and the start
+    state is the first evaluation env's reset state.
 
     Args:
-        path (str or Path): a ``checkpoint.pt`` or the run directory holding it.
+        agent (DHRLAgent): the agent, its graph built (or not).
+        eval_env (EnvBase): the evaluation env with the agent's primers.
+        env_name (str): the maze.
 
     Keyword Args:
+        oracle_margin (float): the agent's radius (walls are inflated by it). Defaults to ``0.5``.
         rollout (bool): run the evaluation episodes. Defaults to ``True``.
         max_sources (int, optional): see :func:`graph_quality`. Defaults to ``64``.
         resolution (float, optional): the grid cell size (default: the recipe's, see
             :meth:`MazeGeometry.from_maze`).
-        device (str or torch.device): Defaults to ``"cpu"``.
 
     Raises:
-        ValueError: when the run's env is not a maze.
+        ValueError: when ``env_name`` is not a maze.
+
+    Examples:
+        >>> import torch
+        >>> from torchrl_dhrl.training import make_agent, make_environment
+        >>> _ = torch.manual_seed(0)
+        >>> agent = make_agent(make_environment("PointMaze"), subgoal_low=[-2.0, -2.0], subgoal_high=[10.0, 10.0],
+        ...                    subgoal_interval=5, low_num_cells=(8,), high_num_cells=(8,))
+        >>> env = make_environment("PointMaze", eval=True, max_episode_steps=10, agent=agent)
+        >>> diagnosis = graph_diagnosis(agent, env, "PointMaze", rollout=False)
+        >>> diagnosis.metrics["graph/landmarks"], diagnosis.pairs["true"].numel()
+        (0, 0)
     """
     from torchrl_dhrl.envs import MAZE_NAMES
 
-    from .builders import make_agent, make_environment
-    from .checkpoint import load_checkpoint
     from .evaluation import evaluate
 
-    device = torch.device(device)
-    state = load_checkpoint(path, map_location=device)
-    cfg = state["config"]
-    if cfg["env_name"] not in MAZE_NAMES:
-        raise ValueError(f"The graph diagnostics need a maze; this run is on {cfg['env_name']}.")
-    agent = make_agent(cfg, make_environment(cfg, device), device)
-    agent.load_state_dict(state["agent"])
-    env = make_environment(cfg, device, eval=True, agent=agent)
+    if env_name not in MAZE_NAMES:
+        raise ValueError(f"The graph diagnostics need a maze; this run is on {env_name}.")
     if rollout:
-        length = env.base_env.max_episode_steps
-        td = evaluate(env, agent.policy, length).rollout
+        length = eval_env.base_env.max_episode_steps
+        td = evaluate(eval_env, agent.policy, length).rollout
     else:
-        td = env.reset().unsqueeze(-1)
+        td = eval_env.reset().unsqueeze(-1)
         nan = torch.full_like(td["achieved_goal"], math.nan)
         td.set("subgoal", nan).set("waypoint", nan).set("new_subgoal", torch.zeros_like(nan[..., :1]).bool())
     metrics = maze_epoch_diagnostics(
-        cfg["env_name"],
+        env_name,
         agent.planner,
         td,
         agent.high_policy.actor,
-        margin=cfg["planner"]["oracle_margin"],
+        margin=oracle_margin,
         max_sources=max_sources,
         resolution=resolution,
     )
@@ -780,7 +784,7 @@ def graph_diagnosis_from_checkpoint(
     graph = agent.planner.graph
     metrics["graph/landmarks"] = graph.num_landmarks
     metrics["graph/edges"] = int(graph.edges.shape[0]) if graph.has_graph else 0
-    geometry = _maze_geometry(cfg["env_name"], float(cfg["planner"]["oracle_margin"]), resolution)
+    geometry = _maze_geometry(env_name, float(oracle_margin), resolution)
     _, pairs = graph_quality(geometry, graph, coverage_radius=1.0, max_sources=max_sources, return_pairs=True)
     names = ("rows", "cols", "true", "learned", "graph")
     pairs = (
@@ -788,4 +792,4 @@ def graph_diagnosis_from_checkpoint(
         if pairs is not None
         else {name: torch.zeros(0) for name in names}
     )
-    return GraphDiagnosis(metrics, pairs, graph.landmark_goals.detach().cpu(), cfg)
+    return GraphDiagnosis(metrics, pairs, graph.landmark_goals.detach().cpu())

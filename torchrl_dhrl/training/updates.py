@@ -27,9 +27,9 @@ class LossUpdater:
     Each :meth:`step` samples a batch with ``replay_buffer.sample()`` (a
     :class:`~torchrl_dhrl.data.RelabelReplayBuffer` returns it relabelled: hindsight goals,
     rewards, subgoal tests), evaluates the loss, back-propagates the sum of its ``loss_*``
-    entries, steps the critic optimiser, steps the actor optimiser only when the loss reports
-    ``actor_updated`` (TD3's delayed actor: an Adam step on a zero gradient would still move the
-    weights through its momentum), and applies Polyak averaging
+    entries, steps the critic optimiser, steps the actor optimiser only on every
+    ``actor_update_interval``-th update (TD3's delayed actor: an Adam step on a zero gradient would
+    still move the weights through its momentum), and applies Polyak averaging
     ``target <- polyak * target + (1 - polyak) * online`` every ``target_update_interval`` steps
     (reference: 0.995 every 10 steps). A non-finite loss raises
     :class:`NonFiniteLossError` before any parameter changes.
@@ -42,18 +42,24 @@ class LossUpdater:
     steps, as TorchRL's TD3 recipes do. The two differ by one critic step in the critic the
     actor follows; both run the same forward and backward passes.
 
-    The number of steps taken is the updater's only state (``state_dict``); the optimisers and the
-    loss (with its target parameters) are checkpointed by their owners.
+    **The delayed-actor schedule is the updater's**, as in TorchRL's TD3 recipe loop: the loss keeps no
+    count. Update ``k`` (1-based, :attr:`num_updates` after it) trains the actor when
+    ``k % actor_update_interval == 0``, and the updater tells the loss so with
+    ``loss.loss_terms(sample, update_actor=...)`` (a loss without ``loss_terms``, e.g.
+    :class:`~torchrl.objectives.TD3Loss`, is called as ``loss(sample)`` and only its actor step is
+    skipped). The number of updates taken is the updater's only state (``state_dict``), so a resumed
+    updater continues the schedule exactly; the optimisers and the loss (with its target parameters)
+    are checkpointed by their owners.
 
     With ``cudagraphs=True`` (loss on a CUDA device) the loss, backward pass and Adam steps are captured
     in two CUDA graphs with :class:`tensordict.nn.CudaGraphModule`, one with and one without the actor
     step, and replayed: on an H100 this cuts an SQGC update at batch 1024 from about 9 ms to about 1 ms
-    (``benchmarks/bench_losses.py --device cuda``). Sampling, relabelling, the delayed-actor count and
-    Polyak averaging stay eager. The optimisers are switched to ``capturable`` Adam, and the graphs are
-    captured after a few eager warm-up steps: load any state (``resume``) before the first step. The
-    non-finite check then runs after the steps (once per :meth:`run`): the parameters have already taken
-    the steps of that call when it raises (the recipe stops without saving them, keeping its last good
-    checkpoint).
+    (``benchmarks/bench_losses.py --device cuda``). Sampling, relabelling, the delayed-actor schedule
+    (decided on the host from :attr:`num_updates`) and Polyak averaging stay eager. The optimisers are
+    switched to ``capturable`` Adam, and the graphs are captured after a few eager warm-up steps: load
+    any state (``resume``) before the first step. The non-finite check then runs after the steps (once
+    per :meth:`run`): the parameters have already taken the steps of that call when it raises (the recipe
+    stops without saving them, keeping its last good checkpoint).
 
     With ``autocast_dtype=torch.bfloat16`` the loss's forward pass runs under ``torch.autocast``
     on the loss's device (mixed precision): the hidden layers of every actor and critic multiply
@@ -64,7 +70,9 @@ class LossUpdater:
     (``benchmarks/bench_losses.py``); the price is 8-bit-mantissa hidden activations.
 
     Args:
-        loss (LossModule): the loss, returning ``loss_*`` entries and a bool ``actor_updated``.
+        loss (LossModule): the loss, returning ``loss_*`` entries; a DHRL loss
+            (:class:`~torchrl_dhrl.objectives.SQGCLoss`, :class:`~torchrl_dhrl.objectives.HighLevelLoss`)
+            also takes the delayed-actor decision in ``loss_terms`` and reports it as ``actor_updated``.
         replay_buffer (ReplayBuffer): the buffer to sample from (its ``batch_size`` is used); its samples
             are fed to the loss as they are.
         optimizers (dict): ``{"actor": ..., "critic": ...}`` as made by
@@ -73,6 +81,8 @@ class LossUpdater:
     Keyword Args:
         polyak (float): Polyak coefficient of the target networks. Defaults to ``0.995``.
         target_update_interval (int): steps between target updates. Defaults to ``10``.
+        actor_update_interval (int): TD3's actor delay: the actor is trained on every this-many-th
+            update. Defaults to ``2`` (the reference's).
         cudagraphs (bool): replay the update as CUDA graphs (see above). Defaults to ``False``.
         autocast_dtype (torch.dtype, optional): ``torch.bfloat16`` for mixed-precision updates
             (see above); ``None`` (default) for full precision. Not combined with ``cudagraphs``.
@@ -111,6 +121,7 @@ class LossUpdater:
         *,
         polyak: float = 0.995,
         target_update_interval: int = 10,
+        actor_update_interval: int = 2,
         cudagraphs: bool = False,
         autocast_dtype: torch.dtype | None = None,
         actor_after_critic_step: bool = False,
@@ -121,6 +132,14 @@ class LossUpdater:
             raise ValueError(f"`polyak` must be in [0, 1], got {polyak}.")
         if target_update_interval < 1:
             raise ValueError(f"`target_update_interval` must be >= 1, got {target_update_interval}.")
+        if (
+            isinstance(actor_update_interval, bool)
+            or not isinstance(actor_update_interval, int)
+            or actor_update_interval < 1
+        ):
+            raise ValueError(
+                f"`actor_update_interval` must be a positive int, got {actor_update_interval!r}."
+            )
         if autocast_dtype not in AUTOCAST_DTYPES:
             raise ValueError(
                 f"`autocast_dtype` must be None or torch.bfloat16, got {autocast_dtype!r} (float16 would "
@@ -139,6 +158,7 @@ class LossUpdater:
         self.replay_buffer = replay_buffer
         self.optimizers = dict(optimizers)
         self.target_update_interval = int(target_update_interval)
+        self.actor_update_interval = actor_update_interval
         self.target_updater = SoftUpdate(loss, eps=polyak)
         self.num_updates = 0
         self.cudagraphs = bool(cudagraphs)
@@ -167,17 +187,27 @@ class LossUpdater:
     def _sample(self) -> TensorDictBase:
         return self.replay_buffer.sample()
 
+    def actor_update_due(self) -> bool:
+        """Whether the next update (number ``num_updates + 1``) trains the actor (a host-side decision)."""
+        return (self.num_updates + 1) % self.actor_update_interval == 0
+
+    def _loss_terms(self, sample: TensorDictBase, update_actor: bool) -> TensorDictBase:
+        if hasattr(self.loss, "loss_terms"):
+            return self.loss.loss_terms(sample, update_actor=update_actor)
+        return self.loss(sample)  # a loss without the switch computes its actor term anyway
+
     def _step(self) -> TensorDictBase:
         if self.cudagraphs:
             return self._graph_step()
         sample = self._sample()
+        update_actor = self.actor_update_due()
         if self.actor_after_critic_step:
-            out = self._sequential_update(sample, self.loss._due_actor_update(), check=True)
+            out = self._sequential_update(sample, update_actor, check=True)
         else:
             with self._autocast():
-                out = self.loss(sample)
+                out = self._loss_terms(sample, update_actor)
             self._check_finite([out], first_update=self.num_updates + 1)  # before any parameter changes
-            self._optimise(out, update_actor=bool(out.get("actor_updated", True)))
+            self._optimise(out, update_actor=update_actor)
         self._count_update()
         return out.detach()
 
@@ -231,7 +261,7 @@ class LossUpdater:
         def update(sample: TensorDictBase) -> TensorDictBase:
             if self.actor_after_critic_step:
                 return self._sequential_update(sample, update_actor, check=False).detach()
-            out = self.loss.loss_terms(sample, update_actor=update_actor)
+            out = self._loss_terms(sample, update_actor)
             self._optimise(out, update_actor)
             return out.detach()
 
@@ -239,7 +269,7 @@ class LossUpdater:
 
     def _graph_step(self) -> TensorDictBase:
         sample = self._sample()
-        due = self.loss._due_actor_update()  # counted eagerly: the graphs cannot branch
+        due = self.actor_update_due()  # decided on the host: the graphs cannot branch
         if due not in self._graphs:
             self._graphs[due] = CudaGraphModule(self._graph_update(due), warmup=3, in_keys=[], out_keys=[])
         out = self._graphs[due](sample).clone()  # the graph's output buffers are reused by the next replay

@@ -1,0 +1,306 @@
+"""The recipe's configuration, mapped onto the library: ``cfg`` -> the arguments of :mod:`torchrl_dhrl.training`.
+
+``dhrl_antmaze.py`` (training) and ``diagnose_*.py`` (a run's checkpoint) build their objects through these
+functions, the only place that reads the configuration's keys (``config/config.yaml`` is their schema). A
+configuration that the library refuses is reported as a :class:`~torchrl_dhrl.training.ConfigError` naming
+the key.
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+from typing import Any
+
+import torch
+from omegaconf import DictConfig, OmegaConf
+from omegaconf.errors import OmegaConfBaseException
+from torchrl_dhrl.envs import GoalEnvError
+
+from torchrl_dhrl.planner import LineOfSightDistance
+from torchrl_dhrl.training import (
+    ConfigError,
+    DHRLAgent,
+    LossUpdater,
+    RunStart,
+    load_checkpoint,
+    make_agent,
+    make_environment,
+    make_high_level_buffer,
+    make_logger,
+    make_low_level_buffer,
+    make_updater,
+    obstacle_boxes,
+    start_run,
+)
+from torchrl_dhrl.training.config import BUILD_DTYPES, UPDATE_DTYPES
+
+#: The configuration directory; ``config.yaml`` there is the schema of every configuration key.
+CONFIG_DIR = Path(__file__).resolve().parent / "config"
+
+#: The paper's DHRL success rates (Table 2): env -> {env steps: success}.
+PAPER_SUCCESS = {
+    "PointMaze": {250_000: 0.969, 500_000: 0.998},
+    "AntMazeSmall": {500_000: 0.898, 1_000_000: 0.951},
+    "AntMaze": {500_000: 0.715, 1_000_000: 0.911},
+    "AntMazeBottleneck": {500_000: 0.165, 1_000_000: 0.387},
+    "AntMazeComplex": {2_500_000: 0.204, 4_000_000: 0.401},
+    "Reacher3D": {250_000: 0.951, 500_000: 0.906},
+}
+
+
+def config_schema() -> dict:
+    """The keys a configuration may hold: ``config/config.yaml`` as written (its defaults list aside).
+
+    Read from the file on every call, so keys added there are known at once; env and preset files may
+    only set keys that it defines.
+    """
+    schema = OmegaConf.to_container(OmegaConf.load(CONFIG_DIR / "config.yaml"), resolve=False)
+    schema.pop("defaults", None)
+    schema.pop("hydra", None)
+    return schema
+
+
+def to_dict(cfg: DictConfig | dict) -> dict:
+    """The composed configuration as a plain dict (interpolations resolved)."""
+    if not isinstance(cfg, DictConfig):
+        return dict(cfg)
+    try:
+        return OmegaConf.to_container(cfg, resolve=True)
+    except OmegaConfBaseException as err:
+        raise ConfigError(f"The configuration does not resolve: {' '.join(str(err).split())}") from err
+
+
+def start_up(cfg: DictConfig | dict, run_dir: str | Path | None = None) -> RunStart:
+    """:func:`~torchrl_dhrl.training.start_run` of the composed configuration, with ``config/config.yaml`` as
+    the schema: every check before anything is built or written, then the run directory.
+
+    Returns:
+        ``(cfg, device, run_dir, resume, state)``, a :class:`~torchrl_dhrl.training.RunStart`.
+
+    Raises:
+        ConfigError: naming the key, the value and what is accepted.
+    """
+    return start_run(
+        to_dict(cfg), run_dir, schema=config_schema(), schema_source="recipes/config/config.yaml"
+    )
+
+
+def remove_unused_output_dir(output_dir: Path) -> None:
+    """Removes Hydra's output directory of a run stopped at start-up, when it holds only what Hydra wrote
+    there (``.hydra/*.yaml`` and an empty job log), and its parents that this leaves empty (within the
+    current directory). A directory holding anything else is left as it is."""
+    from hydra.core.hydra_config import HydraConfig
+
+    hydra_cfg = HydraConfig.get()
+    if not output_dir.is_dir():
+        return
+    expected = {output_dir / f"{hydra_cfg.job.name}.log"}
+    if hydra_cfg.output_subdir is not None:
+        expected |= {
+            output_dir / hydra_cfg.output_subdir / f for f in ("config.yaml", "hydra.yaml", "overrides.yaml")
+        }
+    files = [p for p in output_dir.rglob("*") if not p.is_dir()]
+    if any(p not in expected for p in files) or any(p.suffix == ".log" and p.stat().st_size for p in files):
+        return
+    for path in files:
+        path.unlink()
+    dirs = sorted((p for p in output_dir.rglob("*") if p.is_dir()), key=lambda p: len(p.parts), reverse=True)
+    cwd = Path.cwd().resolve()
+    try:
+        for path in dirs:
+            path.rmdir()
+        output_dir.rmdir()
+        parent = output_dir.resolve().parent
+        while parent != cwd and cwd in parent.parents and not any(parent.iterdir()):
+            parent.rmdir()
+            parent = parent.parent
+    except OSError:  # not empty after all (another process writing): keep the rest
+        pass
+
+
+def goal_indices(cfg: dict) -> tuple[int, ...] | None:
+    indices = cfg["goal_indices"]
+    return None if indices is None else tuple(int(i) for i in indices)
+
+
+def far_from_graph_threshold(cfg: dict) -> float:
+    """ "Far from the graph" for the gradual penalty and the diagnostics: ``far_from_graph_factor x cutoff``."""
+    return cfg["high"]["far_from_graph_factor"] * cfg["planner"]["cutoff"]
+
+
+def build_environment(cfg: dict, device: torch.device, *, eval: bool = False, agent: DHRLAgent | None = None):  # noqa: A002
+    """:func:`~torchrl_dhrl.training.make_environment` of the configuration: ``num_envs`` training envs (seed
+    ``seed``, goal shifting with ``fgs.enabled``) or ``schedule.eval_episodes`` envs on the test goals (seed
+    ``seed + 10000``); without ``agent``, the bare env after the goal-env contract check."""
+    try:
+        return make_environment(
+            cfg["env_name"],
+            device,
+            num_envs=cfg["schedule"]["eval_episodes"] if eval else cfg["num_envs"],
+            seed=cfg["seed"] + (10_000 if eval else 0),
+            eval=eval,
+            max_episode_steps=cfg["episode_length"],
+            goal_indices=goal_indices(cfg),
+            angle_features=cfg.get("angle_features"),
+            agent=agent,
+            goal_shifting=_goal_shifting(cfg) if cfg["fgs"]["enabled"] and not eval else None,
+        )
+    except GoalEnvError as err:
+        raise ConfigError(f"env_name={cfg['env_name']}: {err}") from err
+
+
+def _goal_shifting(cfg: dict) -> dict[str, Any]:
+    fgs = cfg["fgs"]
+    return {"noise": fgs["noise"], "weighting": fgs["weighting"], "trigger": fgs["trigger"]}
+
+
+def build_agent(cfg: dict, device: torch.device) -> DHRLAgent:
+    """:func:`~torchrl_dhrl.training.make_agent` of the configuration (sizes from the env's specs)."""
+    env = build_environment(cfg, device)
+    goal_dim = env.observation_spec["achieved_goal"].shape[-1]
+    low, high, planner = cfg["low"], cfg["high"], cfg["planner"]
+    if len(high["subgoal_low"]) != goal_dim:
+        raise ConfigError(
+            f"high.subgoal_low has {len(high['subgoal_low'])} entries; the goal space has {goal_dim}."
+        )
+    if low["relative_goal"] and goal_indices(cfg) is None:
+        raise ConfigError(
+            f"low.relative_goal=true needs goal_indices, which {cfg['env_name']} does not provide."
+        )
+    return make_agent(
+        env,
+        device,
+        subgoal_low=high["subgoal_low"],
+        subgoal_high=high["subgoal_high"],
+        subgoal_interval=high["c_h"],
+        subgoal_noise=high["subgoal_noise"],
+        goal_indices=goal_indices(cfg),
+        low_num_cells=low["hidden"],
+        relative_goal=bool(low["relative_goal"]),
+        # the reference's low-level critics see the absolute goal even where the actor sees the relative one
+        relative_critic_goal=low["critic_goal"] == "relative",
+        low_gamma=low["gamma"],
+        action_noise=low["action_noise"],
+        uniform_prob=low["uniform_prob"],
+        sqgc_loss_kwargs={**_loss_kwargs(low), "sqgc": low["sqgc"]},
+        high_num_cells=high["hidden"],
+        high_gamma=high["gamma"],
+        high_loss_kwargs=_loss_kwargs(high),
+        distance=_oracle_distance(cfg) if planner["distance"] == "oracle" else None,
+        twin=planner["twin"],
+        cutoff=planner["cutoff"],
+        max_landmarks=planner["max_landmarks"],
+        early_stop=planner["early_stop"],
+        build_autocast_dtype=BUILD_DTYPES[planner["build_dtype"]],
+        reach_radius=planner["reach_radius"],
+    )
+
+
+def _loss_kwargs(level: dict) -> dict[str, Any]:
+    """The keyword arguments both levels' losses take, from ``low.*`` or ``high.*``."""
+    return {
+        "clip_return": level["clip_return"],
+        "action_l2": level["action_l2"],
+        "target_noise_std": level["target_noise"],
+        "target_action_clamp": level["target_action_clamp"],
+    }
+
+
+def _oracle_distance(cfg: dict) -> LineOfSightDistance:
+    """``planner.distance=oracle``: straight-line steps at ``oracle_speed``, blocked by walls and boards."""
+    indices = goal_indices(cfg)
+    if indices is None:
+        raise ConfigError(
+            f"planner.distance=oracle needs the achieved goal inside the observation (goal_indices), "
+            f"which {cfg['env_name']} does not provide."
+        )
+    planner = cfg["planner"]
+    return LineOfSightDistance(
+        planner["oracle_speed"],
+        boxes=obstacle_boxes(cfg["env_name"]),
+        margin=planner["oracle_margin"],
+        goal_indices=indices,
+    )
+
+
+def build_replay_buffers(cfg: dict, agent: DHRLAgent, device: torch.device):
+    """The low- and high-level buffers of the configuration: ``(low_rb, high_rb)``."""
+    low, high = cfg["low"], cfg["high"]
+    threshold = low["reward_threshold"]
+    low_rb = make_low_level_buffer(
+        buffer_size=low["buffer_size"],
+        batch_size=low["batch_size"],
+        reward_threshold=threshold,
+        her_ratio=low["her_ratio"],
+        her_window=low["her_window"],
+        device=device,
+    )
+    high_rb = make_high_level_buffer(
+        buffer_size=high["buffer_size"],
+        batch_size=high["batch_size"],
+        reward_threshold=threshold,
+        her_ratio=high["her_ratio"],
+        her_window=high["her_window"],
+        subgoal_test_ratio=high["subgoal_test_ratio"],
+        subgoal_test_threshold=high["subgoal_test_threshold"],
+        subgoal_miss_penalty=high["subgoal_miss_penalty"],
+        gradual_penalty=high["gradual_penalty"],
+        planner=agent.planner if cfg["planner"]["enabled"] else None,
+        far_from_graph_threshold=far_from_graph_threshold(cfg),
+        device=device,
+    )
+    return low_rb, high_rb
+
+
+def build_updaters(cfg: dict, agent: DHRLAgent, low_rb, high_rb) -> tuple[LossUpdater, LossUpdater]:
+    """The low-level (SQGC) and high-level updaters of the configuration."""
+    out = []
+    for level, loss, rb in (("low", agent.sqgc_loss, low_rb), ("high", agent.high_loss, high_rb)):
+        c = cfg[level]
+        out.append(
+            make_updater(
+                loss,
+                rb,
+                actor_lr=c["actor_lr"],
+                critic_lr=c["critic_lr"],
+                polyak=c["polyak"],
+                target_update_interval=c["target_update_interval"],
+                actor_update_interval=c["actor_update_interval"],
+                cudagraphs=cfg.get("cudagraphs", False),
+                autocast_dtype=UPDATE_DTYPES[cfg.get("update_dtype", "float32")],
+                actor_after_critic_step=c["actor_after_critic_step"],
+            )
+        )
+    return out[0], out[1]
+
+
+def build_logger(cfg: dict, run_dir: Path):
+    """The configuration's TorchRL logger (``None`` for ``logger.backend=none``)."""
+    log = cfg["logger"]
+    name = log["exp_name"] or f"dhrl_{cfg['env_name']}_seed{cfg['seed']}"
+    return make_logger(log["backend"], name, run_dir, project=log["project"], wandb_mode=log["wandb_mode"])
+
+
+def evaluation_kwargs(cfg: dict) -> dict[str, Any]:
+    """The keyword arguments of :func:`~torchrl_dhrl.training.evaluate_epoch` of the configuration."""
+    return {
+        "env_name": cfg["env_name"],
+        "reward_threshold": cfg["low"]["reward_threshold"],
+        "far_from_graph_threshold": far_from_graph_threshold(cfg),
+        "oracle_margin": cfg["planner"]["oracle_margin"],
+        "flat": cfg["schedule"]["eval_flat"],
+    }
+
+
+def agent_from_checkpoint(path, device: str | torch.device = "cpu") -> tuple[dict, DHRLAgent]:
+    """The configuration of a run's checkpoint and its agent, rebuilt and loaded (the graph with it).
+
+    Args:
+        path (str or Path): a checkpoint or the run directory holding it.
+    """
+    device = torch.device(device)
+    state = load_checkpoint(path, map_location=device, components=("config", "agent"))
+    cfg = state["config"]
+    agent = build_agent(cfg, device)
+    agent.load_state_dict(state["agent"])
+    return cfg, agent

@@ -1,0 +1,272 @@
+"""Starting, stopping and recording a training run: start-up checks, graceful stops, metrics files.
+
+:func:`start_run` checks everything that can be checked before a run builds or writes anything (the
+configuration, the device, the checkpoint to resume, the run directory, offscreen rendering) and prepares
+the run; :class:`GracefulStop` turns SIGINT and SIGTERM into a stop at the end of the current batch;
+:func:`log_metrics` and :func:`write_metrics_csv` record an epoch's metrics.
+"""
+
+from __future__ import annotations
+
+import csv
+import os
+import signal
+import sys
+import time
+from collections.abc import Mapping, Sequence
+from pathlib import Path
+from typing import Any, NamedTuple
+
+import torch
+
+from .checkpoint import CHECKPOINT_COMPONENTS, CheckpointError, checkpoint_file, load_checkpoint
+from .config import ConfigError, check_known_keys, check_resume_config, resolve_device, validate_config
+from .evaluation import ModuleTimer
+from .threads import set_threads
+
+__all__ = ["GracefulStop", "LoopTimer", "RunStart", "log_metrics", "start_run", "write_metrics_csv"]
+
+
+class RunStart(NamedTuple):
+    """What :func:`start_run` prepared.
+
+    Attributes:
+        config (dict): the validated configuration.
+        device (torch.device): where the networks, the planner and the buffers live.
+        run_dir (Path): the run directory (created).
+        resume (Path or None): the checkpoint to resume, checked.
+        state (dict or None): its ``config`` and ``counters`` (:func:`~torchrl_dhrl.training.load_checkpoint`).
+    """
+
+    config: dict
+    device: torch.device
+    run_dir: Path
+    resume: Path | None
+    state: dict | None
+
+
+def start_run(
+    cfg: Mapping[str, Any],
+    run_dir: str | os.PathLike | None = None,
+    *,
+    schema: Mapping[str, Any] | None = None,
+    schema_source: str = "config.yaml",
+) -> RunStart:
+    """Checks everything that can be checked before a run builds or writes anything, then prepares it.
+
+    In order: the keys (only those of ``schema``, see :func:`~torchrl_dhrl.training.check_known_keys`), their
+    values (:func:`~torchrl_dhrl.training.validate_config`), the device, the checkpoint to ``resume``
+    (readable, with every component of :data:`~torchrl_dhrl.training.CHECKPOINT_COMPONENTS`, and trained with
+    the same configuration up to :data:`~torchrl_dhrl.training.RESUME_MUTABLE_KEYS`), the run directory (not
+    a file, writable; no checkpoint of another run in it, which the run would overwrite) and, with
+    ``plots.video=true``, MuJoCo's offscreen rendering. Only then it sets the thread count (``threads``,
+    printed as one line) and creates the run directory.
+
+    Args:
+        cfg (Mapping): the configuration, a plain nested dict (e.g. the recipe's composed Hydra config).
+        run_dir (str or os.PathLike, optional): where the run writes; defaults to ``cfg["run_dir"]``, else
+            the current directory.
+
+    Keyword Args:
+        schema (Mapping, optional): the keys a configuration may hold (the recipe's ``config.yaml``); not
+            checked when ``None``.
+        schema_source (str): how error messages name the schema.
+
+    Returns:
+        a :class:`RunStart`.
+
+    Raises:
+        ConfigError: naming the key, the value and what is accepted; nothing has been built or written.
+    """
+    cfg = dict(cfg)
+    if schema is not None:
+        check_known_keys(cfg, schema, source=schema_source)
+    validate_config(cfg)
+    device = resolve_device(cfg["device"])
+    run_dir = Path(run_dir or cfg["run_dir"] or ".").expanduser().resolve()
+    resume = state = None
+    notes: list[str] = []
+    if cfg["resume"]:
+        resume = checkpoint_file(Path(cfg["resume"]).expanduser()).resolve()
+        what = f"`resume={cfg['resume']}`"
+        try:
+            state = load_checkpoint(
+                resume, required_keys=CHECKPOINT_COMPONENTS, components=("config", "counters")
+            )
+        except FileNotFoundError as err:
+            raise ConfigError(
+                f"{what}: no checkpoint at {str(resume)!r} (a checkpoint or its run directory)."
+            ) from err
+        except CheckpointError as err:
+            raise ConfigError(f"{what}: {err}") from err
+        if not isinstance(state["config"], dict):
+            raise ConfigError(f"{what}: {str(resume)!r} holds no configuration under 'config'.")
+        notes = check_resume_config(state["config"], cfg, what=f"{what} ({resume})")
+        notes = [note for note in notes if not note.startswith("resume:")]  # resume itself always changes
+    _check_run_dir(run_dir, resume)
+    if cfg["plots"]["video"]:
+        _check_offscreen_rendering()
+    print(set_threads(cfg["threads"]))
+    if notes:
+        print(f"Resuming {resume} with: {'; '.join(notes)}.")
+    run_dir.mkdir(parents=True, exist_ok=True)
+    return RunStart(cfg, device, run_dir, resume, state)
+
+
+def _check_run_dir(run_dir: Path, resume: Path | None) -> None:
+    """``run_dir`` must be (or become) a writable directory, and must not hold another run's checkpoint."""
+    for path in (run_dir, *run_dir.parents):
+        if path.exists():
+            if not path.is_dir():
+                raise ConfigError(f"`run_dir` {str(run_dir)!r}: {str(path)!r} is a file, not a directory.")
+            if not os.access(path, os.W_OK | os.X_OK):
+                raise ConfigError(f"`run_dir` {str(run_dir)!r}: {str(path)!r} is not writable.")
+            break
+    existing = checkpoint_file(run_dir)
+    if existing.exists() and (resume is None or resume != existing.resolve()):
+        raise ConfigError(
+            f"`run_dir` {str(run_dir)!r} already holds a checkpoint, which this run would overwrite: "
+            f"continue that run with resume={run_dir}, or choose another run_dir."
+        )
+
+
+def _check_offscreen_rendering() -> None:
+    """``plots.video=true`` renders at the very end: fail now if MuJoCo cannot render offscreen."""
+    import mujoco
+
+    try:
+        mujoco.Renderer(mujoco.MjModel.from_xml_string("<mujoco/>"), 16, 16).close()
+    except Exception as err:  # mujoco.FatalError, EGL/OSMesa errors
+        raise ConfigError(
+            f"`plots.video=true` needs MuJoCo offscreen rendering, which fails here ({type(err).__name__}: "
+            f"{' '.join(str(err).split())[:120]}); set MUJOCO_GL=egl or osmesa, or plots.video=false."
+        ) from err
+
+
+class GracefulStop:
+    """SIGINT (Ctrl-C) and SIGTERM (a job scheduler's stop) ask a training loop to stop at the end of its batch.
+
+    The first signal sets :attr:`requested`: the loop finishes the batch's updates (and its epoch end),
+    then checkpoints and exits, so the checkpoint sits at a batch boundary and a resumed run continues
+    exactly. An exception raised at an arbitrary point instead (Python's default for SIGINT) could land
+    inside ``TensorDict.to_module``, whose exit turns it into a ``RuntimeError`` and skips the checkpoint.
+    A second signal stops at once (``KeyboardInterrupt``). :meth:`restore` (or leaving the ``with`` block)
+    puts the previous handlers back. Outside the main thread no handler is installed.
+
+    Examples:
+        >>> import signal
+        >>> before = signal.getsignal(signal.SIGTERM)
+        >>> with GracefulStop() as stop:
+        ...     signal.getsignal(signal.SIGTERM) == stop._handle, stop.requested
+        (True, False)
+        >>> signal.getsignal(signal.SIGTERM) is before
+        True
+    """
+
+    SIGNALS = (signal.SIGINT, signal.SIGTERM)
+
+    def __init__(self) -> None:
+        self.requested = False
+        self._previous = {}
+        for signum in self.SIGNALS:
+            try:
+                self._previous[signum] = signal.signal(signum, self._handle)
+            except ValueError:  # not in the main thread: no handler, default behaviour
+                pass
+
+    def _handle(self, signum, frame) -> None:
+        if self.requested:
+            raise KeyboardInterrupt
+        self.requested = True
+        name = signal.Signals(signum).name
+        print(
+            f"\n{name}: stopping after this batch's updates with a checkpoint (send it again to stop now).",
+            file=sys.stderr,
+            flush=True,
+        )
+
+    def restore(self) -> None:
+        for signum, handler in self._previous.items():
+            signal.signal(signum, handler)
+        self._previous = {}
+
+    def __enter__(self) -> GracefulStop:
+        return self
+
+    def __exit__(self, *exc) -> None:
+        self.restore()
+
+
+class LoopTimer:
+    """The wall-clock time a training loop spends collecting and updating in this process, with the share of
+    ``module``'s calls (the planner's, while acting).
+
+    :meth:`lap` adds the time since the previous lap to a phase (``"collect"``, ``"update"``; none: untimed);
+    :meth:`metrics` reports them, with the env steps per second of this process since ``env_steps`` (a
+    resumed run counts from its checkpoint).
+
+    Examples:
+        >>> timer = LoopTimer(env_steps=80)
+        >>> timer.lap("collect"); timer.lap("update")
+        >>> sorted(timer.metrics(env_steps=160))
+        ['env_steps_per_s', 'time/collect_s', 'time/update_s']
+    """
+
+    def __init__(self, module: torch.nn.Module | None = None, *, env_steps: int = 0) -> None:
+        self.seconds = {"collect": 0.0, "update": 0.0}
+        self.module_timer = ModuleTimer(module) if module is not None else None
+        self.start_steps = env_steps
+        self._last = time.perf_counter()
+
+    def lap(self, phase: str | None = None) -> None:
+        now = time.perf_counter()
+        if phase is not None:
+            self.seconds[phase] += now - self._last
+        self._last = now
+
+    def metrics(self, env_steps: int) -> dict[str, float]:
+        """``time/planner_ms_per_call`` (since the last call; with a module), ``time/collect_s``,
+        ``time/update_s`` and ``env_steps_per_s`` (collection and updates only)."""
+        metrics = {}
+        if self.module_timer is not None:
+            seconds, calls = self.module_timer.pop()
+            metrics["time/planner_ms_per_call"] = 1e3 * seconds / max(calls, 1)
+        metrics["time/collect_s"] = self.seconds["collect"]
+        metrics["time/update_s"] = self.seconds["update"]
+        busy = self.seconds["collect"] + self.seconds["update"]
+        metrics["env_steps_per_s"] = (env_steps - self.start_steps) / max(busy, 1e-9)
+        return metrics
+
+
+def log_metrics(logger, metrics: Mapping[str, float], step: int) -> None:
+    """Logs every metric as a scalar at ``step`` (nothing when ``logger`` is ``None``).
+
+    Examples:
+        >>> log_metrics(None, {"eval/success": 1.0}, step=80)
+    """
+    if logger is None:
+        return
+    for key, value in metrics.items():
+        logger.log_scalar(key, float(value), step=step)
+
+
+def write_metrics_csv(history: Sequence[Mapping[str, Any]], path: str | os.PathLike) -> Path:
+    """Writes one row per epoch (the union of the keys, sorted, ``env_steps`` and ``epoch`` first),
+    atomically (a temporary file, then renamed).
+
+    Examples:
+        >>> import tempfile
+        >>> from pathlib import Path
+        >>> path = write_metrics_csv([{"env_steps": 80, "epoch": 1, "eval/success": 0.5}], Path(tempfile.mkdtemp()) / "m.csv")
+        >>> path.read_text().splitlines()[0]
+        'env_steps,epoch,eval/success'
+    """
+    path = Path(path)
+    keys = sorted({k for h in history for k in h}, key=lambda k: (k not in ("epoch", "env_steps"), k))
+    tmp = path.with_suffix(".tmp")
+    with tmp.open("w", newline="") as file:
+        writer = csv.DictWriter(file, fieldnames=keys)
+        writer.writeheader()
+        writer.writerows(history)
+    tmp.replace(path)
+    return path
