@@ -67,6 +67,7 @@ from .maze_diagnostics import (
     spearman_correlation,
     start_subgoal,
 )
+from .planning_ablations import planning_ablations
 from .plots import graph_path_to_goal, plot_distance_scatter, plot_episode, plot_success_curve
 from .run import GracefulStop, LoopTimer, RunStart, log_metrics, start_run, write_metrics_csv
 from .threads import available_cpus, resolve_threads, set_threads
@@ -127,6 +128,7 @@ __all__ = [
     "maze_epoch_diagnostics",
     "observation_transforms",
     "obstacle_boxes",
+    "planning_ablations",
     "plot_distance_scatter",
     "plot_episode",
     "plot_epoch",

@@ -1,0 +1,44 @@
+"""Does a DHRL run's graph help? Its agent evaluated as trained, with other waypoint radii, without the graph,
+and the low level alone, on the same test goals (paired).
+
+    python recipes/diagnose_planning.py outputs/<date>/<time>             # the run directory
+    python recipes/diagnose_planning.py run/checkpoint --reach-radii 0.25 0.5 --repeats 5
+"""
+
+from __future__ import annotations
+
+import argparse
+
+import torch
+from dhrl_utils import agent_from_checkpoint, build_environment
+
+from torchrl_dhrl.training import planning_ablations
+
+
+def main(argv: list[str] | None = None) -> list[dict]:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("checkpoint", help="a checkpoint or the run directory holding it")
+    parser.add_argument("--reach-radii", type=float, nargs="*", default=[], help="waypoint radii to try")
+    parser.add_argument("--repeats", type=int, default=5, help="batches of the run's evaluation episodes")
+    parser.add_argument("--device", default="cpu")
+    args = parser.parse_args(argv)
+    device = torch.device(args.device)
+    cfg, agent = agent_from_checkpoint(args.checkpoint, device)
+    env = build_environment(cfg, device, eval=True, agent=agent)
+    rows = planning_ablations(
+        agent, env, env.base_env.max_episode_steps, reach_radii=args.reach_radii, repeats=args.repeats
+    )
+    print(
+        f"{cfg['env_name']}: {agent.planner.num_landmarks} landmarks, reach_radius {agent.planner.reach_radius:g}"
+    )
+    print(f"{'variant':>20} {'episodes':>9} {'success':>8} {'any-time':>9} {'final dist':>11}")
+    for row in rows:
+        print(
+            f"{row['variant']:>20} {row['episodes']:9d} {row['success']:8.0%} {row['any_success']:9.0%} "
+            f"{row['final_distance']:11.3f}"
+        )
+    return rows
+
+
+if __name__ == "__main__":
+    main()

@@ -1,0 +1,100 @@
+"""Does the graph help? The same agent evaluated with and without its planner, on the same test goals."""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Sequence
+
+import torch
+from torchrl.envs import EnvBase
+
+from .builders import DHRLAgent
+from .evaluation import evaluate, goal_as_waypoint
+
+__all__ = ["planning_ablations"]
+
+
+@torch.no_grad()
+def planning_ablations(
+    agent: DHRLAgent,
+    env: EnvBase,
+    max_steps: int,
+    *,
+    reach_radii: Sequence[float] = (),
+    repeats: int = 1,
+) -> list[dict]:
+    """Evaluates ``agent`` as trained and with parts of its planning switched off, at evaluation time only.
+
+    The variants, each on the same ``repeats`` batches of test episodes (``env``'s state is restored before
+    each variant, so every variant meets the same goals and start states):
+
+    * ``"as trained"``: the full agent (high level, graph waypoints, low level);
+    * ``"reach_radius=r"`` for each ``r`` of ``reach_radii``: waypoints count as reached within ``r``;
+    * ``"no graph"``: the high level and the low level, the planner passing the subgoal through;
+    * ``"flat"``: the low level alone chasing the real goal (:func:`goal_as_waypoint`).
+
+    A variant far better than ``"as trained"`` names the part that leads the agent astray (the graph's
+    waypoints, the high level's subgoals). The agent and ``env`` are left as they were (graph, radius and the
+    env's state restored).
+
+    Args:
+        agent (DHRLAgent): the agent (e.g. a checkpoint's, rebuilt by ``recipes/dhrl_utils.py``).
+        env (EnvBase): the evaluation env with the agent's primers (``make_environment(..., eval=True, agent=...)``).
+        max_steps (int): steps per episode.
+
+    Keyword Args:
+        reach_radii (sequence of float): waypoint radii to try. Defaults to none.
+        repeats (int): batches of ``env``'s episodes per variant. Defaults to ``1``.
+
+    Returns:
+        one dict per variant: ``variant``, ``episodes``, ``success`` (final state), ``any_success``,
+        ``final_distance`` (means over the episodes).
+
+    Examples:
+        >>> import torch
+        >>> from torchrl_dhrl.training import make_agent, make_environment
+        >>> spec_env = make_environment("PointMaze", "cpu", num_envs=1, max_episode_steps=20)
+        >>> agent = make_agent(spec_env, "cpu", subgoal_low=[-2.0, -2.0], subgoal_high=[10.0, 10.0],
+        ...     subgoal_interval=5, low_num_cells=(16,), high_num_cells=(16,), max_landmarks=8)
+        >>> env = make_environment("PointMaze", "cpu", num_envs=2, seed=0, eval=True, max_episode_steps=20,
+        ...     agent=agent)
+        >>> rows = planning_ablations(agent, env, 20, reach_radii=[1.0])
+        >>> [row["variant"] for row in rows], rows[0]["episodes"]
+        (['as trained', 'reach_radius=1', 'no graph', 'flat'], 2)
+    """
+    if repeats < 1:
+        raise ValueError(f"`repeats` must be >= 1, got {repeats}.")
+    base = env.base_env if hasattr(env, "base_env") else env
+    start = base.state_dict()
+    planner, graph = agent.planner, agent.planner.graph
+    radius, saved_graph = planner.reach_radius, graph.state_dict()
+    variants = [("as trained", agent.policy, None)]
+    variants += [(f"reach_radius={r:g}", agent.policy, float(r)) for r in reach_radii]
+    variants += [("no graph", agent.policy, "clear"), ("flat", goal_as_waypoint(agent.low_actor), None)]
+    rows = []
+    try:
+        for name, policy, change in variants:
+            base.load_state_dict(start)
+            if isinstance(change, float):
+                planner.reach_radius = change
+            elif change == "clear":
+                graph.clear()
+            results = [evaluate(env, policy, max_steps) for _ in range(repeats)]
+            episodes = repeats * int(math.prod(env.batch_size))
+            rows.append(
+                {
+                    "variant": name,
+                    "episodes": episodes,
+                    "success": sum(r.success for r in results) / repeats,
+                    "any_success": sum(r.any_success for r in results) / repeats,
+                    "final_distance": sum(r.final_distance for r in results) / repeats,
+                }
+            )
+            planner.reach_radius = radius
+            if change == "clear":
+                graph.load_state_dict(saved_graph)
+    finally:
+        planner.reach_radius = radius
+        graph.load_state_dict(saved_graph)
+        base.load_state_dict(start)
+    return rows
