@@ -1,4 +1,4 @@
-"""planning_ablations: paired goals across variants, the agent and env left as they were, and the CLI."""
+"""recipes/diagnose_planning.py (planning_ablations: paired goals, the agent left as it was) and diagnose_observations.py."""
 
 import sys
 
@@ -77,3 +77,22 @@ def test_bad_repeats(run_dir):
     env = dhrl_utils.build_environment(cfg, torch.device("cpu"), eval=True, agent=agent)
     with pytest.raises(ValueError, match="repeats"):
         planning_ablations(agent, env, 40, repeats=0)
+
+
+def test_observation_ranges_against_the_buffer(run_dir, capsys):
+    """diagnose_observations: the maximum and the quantiles of |observation| over the stored states."""
+    script = load_recipe("diagnose_observations")
+    ranges = script.observation_ranges(run_dir, quantiles=(0.5, 1.0))
+    dhrl_utils = load_recipe("dhrl_utils")
+    cfg, agent = dhrl_utils.agent_from_checkpoint(run_dir)
+    low_rb, _ = dhrl_utils.build_replay_buffers(cfg, agent, torch.device("cpu"))
+    from torchrl_dhrl.training import load_checkpoint
+
+    low_rb.load_state_dict(load_checkpoint(run_dir, components=("low_rb",))["low_rb"])
+    obs = low_rb[:]["observation"].reshape(-1, 17).abs()
+    assert ranges["entries"] == obs.shape[0] == len(low_rb)
+    torch.testing.assert_close(ranges["max"], obs.max(0).values)
+    torch.testing.assert_close(ranges["quantiles"][1.0], obs.max(0).values)  # all rows: fewer than SAMPLE
+    torch.testing.assert_close(ranges["quantiles"][0.5], obs.quantile(0.5, dim=0))
+    script.main([str(run_dir)])
+    assert "stored states" in capsys.readouterr().out
