@@ -32,6 +32,20 @@ The ratios use the device's default (``sqgc (separate)`` on CPU, ``sqgc (fused)`
     OMP_NUM_THREADS=2 python benchmarks/bench_losses.py            # batch 1024 and 256
     python benchmarks/bench_losses.py --batch-sizes 1024 --iters 50 --threads 1
     python benchmarks/bench_losses.py --device cuda
+
+``--yardsticks`` prints a second table at the recipe's shapes (``--shape quick``: PointMaze, 2 x 256, batch
+256; ``--shape paper``: AntMaze, 3 x 256, batch 1024) and ``--dtype`` (``float32`` or ``bfloat16``), with the
+recipe's update path against two yardsticks (``reference_update.py``):
+
+* ``recipe (eager)`` -- ``LossUpdater(SQGCLoss, actor_after_critic_step=True).step()`` on a fixed batch (the
+  recipe's low-level update without sampling);
+* ``recipe (compile)`` -- the same with ``compile=True`` (``torch.compile`` of the loss forward + backward);
+* ``plain (eager)`` -- the same update written in plain PyTorch (``nn.Linear`` MLPs, no TensorDict);
+* ``matmul floor`` -- the matrix products of one ``recipe (eager)`` update alone, replayed at their
+  recorded shapes and dtype (forward and backward), in the same run.
+
+    python benchmarks/bench_losses.py --yardsticks --shape quick --threads 1
+    python benchmarks/bench_losses.py --yardsticks --shape paper --dtype bfloat16 --threads 2
 """
 
 from __future__ import annotations
@@ -49,6 +63,18 @@ from torchrl.objectives import SoftUpdate, TD3Loss
 
 from torchrl_dhrl.modules import GoalConditionedCritic, LowLevelActor
 from torchrl_dhrl.objectives import HighLevelLoss, SQGCLoss, make_optimizers
+from torchrl_dhrl.training import LossUpdater
+
+try:  # as a script (benchmarks/ on sys.path) or imported from the repository root
+    from reference_update import PlainSQGCUpdate, count_flops, matmul_floor, plain_batch, record_matmuls
+except ImportError:  # pragma: no cover
+    from benchmarks.reference_update import (
+        PlainSQGCUpdate,
+        count_flops,
+        matmul_floor,
+        plain_batch,
+        record_matmuls,
+    )
 
 OBS, GOAL, ACT, AMAX, GAMMA = 29, 2, 8, 30.0, 0.99
 CELLS = (256, 256, 256)
@@ -218,6 +244,79 @@ def _time_interleaved(
     return {name: min(values) for name, values in times.items()}
 
 
+#: ``--shape``: (obs, goal, action, action max, hidden widths, batch) of the recipe's presets.
+SHAPES = {
+    "quick": (6, 2, 2, 1.0, (256, 256), 256),  # PointMaze, preset=quick
+    "paper": (29, 2, 8, 30.0, (256, 256, 256), 1024),  # AntMaze, the paper's networks and batch
+}
+
+
+class _FixedBatch:
+    """A stand-in buffer whose ``sample()`` returns one fixed batch (the update without sampling)."""
+
+    def __init__(self, data: TensorDict) -> None:
+        self.data = data
+
+    def sample(self) -> TensorDict:
+        return self.data
+
+
+def yardsticks(shape: str, dtype: str, device: torch.device, iters: int, repeats: int) -> None:
+    """The recipe's SQGC update (eager and compiled) against a plain-PyTorch update and its matmul floor."""
+    obs, goal, act, amax, cells, batch = SHAPES[shape]
+    autocast = torch.bfloat16 if dtype == "bfloat16" else None
+    data = sqgc_batch(batch, obs, goal, act, amax).to(device)
+
+    def recipe_update(compile_: bool):
+        torch.manual_seed(0)
+        actor = LowLevelActor(obs, goal, action_max=amax, action_dim=act, goal_key="goal", num_cells=cells)
+
+        def critic():
+            return GoalConditionedCritic(
+                obs, goal, action_max=amax, action_dim=act, num_cells=cells, gamma=GAMMA, relative_goal=False
+            )
+
+        loss = SQGCLoss(actor, critic(), critic(), gamma=GAMMA).to(device)
+        updater = LossUpdater(
+            loss,
+            _FixedBatch(data),
+            make_optimizers(loss),
+            actor_after_critic_step=True,
+            autocast_dtype=autocast,
+            compile=compile_,
+        )
+        return updater.step
+
+    plain = PlainSQGCUpdate(obs, goal, act, cells, amax, autocast_dtype=autocast, device=device)
+    tensors = plain_batch(data)
+    updates = {"recipe (eager)": recipe_update(False), "recipe (compile)": recipe_update(True)}
+    updates["plain (eager)"] = lambda _: plain(tensors)
+    start = time.perf_counter()
+    for _ in range(4):  # compile the compiled variant's graphs before anything is recorded or timed
+        updates["recipe (compile)"]()
+    compile_s = time.perf_counter() - start
+    eager = updates["recipe (eager)"]
+    calls = record_matmuls(lambda: [eager() for _ in range(2)])  # one critic-only and one actor update
+    floor = matmul_floor(calls)
+    timed = {name: (lambda f: lambda _: f())(f) for name, f in updates.items() if name != "plain (eager)"}
+    timed["plain (eager)"] = updates["plain (eager)"]
+    timed["matmul floor"] = lambda _, calls_per=2: floor()
+    ms = _time_interleaved(timed, data, iters, repeats, device)
+    ms["matmul floor"] /= 2  # the floor replays two updates per call
+    gflop = count_flops(calls) / 2 / 1e9
+    print(
+        f"\nyardsticks: --shape {shape} (obs {obs}, goal {goal}, act {act}, MLPs {cells}, batch {batch}), "
+        f"{dtype}, {device} ({torch.get_num_threads()} threads); {gflop:.3f} GFLOP of matrix products per "
+        f"update; compilation {compile_s:.1f} s; minimum of {repeats} interleaved repeats of {iters} updates"
+    )
+    print(" ".join(f"{name:>17}" for name in ms) + f" {'eager/plain':>12} {'eager/floor':>12} {'compile/plain':>14} {'compile/floor':>14}")
+    print(
+        " ".join(f"{value:>14.2f} ms" for value in ms.values())
+        + f" {ms['recipe (eager)'] / ms['plain (eager)']:>12.2f} {ms['recipe (eager)'] / ms['matmul floor']:>12.2f}"
+        + f" {ms['recipe (compile)'] / ms['plain (eager)']:>14.2f} {ms['recipe (compile)'] / ms['matmul floor']:>14.2f}"
+    )
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(
         description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter
@@ -229,6 +328,9 @@ def main() -> None:
     parser.add_argument("--repeats", type=int, default=7, help="timed repeats; the minimum is reported")
     parser.add_argument("--threads", type=int, default=None, help="torch.set_num_threads (default: torch's)")
     parser.add_argument("--device", default="cpu", help="cpu or cuda")
+    parser.add_argument("--yardsticks", action="store_true", help="only the recipe-vs-plain-vs-floor table")
+    parser.add_argument("--shape", choices=sorted(SHAPES), default="quick", help="--yardsticks shapes")
+    parser.add_argument("--dtype", choices=["float32", "bfloat16"], default="float32", help="--yardsticks")
     args = parser.parse_args()
     device = torch.device(args.device)
     if device.type == "cuda" and not torch.cuda.is_available():
@@ -237,6 +339,9 @@ def main() -> None:
         torch.set_num_threads(args.threads)
     warnings.filterwarnings("ignore")
     torch.manual_seed(0)
+    if args.yardsticks:
+        yardsticks(args.shape, args.dtype, device, args.iters, args.repeats)
+        return
     variants = {
         "sqgc (fused)": lambda: _ours("fused", device),
         "sqgc (separate)": lambda: _ours("separate", device),

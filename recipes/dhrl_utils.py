@@ -267,6 +267,7 @@ def build_updaters(cfg: dict, agent: DHRLAgent, low_rb, high_rb) -> tuple[LossUp
                 target_update_interval=c["target_update_interval"],
                 actor_update_interval=c["actor_update_interval"],
                 cudagraphs=cfg.get("cudagraphs", False),
+                compile=cfg.get("compile", False),
                 autocast_dtype=UPDATE_DTYPES[cfg.get("update_dtype", "float32")],
                 actor_after_critic_step=c["actor_after_critic_step"],
             )

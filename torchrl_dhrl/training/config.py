@@ -53,6 +53,7 @@ RESUME_MUTABLE_KEYS = (
     "device",
     "threads",
     "cudagraphs",
+    "compile",
     "update_dtype",
     "logger.*",
     "plots.*",
@@ -132,7 +133,8 @@ def _check_run_keys(cfg: Mapping) -> None:
         value = _get(cfg, path)
         if value is not None and (not isinstance(value, str) or not value):
             raise ConfigError(f"`{path}` must be null or a path, got {value!r}.")
-    for path in ("progress", "plots.video") + (("cudagraphs",) if "cudagraphs" in cfg else ()):
+    optional = tuple(key for key in ("cudagraphs", "compile") if key in cfg)
+    for path in ("progress", "plots.video") + optional:
         if not isinstance(_get(cfg, path), bool):
             raise ConfigError(f"`{path}` must be true or false, got {_get(cfg, path)!r}.")
     if not isinstance(_get(cfg, "logger.project"), str):
@@ -447,6 +449,8 @@ def validate_config(cfg: Mapping, env_names: tuple[str, ...] | None = None) -> N
         raise ConfigError(f"`update_dtype` must be one of {tuple(UPDATE_DTYPES)}, got {update_dtype!r}.")
     if update_dtype != "float32" and cfg.get("cudagraphs", False):
         raise ConfigError(f"`update_dtype={update_dtype}` cannot be combined with `cudagraphs=true` (yet).")
+    if cfg.get("compile", False) and cfg.get("cudagraphs", False):
+        raise ConfigError("`compile=true` cannot be combined with `cudagraphs=true` (yet): pick one.")
     _number(cfg, "total_steps", low=0, strict=True, integer=True)
     _number(cfg, "num_envs", low=1, integer=True)
     length = _get(cfg, "episode_length")

@@ -18,13 +18,17 @@ from pathlib import Path
 from typing import Any, NamedTuple
 
 import torch
+import yaml
 
 from .checkpoint import CHECKPOINT_COMPONENTS, CheckpointError, checkpoint_file, load_checkpoint
 from .config import ConfigError, check_known_keys, check_resume_config, resolve_device, validate_config
 from .evaluation import ModuleTimer
 from .threads import set_threads
 
-__all__ = ["GracefulStop", "LoopTimer", "RunStart", "log_metrics", "start_run", "write_metrics_csv"]
+__all__ = ["CONFIG_NAME", "GracefulStop", "LoopTimer", "RunStart", "log_metrics", "start_run", "write_metrics_csv"]
+
+#: The run's configuration, as :func:`start_run` writes it into the run directory (YAML).
+CONFIG_NAME = "config.yaml"
 
 
 class RunStart(NamedTuple):
@@ -60,7 +64,8 @@ def start_run(
     the same configuration up to :data:`~torchrl_dhrl.training.RESUME_MUTABLE_KEYS`), the run directory (not
     a file, writable; no checkpoint of another run in it, which the run would overwrite) and, with
     ``plots.video=true``, MuJoCo's offscreen rendering. Only then it sets the thread count (``threads``,
-    printed as one line) and creates the run directory.
+    printed as one line), creates the run directory and writes the configuration there
+    (:data:`CONFIG_NAME`, YAML; rewritten by a resume, whose keys differ only in run bookkeeping).
 
     Args:
         cfg (Mapping): the configuration, a plain nested dict (e.g. the recipe's composed Hydra config).
@@ -110,7 +115,23 @@ def start_run(
     if notes:
         print(f"Resuming {resume} with: {'; '.join(notes)}.")
     run_dir.mkdir(parents=True, exist_ok=True)
+    _write_config(cfg, run_dir / CONFIG_NAME)
     return RunStart(cfg, device, run_dir, resume, state)
+
+
+def _write_config(cfg: Mapping[str, Any], path: Path) -> None:
+    """The run's configuration as YAML (atomically), for tools that read run directories (``recipes/aggregate.py``)."""
+    tmp = path.with_suffix(".yaml.tmp")
+    tmp.write_text(yaml.safe_dump(_plain(cfg), sort_keys=False))
+    tmp.replace(path)
+
+
+def _plain(value: Any) -> Any:
+    if isinstance(value, Mapping):
+        return {str(k): _plain(v) for k, v in value.items()}
+    if isinstance(value, (list, tuple)):
+        return [_plain(v) for v in value]
+    return value
 
 
 def _check_run_dir(run_dir: Path, resume: Path | None) -> None:

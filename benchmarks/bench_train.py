@@ -1,0 +1,192 @@
+"""Env steps per second of the real recipe loop, before and after, in one run on one machine.
+
+Runs ``recipes/dhrl_antmaze.py`` for ``--steps`` env steps (graph phase included) as separate processes,
+interleaved over ``--repeats`` rounds so that every variant sees the same background load:
+
+* ``base@<ref>`` (with ``--baseline <ref>``): the recipe at a git ref, checked out in a temporary worktree
+  and installed into a temporary folder (``pip install --no-deps --target``), so before and after run the
+  same loop on the same machine in the same session;
+* ``tree`` and ``tree <overrides>`` (``--variants``): the working tree, with each override string (e.g.
+  ``"compile=true"``, ``"update_dtype=bfloat16"``).
+
+Each process writes its ``metrics.csv``; the loop rate is taken over the epochs after the warm-up (the
+warm-up trains nothing, faithful to the reference, and would flatter every variant alike): env steps
+divided by the collection + update seconds between the first epoch row after the warm-up and the last row.
+``--parts`` also runs ``benchmarks/profile_train.py`` on the working tree (every phase alone) and prints
+the rate the sum of its parts predicts next to the measured loop. ``process s`` is each process's whole
+wall clock (start-up, warm-up, compilation, evaluations and graph rebuilds included).
+
+Run::
+
+    python benchmarks/bench_train.py --baseline HEAD --variants "" "compile=true"       # PointMaze quick
+    python benchmarks/bench_train.py --env AntMazeSmall --steps 30000 --baseline 82e65d3
+    python benchmarks/bench_train.py --env AntMaze --preset paper --steps 6000 --variants "update_dtype=bfloat16"
+
+Threads: ``--threads`` (default 1) is passed to every run (``threads=`` and ``OMP_NUM_THREADS``).
+"""
+
+from __future__ import annotations
+
+import argparse
+import csv
+import os
+import shlex
+import statistics
+import subprocess
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+ROOT = Path(__file__).resolve().parents[1]
+
+
+def prepare_baseline(ref: str, workdir: Path) -> tuple[Path, dict[str, str]]:
+    """A worktree of ``ref`` installed into ``workdir/site``: ``(recipe path, environment additions)``."""
+    tree = workdir / "tree"
+    subprocess.run(["git", "-C", str(ROOT), "worktree", "add", "--detach", str(tree), ref], check=True,
+                   capture_output=True)
+    site = workdir / "site"
+    subprocess.run(
+        [sys.executable, "-m", "pip", "install", "-q", "--no-deps", "--no-build-isolation", "--target", str(site),
+         str(tree)],
+        check=True,
+        capture_output=True,
+    )
+    return tree / "recipes" / "dhrl_antmaze.py", {"PYTHONPATH": str(site)}
+
+
+def remove_baseline(workdir: Path) -> None:
+    subprocess.run(["git", "-C", str(ROOT), "worktree", "remove", "--force", str(workdir / "tree")],
+                   capture_output=True)
+
+
+def run_recipe(recipe: Path, env_add: dict, overrides: list[str], run_dir: Path, threads: int) -> dict:
+    """Runs the recipe once; returns its loop rate and timings from ``metrics.csv``."""
+    env = {**os.environ, **env_add, "OMP_NUM_THREADS": str(threads), "MKL_NUM_THREADS": str(threads)}
+    env.pop("PYTHONPATH", None) if "PYTHONPATH" not in env_add else None
+    cmd = [sys.executable, str(recipe), *overrides, f"threads={threads}", f"run_dir={run_dir}",
+           f"hydra.run.dir={run_dir}/hydra", "logger.backend=none", "plots.every_epochs=0", "progress=false"]
+    start = time.perf_counter()
+    proc = subprocess.run(cmd, env=env, cwd=recipe.parents[1], capture_output=True, text=True)
+    wall = time.perf_counter() - start
+    if proc.returncode != 0:
+        raise RuntimeError(f"{shlex.join(cmd)} failed:\n{proc.stderr[-3000:]}")
+    rows = list(csv.DictReader(open(run_dir / "metrics.csv")))
+    return {"rows": rows, "process_s": wall}
+
+
+def loop_rate(rows: list[dict], warmup_steps: int) -> dict[str, float]:
+    """Env steps/s of collection + updates over the rows after the warm-up, and the phase shares."""
+    trained = [r for r in rows if float(r["env_steps"]) > warmup_steps]
+    first, last = (trained[0], trained[-1]) if len(trained) > 1 else (rows[0], rows[-1])
+
+    def f(row, key):
+        return float(row.get(key) or 0.0)
+
+    steps = f(last, "env_steps") - f(first, "env_steps")
+    collect = f(last, "time/collect_s") - f(first, "time/collect_s")
+    update = f(last, "time/update_s") - f(first, "time/update_s")
+    wall = f(last, "time/wall_s") - f(first, "time/wall_s")
+    return {
+        "env_steps_per_s": steps / max(collect + update, 1e-9),
+        "wall_steps_per_s": steps / max(wall, 1e-9),  # evaluation and graph rebuilds included
+        "update_ms_per_step": 1e3 * update / max(steps, 1),
+        "collect_ms_per_step": 1e3 * collect / max(steps, 1),
+        "steps": steps,
+    }
+
+
+def parts_rate(overrides: list[str], threads: int) -> float:
+    """The env steps/s that ``profile_train.py`` (every phase alone) predicts for the working tree."""
+    env = {**os.environ, "OMP_NUM_THREADS": str(threads)}
+    out = subprocess.run(
+        [sys.executable, str(ROOT / "benchmarks" / "profile_train.py"), "--threads", str(threads), *overrides],
+        env=env, capture_output=True, text=True, check=True,
+    ).stdout
+    last = [line for line in out.splitlines() if "env steps/s" in line][-1]
+    return float(last.split("->")[-1].split()[0])
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser.add_argument("--env", default="PointMaze")
+    parser.add_argument("--preset", default="quick")
+    parser.add_argument("--steps", type=int, default=21000, help="env steps per run (warm-up included)")
+    parser.add_argument(
+        "--epoch-episodes", type=int, default=5, help="schedule.epoch_episodes (short epochs: more rows to time)"
+    )
+    parser.add_argument("--baseline", default=None, help="a git ref to compare against (temporary worktree)")
+    parser.add_argument("--variants", nargs="*", default=[""], help="override strings for the working tree")
+    parser.add_argument("--repeats", type=int, default=2, help="interleaved rounds (median and best reported)")
+    parser.add_argument("--threads", type=int, default=1)
+    parser.add_argument("--parts", action="store_true", help="also run profile_train.py (sum of the parts)")
+    parser.add_argument("--keep", default=None, help="folder to keep the runs' directories in")
+    parser.add_argument("overrides", nargs="*", help="recipe overrides for every variant (key=value)")
+    args = parser.parse_args()
+    common = [
+        f"env={args.env}",
+        f"preset={args.preset}",
+        f"total_steps={args.steps}",
+        f"schedule.epoch_episodes={args.epoch_episodes}",
+        *args.overrides,
+    ]
+
+    sys.path.insert(0, str(ROOT / "tests"))
+    from _recipe import recipe_config  # noqa: PLC0415 - the composed config gives the warm-up length
+
+    warmup_episodes = recipe_config(*common)["schedule"]["warmup_episodes"]
+
+    work = Path(args.keep or tempfile.mkdtemp(prefix="bench_train_"))
+    work.mkdir(parents=True, exist_ok=True)
+    variants: dict[str, tuple[Path, dict, list[str]]] = {}
+    if args.baseline:
+        recipe, env_add = prepare_baseline(args.baseline, work / "baseline")
+        variants[f"base@{args.baseline}"] = (recipe, env_add, [])
+    for text in args.variants:
+        name = f"tree {text}".strip()
+        variants[name] = (ROOT / "recipes" / "dhrl_antmaze.py", {}, shlex.split(text))
+    results: dict[str, list[dict]] = {name: [] for name in variants}
+    try:
+        for round_ in range(args.repeats):
+            for i, (name, (recipe, env_add, extra)) in enumerate(variants.items()):
+                run_dir = work / f"r{round_}_v{i}"
+                out = run_recipe(recipe, env_add, [*common, *extra], run_dir, args.threads)
+                rows = out["rows"]
+                warmup_steps = warmup_episodes * float(rows[0]["env_steps"]) / float(rows[0]["episodes"])
+                rate = loop_rate(rows, warmup_steps) | {"process_s": out["process_s"]}
+                results[name].append(rate)
+                print(f"round {round_ + 1} {name:<32} {rate['env_steps_per_s']:7.2f} env steps/s", flush=True)
+    finally:
+        if args.baseline:
+            remove_baseline(work / "baseline")
+    parts = parts_rate([f"env={args.env}", f"preset={args.preset}", *args.overrides], args.threads) if args.parts else None
+
+    print(
+        f"\nenv={args.env} preset={args.preset} {' '.join(args.overrides)}: {args.steps} env steps per run, "
+        f"{args.threads} thread(s), {args.epoch_episodes}-episode epochs, rates over the epochs after the "
+        f"{warmup_episodes}-episode warm-up, "
+        f"median (best) of {args.repeats} interleaved rounds"
+    )
+    names = list(variants)
+    ref = names[0]
+    header = f"{'variant':<32} {'env steps/s':>16} {'ratio':>6} {'update ms/step':>15} {'collect ms/step':>16} {'wall steps/s':>13} {'process s':>10}"
+    print(header)
+    med = {n: statistics.median(r["env_steps_per_s"] for r in results[n]) for n in names}
+    for n in names:
+        rs = results[n]
+        best = max(r["env_steps_per_s"] for r in rs)
+        print(
+            f"{n:<32} {med[n]:>8.2f} ({best:6.2f}) {med[n] / med[ref]:>6.2f} "
+            f"{statistics.median(r['update_ms_per_step'] for r in rs):>15.2f} "
+            f"{statistics.median(r['collect_ms_per_step'] for r in rs):>16.2f} "
+            f"{statistics.median(r['wall_steps_per_s'] for r in rs):>13.2f} "
+            f"{statistics.median(r['process_s'] for r in rs):>10.1f}"
+        )
+    if parts is not None:
+        tree = next(n for n in names if n.startswith("tree"))
+        print(f"sum of the parts (profile_train.py, eager): {parts:.2f} env steps/s; measured loop ({tree}): {med[tree]:.2f}")
+
+
+if __name__ == "__main__":
+    main()
