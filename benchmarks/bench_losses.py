@@ -298,9 +298,12 @@ def yardsticks(shape: str, dtype: str, device: torch.device, iters: int, repeats
     eager = updates["recipe (eager)"]
     calls = record_matmuls(lambda: [eager() for _ in range(2)])  # one critic-only and one actor update
     floor = matmul_floor(calls)
-    timed = {name: (lambda f: lambda _: f())(f) for name, f in updates.items() if name != "plain (eager)"}
-    timed["plain (eager)"] = updates["plain (eager)"]
-    timed["matmul floor"] = lambda _, calls_per=2: floor()
+    timed = {
+        "recipe (eager)": lambda _: eager(),
+        "recipe (compile)": lambda _: updates["recipe (compile)"](),
+        "plain (eager)": updates["plain (eager)"],
+        "matmul floor": lambda _: floor(),  # two updates per call
+    }
     ms = _time_interleaved(timed, data, iters, repeats, device)
     ms["matmul floor"] /= 2  # the floor replays two updates per call
     gflop = count_flops(calls) / 2 / 1e9
@@ -309,7 +312,10 @@ def yardsticks(shape: str, dtype: str, device: torch.device, iters: int, repeats
         f"{dtype}, {device} ({torch.get_num_threads()} threads); {gflop:.3f} GFLOP of matrix products per "
         f"update; compilation {compile_s:.1f} s; minimum of {repeats} interleaved repeats of {iters} updates"
     )
-    print(" ".join(f"{name:>17}" for name in ms) + f" {'eager/plain':>12} {'eager/floor':>12} {'compile/plain':>14} {'compile/floor':>14}")
+    print(
+        " ".join(f"{name:>17}" for name in ms)
+        + f" {'eager/plain':>12} {'eager/floor':>12} {'compile/plain':>14} {'compile/floor':>14}"
+    )
     print(
         " ".join(f"{value:>14.2f} ms" for value in ms.values())
         + f" {ms['recipe (eager)'] / ms['plain (eager)']:>12.2f} {ms['recipe (eager)'] / ms['matmul floor']:>12.2f}"

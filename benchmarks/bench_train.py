@@ -44,12 +44,25 @@ ROOT = Path(__file__).resolve().parents[1]
 def prepare_baseline(ref: str, workdir: Path) -> tuple[Path, dict[str, str]]:
     """A worktree of ``ref`` installed into ``workdir/site``: ``(recipe path, environment additions)``."""
     tree = workdir / "tree"
-    subprocess.run(["git", "-C", str(ROOT), "worktree", "add", "--detach", str(tree), ref], check=True,
-                   capture_output=True)
+    subprocess.run(
+        ["git", "-C", str(ROOT), "worktree", "add", "--detach", str(tree), ref],
+        check=True,
+        capture_output=True,
+    )
     site = workdir / "site"
     subprocess.run(
-        [sys.executable, "-m", "pip", "install", "-q", "--no-deps", "--no-build-isolation", "--target", str(site),
-         str(tree)],
+        [
+            sys.executable,
+            "-m",
+            "pip",
+            "install",
+            "-q",
+            "--no-deps",
+            "--no-build-isolation",
+            "--target",
+            str(site),
+            str(tree),
+        ],
         check=True,
         capture_output=True,
     )
@@ -57,16 +70,26 @@ def prepare_baseline(ref: str, workdir: Path) -> tuple[Path, dict[str, str]]:
 
 
 def remove_baseline(workdir: Path) -> None:
-    subprocess.run(["git", "-C", str(ROOT), "worktree", "remove", "--force", str(workdir / "tree")],
-                   capture_output=True)
+    subprocess.run(
+        ["git", "-C", str(ROOT), "worktree", "remove", "--force", str(workdir / "tree")], capture_output=True
+    )
 
 
 def run_recipe(recipe: Path, env_add: dict, overrides: list[str], run_dir: Path, threads: int) -> dict:
     """Runs the recipe once; returns its loop rate and timings from ``metrics.csv``."""
     env = {**os.environ, **env_add, "OMP_NUM_THREADS": str(threads), "MKL_NUM_THREADS": str(threads)}
     env.pop("PYTHONPATH", None) if "PYTHONPATH" not in env_add else None
-    cmd = [sys.executable, str(recipe), *overrides, f"threads={threads}", f"run_dir={run_dir}",
-           f"hydra.run.dir={run_dir}/hydra", "logger.backend=none", "plots.every_epochs=0", "progress=false"]
+    cmd = [
+        sys.executable,
+        str(recipe),
+        *overrides,
+        f"threads={threads}",
+        f"run_dir={run_dir}",
+        f"hydra.run.dir={run_dir}/hydra",
+        "logger.backend=none",
+        "plots.every_epochs=0",
+        "progress=false",
+    ]
     start = time.perf_counter()
     proc = subprocess.run(cmd, env=env, cwd=recipe.parents[1], capture_output=True, text=True)
     wall = time.perf_counter() - start
@@ -101,24 +124,40 @@ def parts_rate(overrides: list[str], threads: int) -> float:
     """The env steps/s that ``profile_train.py`` (every phase alone) predicts for the working tree."""
     env = {**os.environ, "OMP_NUM_THREADS": str(threads)}
     out = subprocess.run(
-        [sys.executable, str(ROOT / "benchmarks" / "profile_train.py"), "--threads", str(threads), *overrides],
-        env=env, capture_output=True, text=True, check=True,
+        [
+            sys.executable,
+            str(ROOT / "benchmarks" / "profile_train.py"),
+            "--threads",
+            str(threads),
+            *overrides,
+        ],
+        env=env,
+        capture_output=True,
+        text=True,
+        check=True,
     ).stdout
     last = [line for line in out.splitlines() if "env steps/s" in line][-1]
     return float(last.split("->")[-1].split()[0])
 
 
 def main() -> None:
-    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser = argparse.ArgumentParser(
+        description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter
+    )
     parser.add_argument("--env", default="PointMaze")
     parser.add_argument("--preset", default="quick")
     parser.add_argument("--steps", type=int, default=21000, help="env steps per run (warm-up included)")
     parser.add_argument(
-        "--epoch-episodes", type=int, default=5, help="schedule.epoch_episodes (short epochs: more rows to time)"
+        "--epoch-episodes",
+        type=int,
+        default=5,
+        help="schedule.epoch_episodes (short epochs: more rows to time)",
     )
     parser.add_argument("--baseline", default=None, help="a git ref to compare against (temporary worktree)")
     parser.add_argument("--variants", nargs="*", default=[""], help="override strings for the working tree")
-    parser.add_argument("--repeats", type=int, default=2, help="interleaved rounds (median and best reported)")
+    parser.add_argument(
+        "--repeats", type=int, default=2, help="interleaved rounds (median and best reported)"
+    )
     parser.add_argument("--threads", type=int, default=1)
     parser.add_argument("--parts", action="store_true", help="also run profile_train.py (sum of the parts)")
     parser.add_argument("--keep", default=None, help="folder to keep the runs' directories in")
@@ -160,7 +199,11 @@ def main() -> None:
     finally:
         if args.baseline:
             remove_baseline(work / "baseline")
-    parts = parts_rate([f"env={args.env}", f"preset={args.preset}", *args.overrides], args.threads) if args.parts else None
+    parts = (
+        parts_rate([f"env={args.env}", f"preset={args.preset}", *args.overrides], args.threads)
+        if args.parts
+        else None
+    )
 
     print(
         f"\nenv={args.env} preset={args.preset} {' '.join(args.overrides)}: {args.steps} env steps per run, "
@@ -185,7 +228,9 @@ def main() -> None:
         )
     if parts is not None:
         tree = next(n for n in names if n.startswith("tree"))
-        print(f"sum of the parts (profile_train.py, eager): {parts:.2f} env steps/s; measured loop ({tree}): {med[tree]:.2f}")
+        print(
+            f"sum of the parts (profile_train.py, eager): {parts:.2f} env steps/s; measured loop ({tree}): {med[tree]:.2f}"
+        )
 
 
 if __name__ == "__main__":

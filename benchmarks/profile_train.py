@@ -160,7 +160,9 @@ def profile_high_update(updater) -> dict[str, float]:
 
 
 def main() -> None:
-    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser = argparse.ArgumentParser(
+        description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter
+    )
     parser.add_argument("--episodes", type=int, default=40, help="episodes collected before timing")
     parser.add_argument("--repeats", type=int, default=5, help="interleaved timing rounds (minimum reported)")
     parser.add_argument("--threads", type=int, default=1)
@@ -169,21 +171,16 @@ def main() -> None:
     warnings.filterwarnings("ignore")
     torch.set_num_threads(args.threads)
     overrides = ["env=PointMaze", "preset=quick", *args.overrides, "logger.backend=none", "progress=false"]
-    from dhrl_utils import build_agent, build_environment, build_replay_buffers, build_updaters, evaluation_kwargs
+    from dhrl_utils import build_run, evaluation_kwargs
 
-    from torchrl_dhrl.training import LOW_LEVEL_KEYS, evaluate_epoch, make_collector, rebuild_graph
+    from torchrl_dhrl.training import LOW_LEVEL_KEYS, evaluate_epoch, rebuild_graph
     from torchrl_dhrl.training.config import resolve_device
 
     cfg = recipe_config(overrides)
     device = resolve_device(cfg["device"])
     torch.manual_seed(cfg["seed"])
-    agent = build_agent(cfg, device)
-    train_env = build_environment(cfg, device, agent=agent)
-    eval_env = build_environment(cfg, device, eval=True, agent=agent)
+    agent, train_env, eval_env, low_rb, high_rb, low_updater, high_updater, collector = build_run(cfg, device)
     episode_length = train_env.base_env.max_episode_steps
-    low_rb, high_rb = build_replay_buffers(cfg, agent, device)
-    low_updater, high_updater = build_updaters(cfg, agent, low_rb, high_rb)
-    collector = make_collector(train_env, agent, episode_length)
     schedule = cfg["schedule"]
 
     clock = _Clock()
@@ -267,7 +264,9 @@ def main() -> None:
         share = per_step[name] / total if name in whole else float("nan")
         share_text = f"{100 * share:6.1f}%" if name in whole else ""
         print(f"{name:<36} {1e3 * seconds:>12.3f} {1e3 * per_step[name]:>16.3f} {share_text:>7}")
-    print(f"{'total (whole phases)':<36} {'':>12} {1e3 * total:>16.3f} {'100.0%':>7}  -> {1 / total:.1f} env steps/s")
+    print(
+        f"{'total (whole phases)':<36} {'':>12} {1e3 * total:>16.3f} {'100.0%':>7}  -> {1 / total:.1f} env steps/s"
+    )
 
 
 if __name__ == "__main__":

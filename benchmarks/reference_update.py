@@ -70,9 +70,9 @@ class PlainSQGCUpdate:
         cells = list(num_cells)
         self.device = torch.device(device)
         self.actor = _mlp([obs_dim + goal_dim, *cells, action_dim]).to(self.device)
-        self.critics = nn.ModuleList(
-            _mlp([obs_dim + goal_dim + action_dim, *cells, 1]) for _ in range(4)
-        ).to(self.device)  # policy twin (0, 1), graph twin (2, 3)
+        self.critics = nn.ModuleList(_mlp([obs_dim + goal_dim + action_dim, *cells, 1]) for _ in range(4)).to(
+            self.device
+        )  # policy twin (0, 1), graph twin (2, 3)
         self.target_actor = copy.deepcopy(self.actor).requires_grad_(False)
         self.target_critics = copy.deepcopy(self.critics).requires_grad_(False)
         self.action_max = float(action_max)
@@ -87,7 +87,9 @@ class PlainSQGCUpdate:
 
     def _autocast(self):
         return torch.autocast(
-            self.device.type, dtype=self.autocast_dtype or torch.bfloat16, enabled=self.autocast_dtype is not None
+            self.device.type,
+            dtype=self.autocast_dtype or torch.bfloat16,
+            enabled=self.autocast_dtype is not None,
         )
 
     def _pi(self, actor: nn.Module, obs: torch.Tensor, goal: torch.Tensor) -> torch.Tensor:
@@ -110,7 +112,9 @@ class PlainSQGCUpdate:
                 next_action = self._pi(self.target_actor, next2, both_goals)
                 next_action = next_action + torch.randn_like(next_action) * self.noise
                 targets = []
-                for pair, (goal, reward, nxt) in enumerate(zip(goals, rewards, next_action.split(n), strict=True)):
+                for pair, (goal, reward, nxt) in enumerate(
+                    zip(goals, rewards, next_action.split(n), strict=True)
+                ):
                     q1 = self._q(self.target_critics[2 * pair], next_obs, goal, nxt)
                     q2 = self._q(self.target_critics[2 * pair + 1], next_obs, goal, nxt)
                     low = -self.clip_return if pair == 0 else None
@@ -190,7 +194,7 @@ def matmul_floor(calls: list[tuple]):
 def count_flops(calls: list[tuple]) -> float:
     """Floating-point operations of the recorded products (2 per multiply-add)."""
     total = 0.0
-    for func, spec in calls:
+    for _, spec in calls:
         shapes = [s[0] for s in spec if isinstance(s, tuple) and len(s) == 3]
         a, b = shapes[-2], shapes[-1]  # (addmm/baddbmm: bias first)
         batch = a[0] if len(a) == 3 else 1

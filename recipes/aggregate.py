@@ -33,7 +33,9 @@ def summary_markdown(table: list[dict], reference: dict) -> str:
     ]
     keys = sorted({(row["env"], row["variant"]) for row in table})
     for env, variant in keys:
-        rows = sorted((r for r in table if (r["env"], r["variant"]) == (env, variant)), key=lambda r: r["env_steps"])
+        rows = sorted(
+            (r for r in table if (r["env"], r["variant"]) == (env, variant)), key=lambda r: r["env_steps"]
+        )
         paper = reference.get(env, {})
         picked = [rows[-1]]
         for steps in paper:  # the evaluation point nearest each of the paper's step counts, if reached
@@ -51,7 +53,9 @@ def summary_markdown(table: list[dict], reference: dict) -> str:
 
 
 def main(argv: list[str] | None = None) -> int:
-    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser = argparse.ArgumentParser(
+        description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter
+    )
     parser.add_argument("paths", nargs="+", help="run directories or folders holding them")
     parser.add_argument("--out", default=None, help="output folder (default: the first path)")
     parser.add_argument("--metric", default="eval/success", help="metrics.csv column (default eval/success)")

@@ -36,14 +36,12 @@ import torch
 import tqdm
 from dhrl_utils import (
     PAPER_SUCCESS,
-    build_agent,
-    build_environment,
     build_logger,
-    build_replay_buffers,
-    build_updaters,
+    build_run,
     evaluation_kwargs,
     remove_unused_output_dir,
     start_up,
+    sweep_defaults,
 )
 from omegaconf import DictConfig
 
@@ -60,7 +58,6 @@ from torchrl_dhrl.training import (
     graph_metrics,
     log_metrics,
     make_checkpoint,
-    make_collector,
     plot_epoch,
     plot_success_curve,
     rebuild_graph,
@@ -85,13 +82,8 @@ def train(cfg: DictConfig | dict, run_dir: str | Path | None = None) -> dict:
     schedule = cfg["schedule"]
 
     # ---- build: env specs -> agent -> envs with the agent's primers -> buffers, updaters, collector
-    agent = build_agent(cfg, device)
-    train_env = build_environment(cfg, device, agent=agent)
-    eval_env = build_environment(cfg, device, eval=True, agent=agent)
+    agent, train_env, eval_env, low_rb, high_rb, low_updater, high_updater, collector = build_run(cfg, device)
     episode_length = train_env.base_env.max_episode_steps
-    low_rb, high_rb = build_replay_buffers(cfg, agent, device)
-    low_updater, high_updater = build_updaters(cfg, agent, low_rb, high_rb)
-    collector = make_collector(train_env, agent, episode_length)
     counters = {"env_steps": 0, "episodes": 0, "epochs": 0, "graph_builds": 0, "wall_s": 0.0}
     history: list[dict] = []
     # one registry of everything the run carries, for saving and restoring alike
@@ -115,6 +107,18 @@ def train(cfg: DictConfig | dict, run_dir: str | Path | None = None) -> dict:
             raise ConfigError(f"`resume={cfg['resume']}`: {err}") from err
         print(f"Resumed from {resume} at {counters['env_steps']} env steps.")
     checkpoint_path = run_dir / CHECKPOINT_NAME
+    if (
+        resume is not None and counters["env_steps"] >= cfg["total_steps"]
+    ):  # e.g. a finished job of a re-run sweep
+        collector.shutdown()
+        print(
+            f"Already finished: {counters['env_steps']} env steps (total_steps={cfg['total_steps']}); nothing to do."
+        )
+        return {
+            "run_dir": str(run_dir),
+            "checkpoint": str(checkpoint_path),
+            **(history[-1] if history else {}),
+        }
 
     logger = build_logger(cfg, run_dir)
     warmup_end = schedule["warmup_episodes"]
@@ -258,11 +262,14 @@ def main(cfg: DictConfig) -> None:
 
     A configuration error prints one line to stderr (``<script>: configuration error: <key, value, what is
     accepted>``) and exits with status 2, without a traceback (``HYDRA_FULL_ERROR=1`` shows it) and without
-    leaving Hydra's new output directory behind. Ctrl-C (or SIGTERM) checkpoints and exits with 130.
+    leaving Hydra's new output directory behind. Ctrl-C (or SIGTERM) checkpoints and exits with 130. In a
+    sweep (``-m``) :func:`~dhrl_utils.sweep_defaults` fills ``threads`` and ``logger.group`` when they are null.
     """
     from hydra.core.hydra_config import HydraConfig
 
-    output_dir = Path(HydraConfig.get().runtime.output_dir)
+    hydra_cfg = HydraConfig.get()
+    output_dir = Path(hydra_cfg.runtime.output_dir)
+    sweep_defaults(cfg, hydra_cfg)
     try:
         train(cfg, run_dir=cfg.run_dir or output_dir)
     except ConfigError as err:

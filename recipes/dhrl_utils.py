@@ -9,7 +9,7 @@ the key.
 from __future__ import annotations
 
 from pathlib import Path
-from typing import Any
+from typing import Any, NamedTuple
 
 import torch
 from omegaconf import DictConfig, OmegaConf
@@ -22,8 +22,10 @@ from torchrl_dhrl.training import (
     DHRLAgent,
     LossUpdater,
     RunStart,
+    available_cpus,
     load_checkpoint,
     make_agent,
+    make_collector,
     make_environment,
     make_high_level_buffer,
     make_logger,
@@ -275,11 +277,72 @@ def build_updaters(cfg: dict, agent: DHRLAgent, low_rb, high_rb) -> tuple[LossUp
     return out[0], out[1]
 
 
+class RunParts(NamedTuple):
+    """What a run is made of, as :func:`build_run` builds it."""
+
+    agent: DHRLAgent
+    train_env: Any
+    eval_env: Any
+    low_rb: Any
+    high_rb: Any
+    low_updater: LossUpdater
+    high_updater: LossUpdater
+    collector: Any
+
+
+def build_run(cfg: dict, device: torch.device) -> RunParts:
+    """Everything a run trains with, in dependency order: env specs -> agent -> envs with the agent's
+    primers -> replay buffers -> updaters -> the collector (one whole episode per env and batch)."""
+    agent = build_agent(cfg, device)
+    train_env = build_environment(cfg, device, agent=agent)
+    eval_env = build_environment(cfg, device, eval=True, agent=agent)
+    low_rb, high_rb = build_replay_buffers(cfg, agent, device)
+    low_updater, high_updater = build_updaters(cfg, agent, low_rb, high_rb)
+    collector = make_collector(train_env, agent, train_env.base_env.max_episode_steps)
+    return RunParts(agent, train_env, eval_env, low_rb, high_rb, low_updater, high_updater, collector)
+
+
 def build_logger(cfg: dict, run_dir: Path):
     """The configuration's TorchRL logger (``None`` for ``logger.backend=none``)."""
     log = cfg["logger"]
     name = log["exp_name"] or f"dhrl_{cfg['env_name']}_seed{cfg['seed']}"
-    return make_logger(log["backend"], name, run_dir, project=log["project"], wandb_mode=log["wandb_mode"])
+    return make_logger(
+        log["backend"],
+        name,
+        run_dir,
+        project=log["project"],
+        wandb_mode=log["wandb_mode"],
+        group=log.get("group"),
+    )
+
+
+def sweep_defaults(cfg: DictConfig, hydra_cfg: DictConfig) -> None:
+    """Fills two keys of a job of a Hydra sweep (``-m``) when they are null, in place (one run: nothing).
+
+    - ``threads``: the cores divided among the jobs the launcher runs at once (joblib's ``n_jobs``, -1 for one
+      per core), or the cores each job is given (submitit's ``cpus_per_task``, Ray's
+      ``ray.remote.num_cpus``); one job at a time (Hydra's basic launcher) keeps them all. Two jobs each
+      using both cores of a 2-core machine ran 10x slower than with one thread each.
+    - ``logger.group``: the sweep directory's name, so W&B groups the sweep's runs.
+    """
+    from hydra.types import RunMode
+
+    if hydra_cfg.mode != RunMode.MULTIRUN:
+        return
+    if cfg.threads is None:
+        launcher = hydra_cfg.launcher
+        n_jobs = OmegaConf.select(launcher, "n_jobs", default=None)
+        per_job = OmegaConf.select(launcher, "cpus_per_task", default=None) or OmegaConf.select(
+            launcher, "ray.remote.num_cpus", default=None
+        )
+        if per_job:
+            cfg.threads = int(per_job)
+        elif n_jobs is not None:
+            cpus = available_cpus()
+            jobs = cpus if int(n_jobs) < 0 else min(int(n_jobs), cpus)
+            cfg.threads = max(1, cpus // max(jobs, 1))
+    if cfg.logger.group is None:
+        cfg.logger.group = Path(hydra_cfg.sweep.dir).name
 
 
 def evaluation_kwargs(cfg: dict) -> dict[str, Any]:

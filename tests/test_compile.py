@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import pytest
 import torch
+from _batches import sqgc_transitions
 from _recipe import recipe_config
 from tensordict import TensorDict
 from torchrl.data import LazyTensorStorage, TensorDictReplayBuffer
@@ -33,21 +34,8 @@ def _sqgc(seed: int = 0, cells=(32, 32)):
 
 
 def _low_buffer(n: int = 512, batch: int = 64):
-    gen = torch.Generator().manual_seed(123)
-    data = TensorDict(
-        {
-            "observation": torch.randn(n, OBS, generator=gen),
-            "action": (torch.rand(n, ACT, generator=gen) * 2 - 1) * AMAX,
-            "goal": torch.randn(n, GOAL, generator=gen),
-            "graph_goal": torch.randn(n, GOAL, generator=gen),
-            ("next", "observation"): torch.randn(n, OBS, generator=gen),
-            ("next", "reward"): -(torch.rand(n, 1, generator=gen) > 0.3).float(),
-            ("next", "graph_reward"): -(torch.rand(n, 1, generator=gen) > 0.5).float(),
-        },
-        [n],
-    )
     rb = TensorDictReplayBuffer(storage=LazyTensorStorage(n), batch_size=batch)
-    rb.extend(data)
+    rb.extend(sqgc_transitions(n, OBS, GOAL, ACT, AMAX))
     return rb
 
 
@@ -77,13 +65,29 @@ def test_compiled_updates_agree_with_eager_over_50_updates(actor_after_critic_st
         if value.is_floating_point():
             torch.testing.assert_close(compiled.state_dict()[key], value, rtol=1e-4, atol=1e-5, msg=key)
     moved = sum(
-        not torch.equal(v, _sqgc().state_dict()[k]) for k, v in eager.state_dict().items() if v.is_floating_point()
+        not torch.equal(v, _sqgc().state_dict()[k])
+        for k, v in eager.state_dict().items()
+        if v.is_floating_point()
     )
     assert moved > 10  # the comparison is not between untouched networks
     for out_e, out_c in zip(outs_e, outs_c, strict=True):
         assert bool(out_c["actor_updated"]) == bool(out_e["actor_updated"])
         for key in ("loss_policy_qvalue", "loss_graph_qvalue", "loss_actor", "policy_q", "graph_target"):
             torch.testing.assert_close(out_c[key], out_e[key], rtol=1e-4, atol=1e-5, msg=key)
+
+
+@needs_compile
+@pytest.mark.slow
+def test_compiled_updates_are_deterministic():
+    """Same seed, same compiled steps, bit for bit (what an exact resume of a compiled run relies on)."""
+    a, outs_a, _ = _run(True, 12, actor_after_critic_step=True)
+    b, outs_b, _ = _run(True, 12, actor_after_critic_step=True)
+    for key, value in a.state_dict().items():
+        assert torch.equal(value, b.state_dict()[key]), key
+    assert all(
+        torch.equal(x["loss_graph_qvalue"], y["loss_graph_qvalue"])
+        for x, y in zip(outs_a, outs_b, strict=True)
+    )
 
 
 @needs_compile
@@ -95,8 +99,14 @@ def test_compiled_high_level_update_agrees_with_eager():
         torch.manual_seed(1)
         actor = HighLevelActor(OBS, GOAL, low, high, num_cells=(32,))
         critic = GoalConditionedCritic(
-            OBS, GOAL, action_low=low, action_high=high, goal_key="desired_goal", action_key="subgoal",
-            relative_goal=False, num_cells=(32,),
+            OBS,
+            GOAL,
+            action_low=low,
+            action_high=high,
+            goal_key="desired_goal",
+            action_key="subgoal",
+            relative_goal=False,
+            num_cells=(32,),
         )
         return HighLevelLoss(actor, critic)
 
@@ -130,7 +140,9 @@ def test_compiled_high_level_update_agrees_with_eager():
 def test_compile_falls_back_with_a_message_where_unavailable(monkeypatch):
     monkeypatch.setattr(updates_module, "compile_available", lambda: "CppCompileError: no C++ compiler")
     loss = _sqgc()
-    with pytest.warns(UserWarning, match="torch.compile does not work here.*no C\\+\\+ compiler.*running eagerly"):
+    with pytest.warns(
+        UserWarning, match="torch.compile does not work here.*no C\\+\\+ compiler.*running eagerly"
+    ):
         updater = LossUpdater(loss, _low_buffer(), make_optimizers(loss), compile=True)
     assert not updater.compile
     torch.manual_seed(7)

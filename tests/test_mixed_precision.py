@@ -3,7 +3,7 @@ layers really run reduced, and a bf16 update stays close to the float32 one."""
 
 import pytest
 import torch
-from tensordict import TensorDict
+from _batches import sqgc_transitions
 from torchrl.data import LazyTensorStorage, TensorDictReplayBuffer
 
 from torchrl_dhrl.modules import EnsembleMLP, GoalConditionedActorNet, GoalConditionedCritic, LowLevelActor
@@ -73,19 +73,7 @@ def _sqgc_setup(seed=0, cells=(64, 64)):
     ]
     loss = SQGCLoss(actor, *critics, target_noise_std=0.0)
     n = 256
-    gen = torch.Generator().manual_seed(123)
-    data = TensorDict(
-        {
-            "observation": torch.randn(n, OBS, generator=gen),
-            "action": (torch.rand(n, ACT, generator=gen) * 2 - 1) * AMAX,
-            "goal": torch.randn(n, GOAL, generator=gen),
-            "graph_goal": torch.randn(n, GOAL, generator=gen),
-            ("next", "observation"): torch.randn(n, OBS, generator=gen),
-            ("next", "reward"): -(torch.rand(n, 1, generator=gen) > 0.3).float(),
-            ("next", "graph_reward"): -(torch.rand(n, 1, generator=gen) > 0.5).float(),
-        },
-        [n],
-    )
+    data = sqgc_transitions(n, OBS, GOAL, ACT, AMAX)
     rb = TensorDictReplayBuffer(storage=LazyTensorStorage(n), batch_size=64)
     rb.extend(data)
     return loss, rb

@@ -69,7 +69,16 @@ from .maze_diagnostics import (
 )
 from .planning_ablations import planning_ablations
 from .plots import graph_path_to_goal, plot_distance_scatter, plot_episode, plot_success_curve
-from .run import CONFIG_NAME, GracefulStop, LoopTimer, RunStart, log_metrics, start_run, write_metrics_csv
+from .run import (
+    CONFIG_NAME,
+    RESUME_AUTO,
+    GracefulStop,
+    LoopTimer,
+    RunStart,
+    log_metrics,
+    start_run,
+    write_metrics_csv,
+)
 from .threads import available_cpus, resolve_threads, set_threads
 from .updates import LossUpdater, NonFiniteLossError
 
@@ -77,6 +86,7 @@ __all__ = [
     "CHECKPOINT_COMPONENTS",
     "CHECKPOINT_NAME",
     "CONFIG_NAME",
+    "RESUME_AUTO",
     "CheckpointError",
     "CollectorCheckpointAdapter",
     "ConfigError",

@@ -130,9 +130,7 @@ def variant_of(run: RunRecord, runs: Sequence[RunRecord], ignored: Sequence[str]
     same_task = [r for r in runs if r.env == run.env]
     keys = sorted({k for r in same_task for k in r.config} - {"env_name"})
     differing = [
-        k
-        for k in keys
-        if not _ignored(k, ignored) and len({repr(r.config.get(k)) for r in same_task}) > 1
+        k for k in keys if not _ignored(k, ignored) and len({repr(r.config.get(k)) for r in same_task}) > 1
     ]
     if not differing:
         return "default"
@@ -248,7 +246,8 @@ def plot_aggregate(
 ) -> Path:
     """Saves success against env steps, one panel per task and one line per variant: the mean with a band of
     one standard deviation, the IQM dashed with its bootstrap interval shaded lightly, the paper's points
-    (``reference[env]``: steps -> success) as crosses."""
+    (``reference[env]``: steps -> success) as crosses, or in the panel's title when they lie beyond 1.5x the
+    runs' last evaluation."""
     envs = sorted({row["env"] for row in table})
     fig = Figure(figsize=(5.5 * max(len(envs), 1), 4))
     axes = fig.subplots(1, max(len(envs), 1), squeeze=False)[0]
@@ -260,14 +259,31 @@ def plot_aggregate(
             mean, std = np.array([r["mean"] for r in sel]), np.array([r["std"] for r in sel])
             line = ax.plot(x, mean, marker="o", ms=3, label=f"{variant} (n={sel[-1]['n']}): mean ± std")[0]
             ax.fill_between(x, mean - std, mean + std, color=line.get_color(), alpha=0.2)
-            ax.plot(x, [r["iqm"] for r in sel], ls="--", color=line.get_color(), alpha=0.8, label="IQM, 95% CI")
-            ax.fill_between(
-                x, [r["iqm_ci_low"] for r in sel], [r["iqm_ci_high"] for r in sel], color=line.get_color(), alpha=0.07
+            ax.plot(
+                x, [r["iqm"] for r in sel], ls="--", color=line.get_color(), alpha=0.8, label="IQM, 95% CI"
             )
+            ax.fill_between(
+                x,
+                [r["iqm_ci_low"] for r in sel],
+                [r["iqm_ci_high"] for r in sel],
+                color=line.get_color(),
+                alpha=0.07,
+            )
+        title = env
         if reference and env in reference:
-            ref = reference[env]
-            ax.scatter(list(ref), list(ref.values()), marker="x", color="k", zorder=3, label="paper (DHRL)")
-        ax.set_title(env)
+            # the paper's points within reach of these runs are drawn; later ones are named in the title
+            reach = 1.5 * max(row["env_steps"] for row in rows)
+            near = {s: v for s, v in reference[env].items() if s <= reach}
+            far = {s: v for s, v in reference[env].items() if s > reach}
+            if near:
+                ax.scatter(
+                    list(near), list(near.values()), marker="x", color="k", zorder=3, label="paper (DHRL)"
+                )
+            if far:
+                title += (
+                    " (paper: " + ", ".join(f"{100 * v:.1f}% at {s / 1e6:g}M" for s, v in far.items()) + ")"
+                )
+        ax.set_title(title, fontsize=10)
         ax.set_xlabel("env steps (warm-up included)")
         ax.set_ylabel(metric_label)
         ax.set_ylim(-0.02, 1.02)

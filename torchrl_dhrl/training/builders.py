@@ -465,9 +465,10 @@ def make_logger(
     *,
     project: str | None = None,
     wandb_mode: str = "offline",
+    group: str | None = None,
 ):
     """A TorchRL logger: ``"csv"`` (files under ``run_dir/logs``), ``"wandb"`` (offline unless
-    ``wandb_mode="online"``) or ``"tensorboard"``; ``None`` for ``"none"``.
+    ``wandb_mode="online"``; the runs of one sweep share ``group``) or ``"tensorboard"``; ``None`` for ``"none"``.
 
     Examples:
         >>> import tempfile
@@ -482,7 +483,10 @@ def make_logger(
     if backend == "tensorboard":
         return TensorboardLogger(exp_name, log_dir=log_dir)
     if backend == "wandb":
-        return WandbLogger(exp_name, offline=wandb_mode != "online", save_dir=log_dir, project=project)
+        extra = {"group": group} if group else {}
+        return WandbLogger(
+            exp_name, offline=wandb_mode != "online", save_dir=log_dir, project=project, **extra
+        )
     if backend == "none":
         return None
     raise ValueError(f"Unknown logger backend {backend!r}: csv, wandb, tensorboard or none.")

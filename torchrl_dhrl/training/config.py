@@ -139,6 +139,9 @@ def _check_run_keys(cfg: Mapping) -> None:
             raise ConfigError(f"`{path}` must be true or false, got {_get(cfg, path)!r}.")
     if not isinstance(_get(cfg, "logger.project"), str):
         raise ConfigError(f"`logger.project` must be a string, got {_get(cfg, 'logger.project')!r}.")
+    group = cfg.get("logger", {}).get("group") if isinstance(cfg.get("logger"), Mapping) else None
+    if group is not None and (not isinstance(group, str) or not group):
+        raise ConfigError(f"`logger.group` must be null or a non-empty string, got {group!r}.")
     if _get(cfg, "logger.exp_name") is not None and not isinstance(_get(cfg, "logger.exp_name"), str):
         raise ConfigError(
             f"`logger.exp_name` must be null (dhrl_<env>_seed<seed>) or a string, got {_get(cfg, 'logger.exp_name')!r}."

@@ -25,10 +25,21 @@ from .config import ConfigError, check_known_keys, check_resume_config, resolve_
 from .evaluation import ModuleTimer
 from .threads import set_threads
 
-__all__ = ["CONFIG_NAME", "GracefulStop", "LoopTimer", "RunStart", "log_metrics", "start_run", "write_metrics_csv"]
+__all__ = [
+    "CONFIG_NAME",
+    "RESUME_AUTO",
+    "GracefulStop",
+    "LoopTimer",
+    "RunStart",
+    "log_metrics",
+    "start_run",
+    "write_metrics_csv",
+]
 
 #: The run's configuration, as :func:`start_run` writes it into the run directory (YAML).
 CONFIG_NAME = "config.yaml"
+#: ``resume=auto``: continue the run directory's own checkpoint when there is one, else start afresh (sweeps).
+RESUME_AUTO = "auto"
 
 
 class RunStart(NamedTuple):
@@ -67,6 +78,10 @@ def start_run(
     printed as one line), creates the run directory and writes the configuration there
     (:data:`CONFIG_NAME`, YAML; rewritten by a resume, whose keys differ only in run bookkeeping).
 
+    ``resume="auto"`` (:data:`RESUME_AUTO`) resumes the run directory's own checkpoint when it holds one and
+    starts afresh otherwise, so re-launching a sweep continues its interrupted runs (the returned
+    configuration holds the path, or ``None``).
+
     Args:
         cfg (Mapping): the configuration, a plain nested dict (e.g. the recipe's composed Hydra config).
         run_dir (str or os.PathLike, optional): where the run writes; defaults to ``cfg["run_dir"]``, else
@@ -89,6 +104,8 @@ def start_run(
     validate_config(cfg)
     device = resolve_device(cfg["device"])
     run_dir = Path(run_dir or cfg["run_dir"] or ".").expanduser().resolve()
+    if cfg["resume"] == RESUME_AUTO:  # a sweep's job: continue its own run if it has one, else start it
+        cfg["resume"] = str(run_dir) if checkpoint_file(run_dir).exists() else None
     resume = state = None
     notes: list[str] = []
     if cfg["resume"]:

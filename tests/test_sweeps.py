@@ -1,0 +1,178 @@
+"""Many runs: ``resume=auto`` (a re-run sweep continues or skips its runs), sweep defaults, a joblib sweep aggregated."""
+
+from __future__ import annotations
+
+import csv
+import importlib.util
+import os
+import subprocess
+import sys
+from types import SimpleNamespace
+
+import numpy as np
+import pytest
+import yaml
+from _recipe import RECIPES, load_recipe, recipe_config
+from omegaconf import OmegaConf
+
+from torchrl_dhrl.training import CONFIG_NAME, load_checkpoint
+
+recipe = load_recipe()
+SMOKE = ("env=PointMaze", "preset=smoke", "plots.every_epochs=0", "device=cpu", "logger.backend=none")
+
+
+def _rows(run_dir):
+    with open(run_dir / "metrics.csv") as file:
+        return list(csv.DictReader(file))
+
+
+def test_resume_auto_starts_continues_and_skips_a_finished_run(tmp_path, capsys):
+    run = tmp_path / "job"
+    recipe.train(recipe_config(*SMOKE, "total_steps=160", "resume=auto"), run_dir=run)  # nothing there: fresh
+    first = (run / "metrics.csv").read_bytes()
+    assert [int(r["env_steps"]) for r in _rows(run)] == [80, 160]
+    saved = yaml.safe_load((run / CONFIG_NAME).read_text())
+    assert saved["total_steps"] == 160 and saved["resume"] is None  # auto resolved to "no checkpoint"
+    capsys.readouterr()
+    # the same command again (a re-launched sweep): finished, so nothing is collected, trained or rewritten
+    summary = recipe.train(recipe_config(*SMOKE, "total_steps=160", "resume=auto"), run_dir=run)
+    assert "Already finished: 160 env steps" in capsys.readouterr().out
+    assert (run / "metrics.csv").read_bytes() == first and summary["env_steps"] == 160
+    # a longer budget continues the run's own checkpoint
+    recipe.train(recipe_config(*SMOKE, "total_steps=320", "resume=auto"), run_dir=run)
+    assert [int(r["env_steps"]) for r in _rows(run)] == [80, 160, 240, 320]
+    assert load_checkpoint(run, components=("counters",))["counters"]["env_steps"] == 320
+
+
+def _hydra(mode, sweep_dir, **launcher):
+    from hydra.types import RunMode
+
+    return OmegaConf.create(
+        {
+            "mode": RunMode.MULTIRUN if mode == "multirun" else RunMode.RUN,
+            "sweep": {"dir": str(sweep_dir)},
+            "launcher": launcher,
+        }
+    )
+
+
+@pytest.mark.parametrize(
+    "mode, launcher, cpus, threads",
+    [
+        ("run", {"n_jobs": 2}, 2, None),  # one run: untouched
+        ("multirun", {}, 2, None),  # the basic launcher runs one job at a time: all cores
+        ("multirun", {"n_jobs": 2}, 2, 1),
+        ("multirun", {"n_jobs": -1}, 8, 1),
+        ("multirun", {"n_jobs": 3}, 8, 2),
+        ("multirun", {"n_jobs": 16}, 8, 1),
+        ("multirun", {"cpus_per_task": 4}, 8, 4),  # submitit
+        ("multirun", {"ray": {"remote": {"num_cpus": 3}}}, 8, 3),  # ray
+    ],
+)
+def test_sweep_defaults(mode, launcher, cpus, threads, monkeypatch, tmp_path):
+    import dhrl_utils
+
+    monkeypatch.setattr(dhrl_utils, "available_cpus", lambda: cpus)
+    cfg = OmegaConf.create(recipe_config("env=PointMaze"))
+    dhrl_utils.sweep_defaults(cfg, _hydra(mode, tmp_path / "sweep_17", **launcher))
+    assert cfg.threads == threads
+    assert cfg.logger.group == (None if mode == "run" else "sweep_17")
+    cfg = OmegaConf.create(recipe_config("env=PointMaze", "threads=2", "logger.group=mine"))
+    dhrl_utils.sweep_defaults(cfg, _hydra(mode, tmp_path / "sweep_17", **launcher))
+    assert (cfg.threads, cfg.logger.group) == (2, "mine")  # set by the user: kept
+
+
+def test_wandb_logger_gets_the_group(monkeypatch, tmp_path):
+    import torchrl.record.loggers as loggers
+
+    from torchrl_dhrl.training import make_logger
+
+    made = []
+    monkeypatch.setattr(loggers, "WandbLogger", lambda *a, **k: made.append((a, k)) or SimpleNamespace())
+    make_logger("wandb", "dhrl", tmp_path, project="p", group="sweep_17")
+    make_logger("wandb", "dhrl", tmp_path, project="p")
+    assert made[0][1]["group"] == "sweep_17" and made[0][1]["offline"] is True
+    assert "group" not in made[1][1]
+
+
+@pytest.mark.slow
+@pytest.mark.skipif(
+    importlib.util.find_spec("hydra_plugins.hydra_joblib_launcher") is None,
+    reason="needs hydra-joblib-launcher",
+)
+def test_joblib_sweep_runs_two_seeds_in_parallel_and_aggregates(tmp_path):
+    sweep = tmp_path / "sweep_pm"
+    command = [
+        sys.executable,
+        str(RECIPES / "dhrl_antmaze.py"),
+        "-m",
+        "env=PointMaze",
+        "preset=smoke",
+        "seed=0,1",
+        "total_steps=240",
+        "plots.every_epochs=0",
+        "device=cpu",
+        "logger.backend=csv",
+        "resume=auto",
+        "hydra/launcher=joblib",
+        "hydra.launcher.n_jobs=2",
+        f"hydra.sweep.dir={sweep}",
+    ]
+    env = {k: v for k, v in os.environ.items() if k != "OMP_NUM_THREADS"}
+    out = subprocess.run(command, env=env, capture_output=True, text=True, timeout=600)
+    assert out.returncode == 0, out.stderr[-3000:]
+    runs = sorted(p for p in sweep.iterdir() if p.is_dir())
+    assert [p.name for p in runs] == ["0", "1"]
+    configs = [yaml.safe_load((p / CONFIG_NAME).read_text()) for p in runs]
+    assert [c["seed"] for c in configs] == [0, 1]
+    cpus = len(os.sched_getaffinity(0))
+    assert all(c["threads"] == max(1, cpus // min(2, cpus)) for c in configs)  # cores shared by the 2 jobs
+    assert all(c["logger"]["group"] == "sweep_pm" for c in configs)
+    rows = [_rows(p) for p in runs]
+    assert [int(r["env_steps"]) for r in rows[0]] == [80, 160, 240] == [int(r["env_steps"]) for r in rows[1]]
+    losses = [
+        [float(r["low/loss_graph_qvalue"]) for r in run if r.get("low/loss_graph_qvalue")] for run in rows
+    ]
+    assert losses[0] != losses[1]  # two seeds, two runs
+
+    # aggregate the sweep and check the statistics against numpy on the same files
+    table_out = subprocess.run(
+        [sys.executable, str(RECIPES / "aggregate.py"), str(sweep), "--reps", "300"],
+        capture_output=True,
+        text=True,
+    )
+    assert table_out.returncode == 0, table_out.stderr
+    table = list(csv.DictReader(open(sweep / "aggregate.csv")))
+    assert [(r["env"], r["variant"], int(r["env_steps"]), int(r["n"])) for r in table] == [
+        ("PointMaze", "default", s, 2) for s in (80, 160, 240)
+    ]
+    for i, row in enumerate(table):
+        assert float(row["mean"]) == pytest.approx(np.mean([float(run[i]["eval/success"]) for run in rows]))
+    distance = subprocess.run(
+        [
+            sys.executable,
+            str(RECIPES / "aggregate.py"),
+            str(sweep),
+            "--metric",
+            "eval/final_distance",
+            "--reps",
+            "300",
+            "--out",
+            str(tmp_path / "distance"),
+        ],
+        capture_output=True,
+        text=True,
+    )
+    assert distance.returncode == 0, distance.stderr
+    for i, row in enumerate(csv.DictReader(open(tmp_path / "distance" / "aggregate.csv"))):
+        x = np.array([float(run[i]["eval/final_distance"]) for run in rows])
+        assert float(row["mean"]) == pytest.approx(x.mean()) and float(row["std"]) == pytest.approx(
+            x.std(ddof=1)
+        )
+
+    # the same sweep again: both runs are finished, so both jobs skip (metrics untouched)
+    before = [(p / "metrics.csv").read_bytes() for p in runs]
+    again = subprocess.run(command, env=env, capture_output=True, text=True, timeout=600)
+    assert again.returncode == 0, again.stderr[-3000:]
+    assert again.stdout.count("Already finished: 240 env steps") == 2
+    assert [(p / "metrics.csv").read_bytes() for p in runs] == before
