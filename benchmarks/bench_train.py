@@ -78,7 +78,8 @@ def remove_baseline(workdir: Path) -> None:
 def run_recipe(recipe: Path, env_add: dict, overrides: list[str], run_dir: Path, threads: int) -> dict:
     """Runs the recipe once; returns its loop rate and timings from ``metrics.csv``."""
     env = {**os.environ, **env_add, "OMP_NUM_THREADS": str(threads), "MKL_NUM_THREADS": str(threads)}
-    env.pop("PYTHONPATH", None) if "PYTHONPATH" not in env_add else None
+    if "PYTHONPATH" not in env_add:  # the working tree: its own editable install, not a baseline's copy
+        env.pop("PYTHONPATH", None)
     cmd = [
         sys.executable,
         str(recipe),
