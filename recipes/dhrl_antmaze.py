@@ -30,6 +30,8 @@ import sys
 import time
 from pathlib import Path
 
+import cloudpickle
+import dhrl_utils
 import hydra
 import numpy as np
 import torch
@@ -66,6 +68,10 @@ from torchrl_dhrl.training import (
     save_checkpoint,
     write_metrics_csv,
 )
+
+# Launchers that pickle the task for another process (submitit's local and Slurm executors) import its
+# modules there by name, and this folder is not on that process's path: ship the helpers by value.
+cloudpickle.register_pickle_by_value(dhrl_utils)
 
 
 def train(cfg: DictConfig | dict, run_dir: str | Path | None = None) -> dict:

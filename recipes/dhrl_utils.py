@@ -321,8 +321,9 @@ def sweep_defaults(cfg: DictConfig, hydra_cfg: DictConfig) -> None:
 
     - ``threads``: the cores divided among the jobs the launcher runs at once (joblib's ``n_jobs``, -1 for one
       per core), or the cores each job is given (submitit's ``cpus_per_task``, Ray's
-      ``ray.remote.num_cpus``); one job at a time (Hydra's basic launcher) keeps them all. Two jobs each
-      using both cores of a 2-core machine ran 10x slower than with one thread each.
+      ``ray.remote.num_cpus``; unset, both reserve one core per job, so one thread); one job at a time
+      (Hydra's basic launcher) keeps them all. Two jobs each using both cores of a 2-core machine ran 10x
+      slower than with one thread each.
     - ``logger.group``: the sweep directory's name, so W&B groups the sweep's runs.
     """
     from hydra.types import RunMode
@@ -331,10 +332,13 @@ def sweep_defaults(cfg: DictConfig, hydra_cfg: DictConfig) -> None:
         return
     if cfg.threads is None:
         launcher = hydra_cfg.launcher
+        target = str(OmegaConf.select(launcher, "_target_", default="") or "")
         n_jobs = OmegaConf.select(launcher, "n_jobs", default=None)
         per_job = OmegaConf.select(launcher, "cpus_per_task", default=None) or OmegaConf.select(
             launcher, "ray.remote.num_cpus", default=None
         )
+        if per_job is None and ("hydra_submitit_launcher" in target or "hydra_ray_launcher" in target):
+            per_job = 1  # a Slurm task or a Ray task reserves one CPU unless told otherwise
         if per_job:
             cfg.threads = int(per_job)
         elif n_jobs is not None:

@@ -5,8 +5,14 @@ from __future__ import annotations
 import csv
 import importlib.util
 import os
+import shutil
+import signal
+import socket
 import subprocess
 import sys
+import tempfile
+import time
+from pathlib import Path
 from types import SimpleNamespace
 
 import numpy as np
@@ -18,6 +24,8 @@ from omegaconf import OmegaConf
 from torchrl_dhrl.training import CONFIG_NAME, load_checkpoint
 
 recipe = load_recipe()
+SUBMITIT_LOCAL = "hydra_plugins.hydra_submitit_launcher.submitit_launcher.LocalLauncher"
+RAY = "hydra_plugins.hydra_ray_launcher.ray_launcher.RayLauncher"
 SMOKE = ("env=PointMaze", "preset=smoke", "plots.every_epochs=0", "device=cpu", "logger.backend=none")
 
 
@@ -66,7 +74,9 @@ def _hydra(mode, sweep_dir, **launcher):
         ("multirun", {"n_jobs": 3}, 8, 2),
         ("multirun", {"n_jobs": 16}, 8, 1),
         ("multirun", {"cpus_per_task": 4}, 8, 4),  # submitit
+        ("multirun", {"_target_": SUBMITIT_LOCAL, "cpus_per_task": None}, 8, 1),  # Slurm's default: 1 CPU
         ("multirun", {"ray": {"remote": {"num_cpus": 3}}}, 8, 3),  # ray
+        ("multirun", {"_target_": RAY, "ray": {"remote": {}}}, 8, 1),  # a Ray task reserves 1 CPU
     ],
 )
 def test_sweep_defaults(mode, launcher, cpus, threads, monkeypatch, tmp_path):
@@ -95,12 +105,64 @@ def test_wandb_logger_gets_the_group(monkeypatch, tmp_path):
     assert "group" not in made[1][1]
 
 
+def _has(plugin):
+    return importlib.util.find_spec(f"hydra_plugins.{plugin}") is not None
+
+
+@pytest.fixture(scope="module")
+def ray_cluster():
+    """A Ray cluster on this machine for the test: head node at 127.0.0.1, 2 CPUs, stopped at the end."""
+    with socket.socket() as free:
+        free.bind(("127.0.0.1", 0))
+        port = free.getsockname()[1]
+    temp = tempfile.mkdtemp(prefix="ray", dir="/tmp")  # Ray's socket paths must stay short
+    env = {**os.environ, "RAY_USAGE_STATS_ENABLED": "0"}
+    ray = Path(sys.executable).with_name("ray")
+    command = [str(ray), "start", "--head", "--block", "--node-ip-address=127.0.0.1", f"--port={port}"]
+    command += ["--num-cpus=2", "--include-dashboard=false", f"--temp-dir={temp}", "--disable-usage-stats"]
+    log = open(Path(temp) / "head.log", "w+")
+    head = subprocess.Popen(command, stdout=log, stderr=subprocess.STDOUT, env=env, start_new_session=True)
+    try:
+        deadline = time.monotonic() + 120
+        while "--block" not in (Path(temp) / "head.log").read_text():  # printed once the node is up
+            assert head.poll() is None and time.monotonic() < deadline, (Path(temp) / "head.log").read_text()
+            time.sleep(0.5)
+        yield f"127.0.0.1:{port}"
+    finally:
+        os.killpg(head.pid, signal.SIGTERM)  # --block: the head stops the node's processes on SIGTERM
+        try:
+            head.wait(timeout=60)
+        except subprocess.TimeoutExpired:
+            os.killpg(head.pid, signal.SIGKILL)
+        log.close()
+        shutil.rmtree(temp, ignore_errors=True)
+
+
+LAUNCHERS = {
+    # launcher: (plugin, its overrides, threads per job on this machine)
+    "joblib": ("hydra_joblib_launcher", ["hydra/launcher=joblib", "hydra.launcher.n_jobs=2"], None),
+    "ray": ("hydra_ray_launcher", ["hydra/launcher=ray_cluster"], 1),
+    "submitit_local": (
+        "hydra_submitit_launcher",
+        ["hydra/launcher=submitit_local", "hydra.launcher.timeout_min=10"],
+        1,
+    ),
+}
+
+
 @pytest.mark.slow
-@pytest.mark.skipif(
-    importlib.util.find_spec("hydra_plugins.hydra_joblib_launcher") is None,
-    reason="needs hydra-joblib-launcher",
-)
-def test_joblib_sweep_runs_two_seeds_in_parallel_and_aggregates(tmp_path):
+@pytest.mark.parametrize("launcher", list(LAUNCHERS))
+def test_sweep_runs_two_seeds_and_aggregates(launcher, request, tmp_path):
+    """A 2-seed sweep through each launcher: both runs, their seeds, threads and group, the aggregate against
+    numpy on the same files, and the sweep re-run skipping both finished jobs."""
+    plugin, overrides, threads = LAUNCHERS[launcher]
+    if not _has(plugin):
+        pytest.skip(f"needs {plugin.replace('_', '-')} (pip install -e '.[sweeps]')")
+    if launcher == "ray":
+        overrides = [*overrides, f"hydra.launcher.ray.init.address={request.getfixturevalue('ray_cluster')}"]
+    if threads is None:  # joblib: the machine's cores shared by its 2 jobs
+        cpus = len(os.sched_getaffinity(0))
+        threads = max(1, cpus // min(2, cpus))
     sweep = tmp_path / "sweep_pm"
     command = [
         sys.executable,
@@ -114,19 +176,19 @@ def test_joblib_sweep_runs_two_seeds_in_parallel_and_aggregates(tmp_path):
         "device=cpu",
         "logger.backend=csv",
         "resume=auto",
-        "hydra/launcher=joblib",
-        "hydra.launcher.n_jobs=2",
+        *overrides,
         f"hydra.sweep.dir={sweep}",
     ]
     env = {k: v for k, v in os.environ.items() if k != "OMP_NUM_THREADS"}
+    # Ray's driver prints every job's lines (it folds identical lines of several jobs into one otherwise)
+    env["RAY_DEDUP_LOGS"] = "0"
     out = subprocess.run(command, env=env, capture_output=True, text=True, timeout=600)
     assert out.returncode == 0, out.stderr[-3000:]
-    runs = sorted(p for p in sweep.iterdir() if p.is_dir())
+    runs = sorted(p for p in sweep.iterdir() if p.is_dir() and not p.name.startswith("."))
     assert [p.name for p in runs] == ["0", "1"]
     configs = [yaml.safe_load((p / CONFIG_NAME).read_text()) for p in runs]
     assert [c["seed"] for c in configs] == [0, 1]
-    cpus = len(os.sched_getaffinity(0))
-    assert all(c["threads"] == max(1, cpus // min(2, cpus)) for c in configs)  # cores shared by the 2 jobs
+    assert all(c["threads"] == threads for c in configs)
     assert all(c["logger"]["group"] == "sweep_pm" for c in configs)
     rows = [_rows(p) for p in runs]
     assert [int(r["env_steps"]) for r in rows[0]] == [80, 160, 240] == [int(r["env_steps"]) for r in rows[1]]
@@ -174,5 +236,10 @@ def test_joblib_sweep_runs_two_seeds_in_parallel_and_aggregates(tmp_path):
     before = [(p / "metrics.csv").read_bytes() for p in runs]
     again = subprocess.run(command, env=env, capture_output=True, text=True, timeout=600)
     assert again.returncode == 0, again.stderr[-3000:]
-    assert again.stdout.count("Already finished: 240 env steps") == 2
+    finished = "Already finished: 240 env steps"
+    if launcher == "submitit_local":  # the jobs' output goes to submitit's logs
+        printed = "".join(p.read_text() for p in (sweep / ".submitit").rglob("*_log.out"))
+        assert printed.count(finished) == 2
+    else:
+        assert (again.stdout + again.stderr).count(finished) == 2
     assert [(p / "metrics.csv").read_bytes() for p in runs] == before
