@@ -330,6 +330,9 @@ def make_collector(env: EnvBase, agent: DHRLAgent, episode_length: int) -> Colle
     collector's automatic reset starts the next one: batches are ``[num_envs, episode_length]``.
     Batches are stored on the env's device, trajectory ids included, so that they can be written into
     replay buffers on that device (also into a storage restored from a checkpoint, which has no device).
+    The policy runs on that device too (``device=env.device``): the collector's step tensordict then
+    keeps a device and the env does not cast it, key by key, on every step (a collector that infers the
+    policy's device leaves it ``None``; 0.2 ms of a 1.46 ms warm-up env step on PointMaze, same data).
     """
     num_envs = env.batch_size.numel()
     # The planner and the subgoal scheduler carry their state with TensorDictPrimers (already on the env);
@@ -339,7 +342,7 @@ def make_collector(env: EnvBase, agent: DHRLAgent, episode_length: int) -> Colle
         agent.policy,
         frames_per_batch=num_envs * episode_length,
         total_frames=-1,
-        storing_device=env.device,
+        device=env.device,
         auto_register_policy_transforms=False,
     )
 
