@@ -23,6 +23,7 @@ Everything is built by the factories of :mod:`torchrl_dhrl.training`, with the a
 
 from __future__ import annotations
 
+import gc
 import math
 import os
 import random
@@ -137,6 +138,11 @@ def train(cfg: DictConfig | dict, run_dir: str | Path | None = None) -> dict:
     timer = LoopTimer(agent.planner, env_steps=counters["env_steps"])
     wall_start, wall_before = time.perf_counter(), counters["wall_s"]
     stop = GracefulStop()
+    # What exists now (torch, Hydra, the agent, buffers, envs: about 0.5M objects) lives for the whole run: out of
+    # the cyclic garbage collector's reach, its full collections stop walking it (they took 6% of a PointMaze quick
+    # run's first 12k steps, 2.7% with the freeze). Reference counting still frees these objects; unfrozen at the end.
+    gc.collect()
+    gc.freeze()
     try:
         for batch in collector:
             timer.lap("collect")
@@ -223,6 +229,7 @@ def train(cfg: DictConfig | dict, run_dir: str | Path | None = None) -> dict:
         raise SystemExit(f"Stopping: {err}. The last good checkpoint is kept at {checkpoint_path}.") from err
     finally:
         stop.restore()
+        gc.unfreeze()
     bar.close()
     path = save_checkpoint(checkpoint, checkpoint_path)
     collector.shutdown()

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import csv
+import gc
 import importlib.util
 import os
 import shutil
@@ -37,6 +38,7 @@ def _rows(run_dir):
 def test_resume_auto_starts_continues_and_skips_a_finished_run(tmp_path, capsys):
     run = tmp_path / "job"
     recipe.train(recipe_config(*SMOKE, "total_steps=160", "resume=auto"), run_dir=run)  # nothing there: fresh
+    assert gc.get_freeze_count() == 0  # the loop's frozen objects are handed back to the collector
     first = (run / "metrics.csv").read_bytes()
     assert [int(r["env_steps"]) for r in _rows(run)] == [80, 160]
     saved = yaml.safe_load((run / CONFIG_NAME).read_text())
