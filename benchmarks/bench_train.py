@@ -103,7 +103,11 @@ def run_recipe(recipe: Path, env_add: dict, overrides: list[str], run_dir: Path,
 def loop_rate(rows: list[dict], warmup_steps: int) -> dict[str, float]:
     """Env steps/s of collection + updates over the rows after the warm-up, and the phase shares."""
     trained = [r for r in rows if float(r["env_steps"]) > warmup_steps]
-    first, last = (trained[0], trained[-1]) if len(trained) > 1 else (rows[0], rows[-1])
+    if len(trained) < 2:
+        raise ValueError(
+            f"{len(trained)} epoch(s) after the warm-up ({warmup_steps:g} env steps): nothing to time; raise --steps."
+        )
+    first, last = trained[0], trained[-1]
 
     def f(row, key):
         return float(row.get(key) or 0.0)
@@ -175,7 +179,20 @@ def main() -> None:
     sys.path.insert(0, str(ROOT / "tests"))
     from _recipe import recipe_config  # noqa: PLC0415 - the composed config gives the warm-up length
 
-    warmup_episodes = recipe_config(*common)["schedule"]["warmup_episodes"]
+    cfg = recipe_config(*common)
+    warmup_episodes = cfg["schedule"]["warmup_episodes"]
+    from torchrl_dhrl.envs import get_env_spec  # noqa: PLC0415
+
+    # the rate is taken between the first and the last epoch after the warm-up: at least two of them
+    episode_length = get_env_spec(cfg["env_name"]).episode_length
+    needed = (warmup_episodes + 2 * args.epoch_episodes) * episode_length
+    if args.steps < needed:
+        raise SystemExit(
+            f"--steps {args.steps} is too short for {cfg['env_name']}: the rate is measured between the first "
+            f"and the last epoch after the {warmup_episodes}-episode warm-up, so it needs at least "
+            f"{needed} env steps (warm-up + 2 epochs of {args.epoch_episodes} episodes of "
+            f"{episode_length} steps)."
+        )
 
     work = Path(args.keep or tempfile.mkdtemp(prefix="bench_train_"))
     work.mkdir(parents=True, exist_ok=True)
