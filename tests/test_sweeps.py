@@ -6,6 +6,7 @@ import csv
 import gc
 import importlib.util
 import os
+import secrets
 import shutil
 import signal
 import socket
@@ -113,12 +114,15 @@ def _has(plugin):
 
 @pytest.fixture(scope="module")
 def ray_cluster():
-    """A Ray cluster on this machine for the test: head node at 127.0.0.1, 2 CPUs, stopped at the end."""
+    """A Ray cluster on this machine for the test: head node at 127.0.0.1, 2 CPUs, token authentication, stopped
+    at the end. Yields its address and the environment variables a client needs."""
     with socket.socket() as free:
         free.bind(("127.0.0.1", 0))
         port = free.getsockname()[1]
     temp = tempfile.mkdtemp(prefix="ray", dir="/tmp")  # Ray's socket paths must stay short
-    env = {**os.environ, "RAY_USAGE_STATS_ENABLED": "0"}
+    # token authentication with a token of the test's own: the cluster does not depend on (or write) ~/.ray
+    auth = {"RAY_AUTH_MODE": "token", "RAY_AUTH_TOKEN": secrets.token_hex(32), "RAY_USAGE_STATS_ENABLED": "0"}
+    env = {**os.environ, **auth}
     ray = Path(sys.executable).with_name("ray")
     command = [str(ray), "start", "--head", "--block", "--node-ip-address=127.0.0.1", f"--port={port}"]
     command += ["--num-cpus=2", "--include-dashboard=false", f"--temp-dir={temp}", "--disable-usage-stats"]
@@ -129,7 +133,7 @@ def ray_cluster():
         while "--block" not in (Path(temp) / "head.log").read_text():  # printed once the node is up
             assert head.poll() is None and time.monotonic() < deadline, (Path(temp) / "head.log").read_text()
             time.sleep(0.5)
-        yield f"127.0.0.1:{port}"
+        yield f"127.0.0.1:{port}", auth
     finally:
         os.killpg(head.pid, signal.SIGTERM)  # --block: the head stops the node's processes on SIGTERM
         try:
@@ -160,8 +164,11 @@ def test_sweep_runs_two_seeds_and_aggregates(launcher, request, tmp_path):
     plugin, overrides, threads = LAUNCHERS[launcher]
     if not _has(plugin):
         pytest.skip(f"needs {plugin.replace('_', '-')} (pip install -e '.[sweeps]')")
+    env = {k: v for k, v in os.environ.items() if k != "OMP_NUM_THREADS"}
     if launcher == "ray":
-        overrides = [*overrides, f"hydra.launcher.ray.init.address={request.getfixturevalue('ray_cluster')}"]
+        address, auth = request.getfixturevalue("ray_cluster")
+        overrides = [*overrides, f"hydra.launcher.ray.init.address={address}"]
+        env.update(auth)
     if threads is None:  # joblib: the machine's cores shared by its 2 jobs
         cpus = len(os.sched_getaffinity(0))
         threads = max(1, cpus // min(2, cpus))
@@ -181,7 +188,6 @@ def test_sweep_runs_two_seeds_and_aggregates(launcher, request, tmp_path):
         *overrides,
         f"hydra.sweep.dir={sweep}",
     ]
-    env = {k: v for k, v in os.environ.items() if k != "OMP_NUM_THREADS"}
     # Ray's driver prints every job's lines (it folds identical lines of several jobs into one otherwise)
     env["RAY_DEDUP_LOGS"] = "0"
     out = subprocess.run(command, env=env, capture_output=True, text=True, timeout=600)
