@@ -287,7 +287,7 @@ class FutureGoalRelabel(UnregisteredAttributes, _SampleTransform, Transform):
         """The written part of one storage entry, shape ``[T_len, *lanes, *feature]`` (a view).
 
         Reads the one entry and slices it: ``storage.get(key)`` would first slice every entry of the
-        storage's TensorDict (a third of a sample's time at the quick preset).
+        storage's TensorDict (about a sixth of a sample's time at the quick preset).
         """
         data = storage._storage
         if not is_tensor_collection(data):
