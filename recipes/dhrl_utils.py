@@ -188,7 +188,7 @@ def build_agent(cfg: dict, device: torch.device) -> DHRLAgent:
         high_num_cells=high["hidden"],
         high_gamma=high["gamma"],
         high_loss_kwargs=_loss_kwargs(high),
-        distance=_oracle_distance(cfg) if planner["distance"] == "oracle" else None,
+        distance=oracle_distance(cfg) if planner["distance"] == "oracle" else None,
         twin=planner["twin"],
         cutoff=planner["cutoff"],
         max_landmarks=planner["max_landmarks"],
@@ -208,7 +208,7 @@ def _loss_kwargs(level: dict) -> dict[str, Any]:
     }
 
 
-def _oracle_distance(cfg: dict) -> LineOfSightDistance:
+def oracle_distance(cfg: dict) -> LineOfSightDistance:
     """``planner.distance=oracle``: straight-line steps at ``oracle_speed``, blocked by walls and boards."""
     indices = goal_indices(cfg)
     if indices is None:

@@ -3,6 +3,7 @@ and the low level alone, on the same test goals (paired).
 
     python recipes/diagnose_planning.py outputs/<date>/<time>             # the run directory
     python recipes/diagnose_planning.py run/checkpoint --reach-radii 0.25 0.5 --repeats 5
+    python recipes/diagnose_planning.py run/checkpoint --oracle     # + the graph with the oracle distance
 """
 
 from __future__ import annotations
@@ -10,7 +11,7 @@ from __future__ import annotations
 import argparse
 
 import torch
-from dhrl_utils import agent_from_checkpoint, build_environment
+from dhrl_utils import agent_from_checkpoint, build_environment, oracle_distance
 
 from torchrl_dhrl.training import planning_ablations
 
@@ -20,13 +21,24 @@ def main(argv: list[str] | None = None) -> list[dict]:
     parser.add_argument("checkpoint", help="a checkpoint or the run directory holding it")
     parser.add_argument("--reach-radii", type=float, nargs="*", default=[], help="waypoint radii to try")
     parser.add_argument("--repeats", type=int, default=5, help="batches of the run's evaluation episodes")
+    parser.add_argument(
+        "--oracle",
+        action="store_true",
+        help="add the variants with the graph rebuilt on the same landmarks with the oracle distance "
+        "(planner.distance=oracle's line of sight; mazes and UR3Obstacle)",
+    )
     parser.add_argument("--device", default="cpu")
     args = parser.parse_args(argv)
     device = torch.device(args.device)
     cfg, agent = agent_from_checkpoint(args.checkpoint, device)
     env = build_environment(cfg, device, eval=True, agent=agent)
     rows = planning_ablations(
-        agent, env, env.base_env.max_episode_steps, reach_radii=args.reach_radii, repeats=args.repeats
+        agent,
+        env,
+        env.base_env.max_episode_steps,
+        reach_radii=args.reach_radii,
+        repeats=args.repeats,
+        oracle=oracle_distance(cfg) if args.oracle else None,
     )
     print(
         f"{cfg['env_name']}: {agent.planner.num_landmarks} landmarks, reach_radius {agent.planner.reach_radius:g}"

@@ -284,6 +284,24 @@ def test_line_of_sight_axis_parallel_and_broadcast():
         LineOfSightDistance(0.0)
 
 
+def test_line_of_sight_builds_the_same_graph_under_reduced_precision_building():
+    # the recipe's preset=cpu builds graphs with planner.build_dtype=bfloat16; the oracle has no network, so
+    # with_autocast is the identity and the graph is the float32 one, bit for bit
+    torch.manual_seed(0)
+    boxes = torch.tensor([[[1.0, -1.0], [2.0, 3.0]], [[-3.0, 2.0], [0.5, 2.5]]])
+    oracle = LineOfSightDistance(0.5, boxes=boxes, margin=0.2)
+    assert oracle.with_autocast(torch.bfloat16) is oracle and oracle.with_autocast(None) is oracle
+    candidates = torch.rand(300, 2) * 10 - 4
+    graphs = []
+    for dtype in (None, torch.bfloat16):
+        graph = LandmarkGraph(cutoff=6.0, max_landmarks=40, early_stop=0.0, build_autocast_dtype=dtype)
+        GraphPlanner(graph, oracle, goal_dim=2).build(candidates, candidates.clone())
+        graphs.append(graph)
+    assert graphs[0].num_landmarks == 40
+    for key, value in graphs[0].state_dict().items():
+        torch.testing.assert_close(graphs[1].state_dict()[key], value, rtol=0, atol=0)
+
+
 # ---------------------------------------------------------------- FGS inside the env
 def _line_planner():
     dist = lambda s, g: (g - s[..., :2]).norm(dim=-1) / 0.2  # noqa: E731

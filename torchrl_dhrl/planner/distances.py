@@ -463,6 +463,19 @@ class LineOfSightDistance:
         self.blocked = float(blocked)
         self.chunk_size = int(chunk_size)
 
+    def with_autocast(self, dtype: torch.dtype | None) -> LineOfSightDistance:
+        """This distance itself: geometry has no network to run in reduced precision.
+
+        Lets a graph built with ``build_autocast_dtype`` (e.g. the recipe's ``planner.build_dtype=bfloat16``)
+        use the oracle unchanged; its distances stay those of the inputs' dtype (float32 states: float32).
+
+        Examples:
+            >>> oracle = LineOfSightDistance(0.5)
+            >>> oracle.with_autocast(torch.bfloat16) is oracle
+            True
+        """
+        return self
+
     def crosses_obstacle(self, start: Tensor, end: Tensor) -> Tensor:
         """``[n]`` bool: does the segment ``start -> end`` (``[n, dim]``) cross any (inflated) box?"""
         boxes = self.boxes.to(start.device, start.dtype)

@@ -47,7 +47,14 @@ from .diagnostics import (
     visible_offsets,
 )
 from .epoch import epoch_of, evaluate_epoch, graph_metrics, plot_epoch, rebuild_graph
-from .evaluation import EvaluationResult, ModuleTimer, evaluate, goal_as_waypoint, record_video
+from .evaluation import (
+    EvaluationResult,
+    ModuleTimer,
+    evaluate,
+    goal_as_subgoal,
+    goal_as_waypoint,
+    record_video,
+)
 from .hierarchy_diagnostics import (
     HIERARCHY_DIAG_KEYS,
     LEARNED_DISTANCE_DIAG_KEYS,
@@ -116,6 +123,7 @@ __all__ = [
     "evaluate",
     "evaluate_epoch",
     "feasibility_fractions",
+    "goal_as_subgoal",
     "goal_as_waypoint",
     "graph_diagnosis",
     "graph_metrics",

@@ -13,7 +13,14 @@ from tensordict.utils import NestedKey
 from torchrl.envs import EnvBase
 from torchrl.envs.utils import ExplorationType, set_exploration_type
 
-__all__ = ["EvaluationResult", "ModuleTimer", "evaluate", "goal_as_waypoint", "record_video"]
+__all__ = [
+    "EvaluationResult",
+    "ModuleTimer",
+    "evaluate",
+    "goal_as_subgoal",
+    "goal_as_waypoint",
+    "record_video",
+]
 
 
 class EvaluationResult(NamedTuple):
@@ -101,6 +108,44 @@ def goal_as_waypoint(
     waypoint_key = low_actor.in_keys[1]
     copy = TensorDictModule(lambda goal: goal.clone(), in_keys=[goal_key], out_keys=[waypoint_key])
     return TensorDictSequential(copy, low_actor)
+
+
+def goal_as_subgoal(
+    policy: TensorDictSequential, planner: TensorDictModuleBase, goal_key: NestedKey = "desired_goal"
+) -> TensorDictSequential:
+    """The acting policy with the high level's subgoal replaced by the final goal: the graph plans to the goal.
+
+    ``policy`` is an acting policy ``TensorDictSequential(high_policy, planner, low_policy)`` (as
+    :func:`~torchrl_dhrl.training.make_agent` builds it); a module copying ``goal_key`` into the planner's
+    ``subgoal_key`` is inserted right before ``planner``, so the high level keeps its cadence (its
+    ``new_subgoal`` flags still trigger a replan every ``c_h`` steps) but the planner routes to the goal
+    itself. Evaluated next to the full agent, it tells a high level whose subgoals lead astray from a
+    graph that cannot route to the goal (e.g. a goal beyond the explored region, where the planner falls
+    back to the landmark it estimates nearest).
+
+    Examples:
+        >>> import torch
+        >>> from torchrl_dhrl.training import make_agent, make_environment
+        >>> spec_env = make_environment("PointMaze", "cpu", num_envs=1, max_episode_steps=20)
+        >>> agent = make_agent(spec_env, "cpu", subgoal_low=[-2.0, -2.0], subgoal_high=[10.0, 10.0],
+        ...     subgoal_interval=5, low_num_cells=(16,), high_num_cells=(16,), max_landmarks=8)
+        >>> env = make_environment("PointMaze", "cpu", num_envs=2, seed=0, eval=True, max_episode_steps=20,
+        ...     agent=agent)
+        >>> policy = goal_as_subgoal(agent.policy, agent.planner)
+        >>> td = policy(env.reset())
+        >>> torch.equal(td["subgoal"], td["desired_goal"]), torch.equal(td["waypoint"], td["desired_goal"])
+        (True, True)
+    """
+    modules = list(policy.module)
+    positions = [i for i, module in enumerate(modules) if module is planner]
+    if len(positions) != 1:
+        raise ValueError(
+            "goal_as_subgoal: `planner` must be one of the modules of `policy` (found "
+            f"{len(positions)} times among {[type(m).__name__ for m in modules]})."
+        )
+    copy = TensorDictModule(lambda goal: goal.clone(), in_keys=[goal_key], out_keys=[planner.subgoal_key])
+    modules.insert(positions[0], copy)
+    return TensorDictSequential(*modules)
 
 
 class ModuleTimer:
