@@ -34,7 +34,7 @@ from torchrl_dhrl.training import (
     obstacle_boxes,
     start_run,
 )
-from torchrl_dhrl.training.config import BUILD_DTYPES, UPDATE_DTYPES
+from torchrl_dhrl.training.config import BUILD_DTYPES, UPDATE_DTYPES, with_implied_keys
 
 #: The configuration directory; ``config.yaml`` there is the schema of every configuration key.
 CONFIG_DIR = Path(__file__).resolve().parent / "config"
@@ -182,11 +182,13 @@ def build_agent(cfg: dict, device: torch.device) -> DHRLAgent:
         # the reference's low-level critics see the absolute goal even where the actor sees the relative one
         relative_critic_goal=low["critic_goal"] == "relative",
         low_gamma=low["gamma"],
+        low_distance_output=low["distance_output"],
         action_noise=low["action_noise"],
         uniform_prob=low["uniform_prob"],
         sqgc_loss_kwargs={**_loss_kwargs(low), "sqgc": low["sqgc"]},
         high_num_cells=high["hidden"],
         high_gamma=high["gamma"],
+        high_distance_output=high["distance_output"],
         high_loss_kwargs=_loss_kwargs(high),
         distance=oracle_distance(cfg) if planner["distance"] == "oracle" else None,
         twin=planner["twin"],
@@ -368,7 +370,7 @@ def agent_from_checkpoint(path, device: str | torch.device = "cpu") -> tuple[dic
     """
     device = torch.device(device)
     state = load_checkpoint(path, map_location=device, components=("config", "agent"))
-    cfg = state["config"]
+    cfg = with_implied_keys(state["config"])  # an older checkpoint rebuilt with its own behaviour
     agent = build_agent(cfg, device)
     agent.load_state_dict(state["agent"])
     return cfg, agent

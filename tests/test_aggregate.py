@@ -109,3 +109,15 @@ def test_variants_ignore_bookkeeping_and_configless_runs_group_alone(tmp_path):
 def test_no_runs_exits_2(tmp_path, capsys):
     assert aggregate_cli.main([str(tmp_path)]) == 2
     assert "no metrics.csv" in capsys.readouterr().err
+
+
+def test_an_older_run_is_labelled_with_the_distance_output_it_was_trained_with(tmp_path):
+    from torchrl_dhrl.training.aggregate import find_runs, variant_of
+
+    for name, low in (("old", {"gamma": 0.99}), ("new", {"gamma": 0.99, "distance_output": "linear"})):
+        run = tmp_path / name
+        run.mkdir()
+        (run / "metrics.csv").write_text("env_steps,eval/success\n9000,0.5\n")
+        (run / "config.yaml").write_text(yaml.safe_dump({"env_name": "PointMaze", "seed": 0, "low": low}))
+    runs = find_runs([tmp_path])
+    assert [variant_of(r, runs) for r in runs] == ["low.distance_output=linear", "low.distance_output=softplus"]

@@ -18,6 +18,7 @@ from dhrl_utils import config_schema
 from torchrl_dhrl.envs import ENV_NAMES
 
 from torchrl_dhrl.training import (
+    IMPLIED_WHEN_ABSENT,
     RESUME_MUTABLE_KEYS,
     CheckpointError,
     ConfigError,
@@ -29,6 +30,7 @@ from torchrl_dhrl.training import (
     resolve_threads,
     set_threads,
     validate_config,
+    with_implied_keys,
 )
 
 recipe = load_recipe()
@@ -76,6 +78,8 @@ def _snapshot(path):
         ("logger.exp_name=5", "`logger.exp_name` must be null"),
         ("run_dir=5", "`run_dir` must be null or a path"),
         ("resume=5", "`resume` must be null or a path"),
+        ("low.distance_output=relu", r"`low.distance_output` must be one of \('linear', 'softplus'\)"),
+        ("high.distance_output=exp", "`high.distance_output` must be one of"),
     ],
 )
 def test_bad_values_name_the_key(override, match):
@@ -159,6 +163,59 @@ def test_check_resume_config():
         check_resume_config(saved, {**same, "seed": 1, "low": {"hidden": [64]}})
     assert {"total_steps", "device", "run_dir", "resume", "threads", "logger.*", "plots.*"} <= set(
         RESUME_MUTABLE_KEYS
+    )
+
+
+def test_a_checkpoint_older_than_a_key_is_compared_with_the_value_it_was_trained_with():
+    # 0.3.x configurations have no `low/high.distance_output`: they were trained with softplus distances
+    saved = {"seed": 0, "low": {"gamma": 0.99}, "high": {"gamma": 0.99}}
+    linear = {
+        "seed": 0,
+        "low": {"gamma": 0.99, "distance_output": "linear"},
+        "high": {"gamma": 0.99, "distance_output": "linear"},
+    }
+    with pytest.raises(
+        ConfigError,
+        match=r"high.distance_output 'softplus' -> 'linear'; low.distance_output 'softplus' -> 'linear'",
+    ):
+        check_resume_config(saved, linear)
+    softplus = {
+        "seed": 0,
+        "low": {"gamma": 0.99, "distance_output": "softplus"},
+        "high": {"gamma": 0.99, "distance_output": "softplus"},
+    }
+    assert check_resume_config(saved, softplus) == []
+    assert set(IMPLIED_WHEN_ABSENT) == {"low.distance_output", "high.distance_output"}
+    filled = with_implied_keys(saved)
+    assert filled["low"]["distance_output"] == filled["high"]["distance_output"] == "softplus"
+    assert "distance_output" not in saved["low"]  # a copy
+    assert with_implied_keys({"seed": 0}) == {"seed": 0}  # no section, nothing implied
+
+
+def test_an_older_checkpoint_rebuilds_with_its_own_distance_output(run, monkeypatch):
+    dhrl_utils = load_recipe("dhrl_utils")
+    real = dhrl_utils.load_checkpoint
+
+    def as_0_3(path, **kwargs):  # the same checkpoint, its configuration without the 0.4 keys
+        state = real(path, **kwargs)
+        for level in ("low", "high"):
+            del state["config"][level]["distance_output"]
+        return state
+
+    _, agent = dhrl_utils.agent_from_checkpoint(run)
+    assert (
+        agent.sqgc_loss.policy_critic.distance_output
+        == agent.high_loss.critic_network.distance_output
+        == "linear"
+    )
+    monkeypatch.setattr(dhrl_utils, "load_checkpoint", as_0_3)
+    cfg, agent = dhrl_utils.agent_from_checkpoint(run)
+    assert cfg["low"]["distance_output"] == "softplus"
+    assert agent.sqgc_loss.policy_critic.distance_output == "softplus"
+    assert (
+        agent.sqgc_loss.graph_critic.distance_output
+        == agent.high_loss.critic_network.distance_output
+        == "softplus"
     )
 
 

@@ -54,8 +54,10 @@ def _td(n):
 
 
 @pytest.mark.parametrize("relative", [True, False])
-def test_critic_matches_manual_features_and_distance_parameterisation(relative):
-    critic = _critic(relative_goal=relative, goal_indices=(2, 4))
+@pytest.mark.parametrize("output", ["linear", "softplus"])
+def test_critic_matches_manual_features_and_distance_parameterisation(relative, output):
+    critic = _critic(relative_goal=relative, goal_indices=(2, 4), distance_output=output)
+    assert critic.distance_output == output
     td = _td(9)
     q = critic(td)["state_action_value"]
     assert q.shape == (9, 2)
@@ -63,19 +65,28 @@ def test_critic_matches_manual_features_and_distance_parameterisation(relative):
     goal_in = g - obs[:, [2, 4]] if relative else g
     x = torch.cat([obs, goal_in, a / 2.0], -1)  # the critic sees action / action_max
     for k in range(2):
-        d = torch.nn.functional.softplus(_member_mlp(critic, k, x))
+        raw = _member_mlp(critic, k, x)
+        d = raw if output == "linear" else torch.nn.functional.softplus(raw)
         torch.testing.assert_close(q[:, k], -(1 - GAMMA**d) / (1 - GAMMA))
     assert not torch.allclose(q[:, 0], q[:, 1])
 
 
 def test_distance_parameterisation_range_and_plain_q_option():
-    critic = _critic()
+    critic = _critic(distance_output="softplus")
     with torch.no_grad():
         for layer in critic.module.ensemble.layers:
             layer.weight.mul_(30)  # huge raw outputs of both signs
     q = critic(_td(2000))["state_action_value"]
     assert (q <= 0).all() and (q >= -1 / (1 - GAMMA)).all()
     assert q.min() < -50 and q.max() > -1  # the range is actually used at both ends
+    # the reference's linear output: a negative raw distance is a positive Q (the targets push it back)
+    linear = _critic()
+    assert linear.distance_output == "linear"
+    raw = torch.tensor([-2.0, 0.0, 5.0, 400.0])
+    torch.testing.assert_close(linear.module.q_from_raw(raw), distance_to_q(raw, GAMMA))
+    assert linear.module.q_from_raw(raw)[0] > 0 and linear.module.q_from_raw(raw)[1] == 0
+    with pytest.raises(ValueError, match="distance_output"):
+        _critic(distance_output="relu")
     plain = _critic(parameterization="q")
     td = _td(5)
     x = torch.cat([td["observation"], td["waypoint"] - td["observation"][:, :2], td["action"] / 2], -1)
@@ -126,15 +137,17 @@ def test_goal_distance_equals_manual_eq1_with_graph_critics(twin):
     assert not got.requires_grad
 
 
-def test_goal_distance_twin_choice_on_a_hand_made_twin():
+@pytest.mark.parametrize("output", ["linear", "softplus"])
+def test_goal_distance_twin_choice_on_a_hand_made_twin(output):
     """A twin whose members output fixed, different distances: the optimistic choice is the smaller."""
-    actor, critic = _actor(), _critic()
-    with torch.no_grad():  # zero hidden->output weights: each member outputs softplus(bias)
+    actor, critic = _actor(), _critic(distance_output=output)
+    with torch.no_grad():  # zero hidden->output weights: each member outputs (softplus of) its bias
         out = critic.module.ensemble.layers[-1]
         out.weight.zero_()
         out.bias.copy_(torch.tensor([3.0, 12.0]).reshape(out.bias.shape))
     states, goals = torch.randn(6, OBS), torch.randn(6, GOAL)
-    soft = torch.nn.functional.softplus(torch.tensor([3.0, 12.0]))
+    soft = torch.tensor([3.0, 12.0])
+    soft = soft if output == "linear" else torch.nn.functional.softplus(soft)
     optimistic = GoalDistance(actor, critic)(states, goals)
     pessimistic = GoalDistance(actor, critic, twin="pessimistic")(states, goals)
     torch.testing.assert_close(optimistic, soft[0].expand(6), rtol=1e-4, atol=1e-4)
@@ -203,3 +216,20 @@ def test_goal_distance_follows_parameter_dtype_and_returns_on_input_device():
     out = GoalDistance(actor, critic)(states, goals)
     assert out.dtype == torch.float64 and out.device == states.device
     torch.testing.assert_close(out.float(), ref, rtol=1e-4, atol=1e-4)
+
+
+def test_goal_distance_clamps_a_negative_linear_distance_at_zero():
+    """The reference's queries: ``clamp(min(d1, d2), min=0)`` of the raw distances."""
+    actor, critic = _actor(), _critic()
+    with torch.no_grad():
+        out = critic.module.ensemble.layers[-1]
+        out.weight.zero_()
+        out.bias.copy_(torch.tensor([-4.0, 7.0]).reshape(out.bias.shape))
+    states, goals = torch.randn(5, OBS), torch.randn(5, GOAL)
+    assert (GoalDistance(actor, critic)(states, goals) == 0).all()
+    torch.testing.assert_close(
+        GoalDistance(actor, critic, twin="pessimistic")(states, goals),
+        torch.full((5,), 7.0),
+        rtol=1e-4,
+        atol=1e-4,
+    )

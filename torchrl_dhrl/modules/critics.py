@@ -25,6 +25,9 @@ from .actors import DEFAULT_NUM_CELLS
 from .ensemble import EnsembleMLP
 
 PARAMETERIZATIONS = ("distance", "q")
+#: ``distance_output`` values: the network's raw output is the distance (the reference's ``DistCritic``) or
+#: its softplus (a distance >= 0 by construction).
+DISTANCE_OUTPUTS = ("linear", "softplus")
 #: The default discount (the reference's); the losses and GoalDistance use it for critics that hold none.
 DEFAULT_GAMMA = 0.99
 
@@ -82,10 +85,13 @@ class GoalConditionedCriticNet(nn.Module):
     the action is scaled to ``[-1, 1]`` with its box (the low-level critic sees
     ``action / action_max``, the high-level critic the subgoal scaled from its box).
 
-    With ``parameterization="distance"`` (default), each member outputs a distance
-    ``d = softplus(raw) >= 0`` and ``Q = -(1 - gamma^d) / (1 - gamma)``, so
-    ``Q`` lies in ``(-1 / (1 - gamma), 0]`` by construction. With ``"q"`` the raw output
-    is Q.
+    With ``parameterization="distance"`` (default), each member outputs a distance ``d`` and
+    ``Q = -(1 - gamma^d) / (1 - gamma)``. With ``distance_output="linear"`` (default, the reference
+    implementation's ``DistCritic``) ``d`` is the raw output itself: it can be negative (``Q > 0``),
+    which the targets (clamped at ``Q <= 0``) push back, and distance queries clamp it at 0 (Eq. 1,
+    :func:`q_to_distance`). With ``"softplus"``, ``d = softplus(raw) >= 0``, so ``Q`` lies in
+    ``(-1 / (1 - gamma), 0]`` by construction (this package's behaviour before 0.4). With ``"q"`` the
+    raw output is Q.
 
     Args:
         observation_dim (int): observation size.
@@ -100,16 +106,21 @@ class GoalConditionedCriticNet(nn.Module):
         num_cells (sequence of int): hidden widths. Defaults to ``(256, 256, 256)``.
         activation_class (type): hidden activation. Defaults to ``nn.ReLU``.
         parameterization (str): ``"distance"`` or ``"q"``. Defaults to ``"distance"``.
+        distance_output (str): ``"linear"`` or ``"softplus"``, the map from the raw output to the distance
+            (``parameterization="distance"`` only). Defaults to ``"linear"`` (the reference's).
         gamma (float): discount, used by the distance parameterisation and Eq. (1).
             Defaults to ``0.99``.
 
     Examples:
         >>> import torch
         >>> net = GoalConditionedCriticNet(4, 2, -torch.ones(3), torch.ones(3), goal_indices=[0, 1],
-        ...     num_cells=(16,))
+        ...     num_cells=(16,), distance_output="softplus")
         >>> q = net(torch.randn(5, 4), torch.randn(5, 2), torch.rand(5, 3))
         >>> q.shape, bool((q <= 0).all())
         (torch.Size([5, 2]), True)
+        >>> raw = torch.tensor([-1.0, 0.0, 2.0])  # the raw outputs as distances (the default)
+        >>> GoalConditionedCriticNet(4, 2, -torch.ones(3), torch.ones(3), goal_indices=[0, 1]).q_from_raw(raw)
+        tensor([ 1.0101,  0.0000, -1.9900])
     """
 
     def __init__(
@@ -125,6 +136,7 @@ class GoalConditionedCriticNet(nn.Module):
         num_cells: Sequence[int] = DEFAULT_NUM_CELLS,
         activation_class: type[nn.Module] = nn.ReLU,
         parameterization: str = "distance",
+        distance_output: str = "linear",
         gamma: float = DEFAULT_GAMMA,
     ) -> None:
         super().__init__()
@@ -132,12 +144,15 @@ class GoalConditionedCriticNet(nn.Module):
             raise ValueError(
                 f"`parameterization` must be one of {PARAMETERIZATIONS}, got {parameterization!r}."
             )
+        if distance_output not in DISTANCE_OUTPUTS:
+            raise ValueError(f"`distance_output` must be one of {DISTANCE_OUTPUTS}, got {distance_output!r}.")
         if num_nets < 1:
             raise ValueError(f"`num_nets` must be >= 1, got {num_nets}.")
         self.observation_dim = observation_dim
         self.goal_dim = goal_dim
         self.action_dim = int(action_low.shape[-1])
         self.parameterization = parameterization
+        self.distance_output = distance_output
         self.gamma = _check_gamma(gamma)
         register_goal_indices(self, relative_goal, goal_indices, goal_dim, observation_dim)
         loc, scale = box_loc_scale(action_low, action_high)
@@ -174,7 +189,7 @@ class GoalConditionedCriticNet(nn.Module):
     def q_from_raw(self, raw: torch.Tensor) -> torch.Tensor:
         """Q from the raw network outputs (the parameterisation's output map), elementwise."""
         if self.parameterization == "distance":
-            return distance_to_q(F.softplus(raw), self.gamma)
+            return distance_to_q(raw if self.distance_output == "linear" else F.softplus(raw), self.gamma)
         return raw
 
     def forward(self, observation: torch.Tensor, goal: torch.Tensor, action: torch.Tensor) -> torch.Tensor:
@@ -223,6 +238,8 @@ class GoalConditionedCritic(TensorDictModule):
         num_cells (sequence of int): hidden widths. Defaults to ``(256, 256, 256)``.
         activation_class (type): hidden activation. Defaults to ``nn.ReLU``.
         parameterization (str): ``"distance"`` (default) or ``"q"``.
+        distance_output (str): ``"linear"`` (default, the reference's: the raw output is the distance) or
+            ``"softplus"`` (a distance >= 0 by construction); see :class:`GoalConditionedCriticNet`.
         gamma (float): discount. Defaults to ``0.99``.
         observation_key (NestedKey): where the state is read. Defaults to ``"observation"``.
         goal_key (NestedKey): where the goal is read (the waypoint at the low level, the final goal at
@@ -257,6 +274,7 @@ class GoalConditionedCritic(TensorDictModule):
         num_cells: Sequence[int] = DEFAULT_NUM_CELLS,
         activation_class: type[nn.Module] = nn.ReLU,
         parameterization: str = "distance",
+        distance_output: str = "linear",
         gamma: float = DEFAULT_GAMMA,
         observation_key: NestedKey = "observation",
         goal_key: NestedKey = "waypoint",
@@ -282,6 +300,7 @@ class GoalConditionedCritic(TensorDictModule):
             num_cells=num_cells,
             activation_class=activation_class,
             parameterization=parameterization,
+            distance_output=distance_output,
             gamma=gamma,
         )
         super().__init__(net, in_keys=[observation_key, goal_key, action_key], out_keys=[out_key])
@@ -297,6 +316,10 @@ class GoalConditionedCritic(TensorDictModule):
     @property
     def parameterization(self) -> str:
         return self.module.parameterization
+
+    @property
+    def distance_output(self) -> str:
+        return self.module.distance_output
 
 
 def check_critic(critic, role: str) -> None:

@@ -51,7 +51,15 @@ def _same_architecture(a: GoalConditionedCritic, b: GoalConditionedCritic) -> bo
     na, nb = a.module, b.module
     if type(na) is not type(nb) or type(na.ensemble.activation) is not type(nb.ensemble.activation):
         return False
-    scalars = ("observation_dim", "goal_dim", "action_dim", "parameterization", "gamma", "relative_goal")
+    scalars = (
+        "observation_dim",
+        "goal_dim",
+        "action_dim",
+        "parameterization",
+        "distance_output",
+        "gamma",
+        "relative_goal",
+    )
     if any(getattr(na, s) != getattr(nb, s) for s in scalars):
         return False
     for buf in ("goal_indices", "action_loc", "action_scale"):

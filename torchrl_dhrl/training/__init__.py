@@ -29,6 +29,7 @@ from .checkpoint import (
 )
 from .config import (
     DISTANCES,
+    IMPLIED_WHEN_ABSENT,
     LOGGER_BACKENDS,
     RESUME_MUTABLE_KEYS,
     SEED_MAX,
@@ -37,6 +38,7 @@ from .config import (
     check_resume_config,
     resolve_device,
     validate_config,
+    with_implied_keys,
 )
 from .diagnostics import (
     ReachResult,
@@ -99,6 +101,7 @@ __all__ = [
     "ConfigError",
     "DHRLAgent",
     "DISTANCES",
+    "IMPLIED_WHEN_ABSENT",
     "EvaluationResult",
     "GracefulStop",
     "GraphDiagnosis",
@@ -167,6 +170,7 @@ __all__ = [
     "subgoal_segments",
     "summarize_reach",
     "validate_config",
+    "with_implied_keys",
     "visible_offsets",
     "write_metrics_csv",
 ]

@@ -25,6 +25,8 @@ import yaml
 from matplotlib.figure import Figure
 from scipy.stats import trim_mean
 
+from .config import with_implied_keys
+
 __all__ = [
     "IGNORED_KEYS",
     "RunRecord",
@@ -103,7 +105,8 @@ def read_run(path: str | Path) -> RunRecord:
     config: dict[str, Any] = {"env_name": "unknown"}
     for name in CONFIG_FILES:
         if (path / name).is_file():
-            config = _flatten(yaml.safe_load((path / name).read_text()) or {})
+            # an older run's configuration lacks the keys added since: the values it was trained with
+            config = _flatten(with_implied_keys(yaml.safe_load((path / name).read_text()) or {}))
             break
     return RunRecord(path, config, rows)
 

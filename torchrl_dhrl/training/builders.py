@@ -140,11 +140,13 @@ def make_agent(
     relative_goal: bool = False,
     relative_critic_goal: bool = False,
     low_gamma: float = 0.99,
+    low_distance_output: str = "linear",
     action_noise: float = 0.1,
     uniform_prob: float = 0.2,
     sqgc_loss_kwargs: Mapping[str, Any] | None = None,
     high_num_cells: Sequence[int] = (256, 256, 256),
     high_gamma: float = 0.99,
+    high_distance_output: str = "linear",
     high_loss_kwargs: Mapping[str, Any] | None = None,
     distance: TemporalDistance | None = None,
     twin: str = "optimistic",
@@ -171,6 +173,9 @@ def make_agent(
         relative_goal (bool): the low-level actor sees ``waypoint - achieved goal`` (needs ``goal_indices``).
         relative_critic_goal (bool): the low-level critics do too (the reference's see the waypoint itself).
         low_gamma, high_gamma (float): discounts, which also set the critics' distance parameterisation.
+        low_distance_output, high_distance_output (str): each level's critics' map from the raw output to the
+            distance, ``"linear"`` (the reference's) or ``"softplus"``
+            (:class:`~torchrl_dhrl.modules.GoalConditionedCriticNet`).
         action_noise (float): Gaussian action noise, a fraction of the action box half-width.
         uniform_prob (float): the probability of a uniform random action.
         sqgc_loss_kwargs, high_loss_kwargs (dict, optional): keyword arguments of
@@ -221,6 +226,7 @@ def make_agent(
             action_spec,
             relative_goal=relative_critic_goal,
             gamma=low_gamma,
+            distance_output=low_distance_output,
             goal_key="goal",
             **common,
         ).to(device)
@@ -244,6 +250,7 @@ def make_agent(
         goal_indices=indices,
         relative_goal=False,
         gamma=high_gamma,
+        distance_output=high_distance_output,
         num_cells=tuple(high_num_cells),
         goal_key="desired_goal",
         action_key="subgoal",

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import copy
 import difflib
 import fnmatch
 import importlib.util
@@ -11,6 +12,7 @@ from typing import Any
 
 import torch
 
+from torchrl_dhrl.modules.critics import DISTANCE_OUTPUTS
 from torchrl_dhrl.planner.distances import TWIN_CHOICES
 from torchrl_dhrl.planner.fgs import FGS_TRIGGERS, FGS_WEIGHTINGS
 
@@ -19,6 +21,7 @@ __all__ = [
     "CHOICES",
     "ConfigError",
     "DISTANCES",
+    "IMPLIED_WHEN_ABSENT",
     "LOGGER_BACKENDS",
     "RESUME_MUTABLE_KEYS",
     "SEED_MAX",
@@ -28,6 +31,7 @@ __all__ = [
     "check_resume_config",
     "resolve_device",
     "validate_config",
+    "with_implied_keys",
 ]
 
 #: Precisions of the distance evaluations of a graph rebuild (``None``: the networks' own, float32).
@@ -59,9 +63,19 @@ RESUME_MUTABLE_KEYS = (
     "plots.*",
     "checkpoint.*",
 )
+#: Keys added after runs were checkpointed without them, with the value those runs were trained with: a
+#: saved configuration without the key means that value (:func:`with_implied_keys`), so a checkpoint of an
+#: older version resumes (and rebuilds, e.g. in the diagnosis scripts) with its own behaviour, and resuming it
+#: under another value is refused like any other change of the experiment.
+IMPLIED_WHEN_ABSENT = {
+    "low.distance_output": "softplus",  # 0.3.x and before: softplus distances
+    "high.distance_output": "softplus",
+}
 #: Keys with a fixed set of values (the first is the default; see docs/faithfulness.md).
 CHOICES = {
     "low.critic_goal": ("absolute", "relative"),
+    "low.distance_output": DISTANCE_OUTPUTS,
+    "high.distance_output": DISTANCE_OUTPUTS,
     "high.warmup_subgoals": ("uniform", "policy"),
     "planner.twin": TWIN_CHOICES,
     "fgs.trigger": FGS_TRIGGERS,
@@ -280,6 +294,29 @@ def _flatten(cfg: Mapping, prefix: str = "") -> dict[str, Any]:
     return out
 
 
+def with_implied_keys(cfg: Mapping, implied: Mapping[str, Any] = IMPLIED_WHEN_ABSENT) -> dict:
+    """A copy of a saved configuration with the keys it predates set to the values it was trained with.
+
+    A key of ``implied`` (dotted, :data:`IMPLIED_WHEN_ABSENT` by default) that ``cfg`` lacks while holding its
+    section (e.g. ``low``) is added with its implied value; everything else is copied as it is.
+
+    Examples:
+        >>> with_implied_keys({"low": {"gamma": 0.99}})["low"]
+        {'gamma': 0.99, 'distance_output': 'softplus'}
+        >>> with_implied_keys({"low": {"distance_output": "linear"}})["low"]["distance_output"]
+        'linear'
+    """
+    out = copy.deepcopy(dict(cfg))
+    for dotted, value in implied.items():
+        *parents, leaf = dotted.split(".")
+        node = out
+        for part in parents:
+            node = node.get(part) if isinstance(node, Mapping) else None
+        if isinstance(node, dict) and leaf not in node:
+            node[leaf] = value
+    return out
+
+
 def _unknown_keys(cfg: Mapping, schema: Mapping, prefix: str = "") -> list[str]:
     unknown = []
     for key, value in cfg.items():
@@ -361,8 +398,10 @@ def check_resume_config(
     Keys matching a pattern of ``mutable`` (:data:`RESUME_MUTABLE_KEYS` by default: run length, outputs,
     logging, device and speed settings) may differ; any other key that both configurations hold must
     have the same value, or the resumed run would not be the one that was checkpointed (and would often
-    fail loading it, e.g. other network sizes). Keys only one side holds (a checkpoint written before a
-    key existed, or after one was removed) are not an error: the current value is used and reported.
+    fail loading it, e.g. other network sizes). A key of :data:`IMPLIED_WHEN_ABSENT` that the checkpoint
+    predates is compared with the value the checkpoint was trained with. Other keys only one side holds (a
+    checkpoint written before a key existed, or after one was removed) are not an error: the current value
+    is used and reported.
 
     Args:
         saved (Mapping): the configuration stored in the checkpoint (under ``"config"``).
@@ -390,6 +429,12 @@ def check_resume_config(
         The checkpoint was trained with another configuration: low.hidden [32, 32] -> [64] ...
     """
     old, new = _flatten(saved), _flatten(current)
+    for (
+        key,
+        value,
+    ) in IMPLIED_WHEN_ABSENT.items():  # a checkpoint older than the key: what it was trained with
+        if key in new and key not in old:
+            old[key] = value
     allowed, forbidden = [], []
     for key in sorted(old.keys() & new.keys()):
         if old[key] == new[key]:
