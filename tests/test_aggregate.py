@@ -120,4 +120,7 @@ def test_an_older_run_is_labelled_with_the_distance_output_it_was_trained_with(t
         (run / "metrics.csv").write_text("env_steps,eval/success\n9000,0.5\n")
         (run / "config.yaml").write_text(yaml.safe_dump({"env_name": "PointMaze", "seed": 0, "low": low}))
     runs = find_runs([tmp_path])
-    assert [variant_of(r, runs) for r in runs] == ["low.distance_output=linear", "low.distance_output=softplus"]
+    assert [variant_of(r, runs) for r in runs] == [
+        "low.distance_output=linear",
+        "low.distance_output=softplus",
+    ]

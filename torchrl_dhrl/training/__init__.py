@@ -57,6 +57,7 @@ from .evaluation import (
     goal_as_waypoint,
     record_video,
 )
+from .exploration_diagnostics import EpisodeProgress, episode_progress
 from .hierarchy_diagnostics import (
     HIERARCHY_DIAG_KEYS,
     LEARNED_DISTANCE_DIAG_KEYS,
@@ -102,6 +103,7 @@ __all__ = [
     "DHRLAgent",
     "DISTANCES",
     "IMPLIED_WHEN_ABSENT",
+    "EpisodeProgress",
     "EvaluationResult",
     "GracefulStop",
     "GraphDiagnosis",
@@ -123,6 +125,7 @@ __all__ = [
     "check_resume_config",
     "checkpoint_file",
     "epoch_of",
+    "episode_progress",
     "evaluate",
     "evaluate_epoch",
     "feasibility_fractions",

@@ -1,0 +1,85 @@
+"""How far do a maze run's training episodes get, goal by goal? Is exploration what holds the run back?
+
+Reads the high-level replay buffer of a checkpoint (one record per ``c_h``-step segment of every stored training
+episode) and prints, for the most recent episodes, how far along the maze (obstacle-free path length from the
+start) each goal was and how far the agent got, next to the furthest point the stored episodes ever reached
+(the frontier), then a summary: how many goals lay beyond the frontier and how far those episodes got, how
+many episodes reached the frontier.
+
+    python recipes/diagnose_exploration.py outputs/<date>/<time>          # the run directory
+    python recipes/diagnose_exploration.py run/checkpoint --episodes 120 --rows 0
+"""
+
+from __future__ import annotations
+
+import argparse
+
+import torch
+from dhrl_utils import agent_from_checkpoint, build_replay_buffers
+from torchrl_dhrl.envs import MAZE_NAMES
+
+from torchrl_dhrl.training import EpisodeProgress, MazeGeometry, episode_progress, load_checkpoint
+
+
+def exploration_from_checkpoint(
+    path, *, episodes: int = 60, near: float = 0.9
+) -> tuple[EpisodeProgress, dict]:
+    """:func:`~torchrl_dhrl.training.episode_progress` of a recipe checkpoint's last ``episodes`` training episodes.
+
+    Returns the progress and a summary: ``explored``, ``goals_beyond`` (goals past the frontier),
+    ``beyond_mean_progress`` (how far those episodes got), ``reached_frontier`` (episodes that got to ``near``
+    times the frontier's progress or further), ``episodes``.
+    """
+    cfg, agent = agent_from_checkpoint(path)
+    if cfg["env_name"] not in MAZE_NAMES:
+        raise ValueError(f"diagnose_exploration needs a maze run; {path} is a {cfg['env_name']} run.")
+    _, high_rb = build_replay_buffers(cfg, agent, torch.device("cpu"))
+    high_rb.load_state_dict(load_checkpoint(path, components=("high_rb",))["high_rb"])
+    records = high_rb.storage[: len(high_rb.storage)]
+    first = records["segment_index"].reshape(-1) == 0
+    start = records["achieved_goal"][first].float().mean(0)  # where the episodes start
+    geometry = MazeGeometry.from_maze(cfg["env_name"], margin=0.5)
+    out = episode_progress(geometry, records, start, last=episodes)
+    beyond = out.goal_progress > out.explored
+    summary = {
+        "episodes": len(out.episode_ids),
+        "explored": out.explored,
+        "goals_beyond": int(beyond.sum()),
+        "beyond_mean_progress": float(out.max_progress[beyond].mean()) if beyond.any() else float("nan"),
+        "reached_frontier": int((out.max_progress >= near * out.explored).sum()),
+    }
+    return out, summary
+
+
+def main(argv: list[str] | None = None) -> tuple[EpisodeProgress, dict]:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("checkpoint", help="a checkpoint or the run directory holding it")
+    parser.add_argument("--episodes", type=int, default=60, help="the most recent training episodes to read")
+    parser.add_argument("--rows", type=int, default=25, help="episodes to print one by one (the latest)")
+    parser.add_argument(
+        "--near",
+        type=float,
+        default=0.9,
+        help="'reached the frontier': this fraction of its progress or further",
+    )
+    args = parser.parse_args(argv)
+    out, summary = exploration_from_checkpoint(args.checkpoint, episodes=args.episodes, near=args.near)
+    if args.rows > 0:
+        print(f"{'episode':>8} {'goal':>16} {'goal progress':>14} {'max progress':>13} {'end progress':>13}")
+        for k in range(max(len(out.episode_ids) - args.rows, 0), len(out.episode_ids)):
+            goal = ", ".join(f"{v:.1f}" for v in out.goals[k].tolist())
+            print(
+                f"{int(out.episode_ids[k]):8d} {'(' + goal + ')':>16} {float(out.goal_progress[k]):14.1f} "
+                f"{float(out.max_progress[k]):13.1f} {float(out.end_progress[k]):13.1f}"
+            )
+    print(
+        f"{summary['episodes']} episodes; the stored episodes reached progress {summary['explored']:.1f} at most "
+        f"(path length from the start). {summary['goals_beyond']} goals lay beyond it; those episodes got to "
+        f"{summary['beyond_mean_progress']:.1f} on average. {summary['reached_frontier']} episodes reached "
+        f"{args.near:.0%} of the frontier's progress or further."
+    )
+    return out, summary
+
+
+if __name__ == "__main__":
+    main()
