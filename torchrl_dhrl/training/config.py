@@ -429,12 +429,8 @@ def check_resume_config(
         The checkpoint was trained with another configuration: low.hidden [32, 32] -> [64] ...
     """
     old, new = _flatten(saved), _flatten(current)
-    for (
-        key,
-        value,
-    ) in IMPLIED_WHEN_ABSENT.items():  # a checkpoint older than the key: what it was trained with
-        if key in new and key not in old:
-            old[key] = value
+    # a checkpoint older than a key of IMPLIED_WHEN_ABSENT: the value it was trained with
+    old |= {key: value for key, value in IMPLIED_WHEN_ABSENT.items() if key in new and key not in old}
     allowed, forbidden = [], []
     for key in sorted(old.keys() & new.keys()):
         if old[key] == new[key]:
