@@ -39,6 +39,7 @@ import torch
 import tqdm
 from dhrl_utils import (
     PAPER_SUCCESS,
+    build_episode_log,
     build_logger,
     build_run,
     evaluation_kwargs,
@@ -128,6 +129,8 @@ def train(cfg: DictConfig | dict, run_dir: str | Path | None = None) -> dict:
         }
 
     logger = build_logger(cfg, run_dir)
+    # the training episodes' success, FGS shifts and maze progress per epoch; its counts travel in the counters
+    episode_log = build_episode_log(cfg, counters.get("train_episodes"))
     warmup_end = schedule["warmup_episodes"]
     graph_start = warmup_end + schedule["graph_start_epoch"] * schedule["epoch_episodes"]
     _set_phase(cfg, agent, counters["episodes"])
@@ -149,6 +152,8 @@ def train(cfg: DictConfig | dict, run_dir: str | Path | None = None) -> dict:
             # ---- store: low-level [num_envs, T] batches (time-major storage); the builder cuts high-level ones
             low_rb.extend(batch.select(*LOW_LEVEL_KEYS))
             high_rb.extend(batch)
+            episode_log.update(batch)
+            counters["train_episodes"] = episode_log.state_dict()
             if counters["episodes"] < warmup_end and not schedule["train_during_warmup"]:
                 # the reference trains nothing on the random warm-up and does not catch up afterwards
                 counters["untrained_steps"] = counters.get("untrained_steps", 0) + batch.numel()
@@ -184,6 +189,8 @@ def train(cfg: DictConfig | dict, run_dir: str | Path | None = None) -> dict:
                     metrics.update(rebuild_graph(agent.planner, low_rb, cfg["planner"]["candidates"]))
                     counters["graph_builds"] += 1
                 metrics.update(graph_metrics(agent.planner))
+                metrics.update(episode_log.pop_metrics())
+                counters["train_episodes"] = episode_log.state_dict()
                 if epoch % schedule["eval_every_epochs"] == 0:
                     evaluation, result = evaluate_epoch(
                         agent, eval_env, episode_length, **evaluation_kwargs(cfg)

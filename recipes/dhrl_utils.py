@@ -22,6 +22,7 @@ from torchrl_dhrl.training import (
     DHRLAgent,
     LossUpdater,
     RunStart,
+    TrainingEpisodeLog,
     available_cpus,
     load_checkpoint,
     make_agent,
@@ -360,6 +361,25 @@ def evaluation_kwargs(cfg: dict) -> dict[str, Any]:
         "oracle_margin": cfg["planner"]["oracle_margin"],
         "flat": cfg["schedule"]["eval_flat"],
     }
+
+
+def build_episode_log(cfg: dict, state: dict | None = None) -> TrainingEpisodeLog:
+    """The run's per-epoch statistics of its training episodes (progress along the maze for the mazes).
+
+    ``state``: a :meth:`TrainingEpisodeLog.state_dict` to continue from (the recipe keeps it in its
+    checkpointed counters, so a run stopped in the middle of an epoch resumes its counts).
+    """
+    from torchrl_dhrl.envs import MAZE_NAMES
+
+    from torchrl_dhrl.training.maze_diagnostics import MazeGeometry
+
+    geometry = None
+    if cfg["env_name"] in MAZE_NAMES:
+        geometry = MazeGeometry.from_maze(cfg["env_name"], margin=cfg["planner"]["oracle_margin"])
+    log = TrainingEpisodeLog(geometry)
+    if state:
+        log.load_state_dict(state)
+    return log
 
 
 def agent_from_checkpoint(path, device: str | torch.device = "cpu") -> tuple[dict, DHRLAgent]:

@@ -1,5 +1,8 @@
-"""episode_progress (how far each training episode got along a maze) and recipes/diagnose_exploration.py."""
+"""episode_progress (how far each training episode got along a maze), TrainingEpisodeLog (the training episodes
+per epoch) and recipes/diagnose_exploration.py."""
 
+import csv
+import json
 import math
 
 import pytest
@@ -7,7 +10,7 @@ import torch
 from _recipe import load_recipe, recipe_config
 from tensordict import TensorDict
 
-from torchrl_dhrl.training import MazeGeometry, episode_progress
+from torchrl_dhrl.training import MazeGeometry, TrainingEpisodeLog, episode_progress
 
 
 @pytest.fixture(scope="module")
@@ -66,6 +69,109 @@ def test_bad_records(geometry):
         episode_progress(geometry, records, torch.zeros(2))
 
 
+def _episodes(generator, num_envs, steps, shifted=True):
+    """``[num_envs, steps]`` episodes along the first corridor, all in sight of the origin, random successes."""
+    x = torch.rand(num_envs, steps, generator=generator) * 8.0 - 1.0
+    y = torch.rand(num_envs, steps, generator=generator) * 2.0 - 1.0
+    data = {
+        ("next", "achieved_goal"): torch.stack([x, y], -1),
+        ("next", "is_success"): torch.rand(num_envs, steps, 1, generator=generator) < 0.1,
+    }
+    if shifted:  # one flag per episode, held at every step (as GoalShiftOnReset writes it)
+        flag = torch.rand(num_envs, 1, 1, generator=generator) < 0.5
+        data["goal_shifted"] = flag.expand(num_envs, steps, 1)
+    return TensorDict(data, [num_envs, steps])
+
+
+@pytest.mark.parametrize("num_envs", [1, 3])
+def test_training_episode_log_against_a_direct_count(geometry, num_envs):
+    generator = torch.Generator().manual_seed(num_envs)
+    log = TrainingEpisodeLog(geometry)
+    frontier = -math.inf
+    for epoch in range(4):
+        batches = [_episodes(generator, num_envs, 7) for _ in range(epoch + 1)]
+        for batch in batches:
+            log.update(batch)
+        metrics = log.pop_metrics()
+        episodes = torch.cat([b.get(("next", "is_success")).squeeze(-1) for b in batches])  # [E, T]
+        shifted = torch.cat([b.get("goal_shifted")[:, 0, 0] for b in batches])
+        points = torch.cat([b.get(("next", "achieved_goal")).reshape(-1, 2) for b in batches])
+        furthest = points.norm(dim=-1).max().item()  # every point in sight of the origin: its distance
+        frontier = max(frontier, furthest)
+        assert metrics["train/episodes"] == len(episodes) == num_envs * (epoch + 1)
+        assert metrics["train/success"] == pytest.approx(episodes[:, -1].float().mean().item())
+        assert metrics["train/any_success"] == pytest.approx(episodes.any(-1).float().mean().item())
+        assert metrics["train/goal_shifted"] == pytest.approx(shifted.float().mean().item())
+        assert metrics["train/max_progress"] == pytest.approx(furthest, rel=1e-5)
+        assert metrics["train/frontier"] == pytest.approx(frontier, rel=1e-5)  # the largest so far
+
+
+def test_training_episode_log_progress_behind_the_wall(geometry):
+    log = TrainingEpisodeLog(geometry)
+    path = torch.tensor([[[1.0, 0.0], [8.0, 0.0], [8.0, 8.0], [0.0, 8.0]]])
+    log.update(
+        TensorDict(
+            {("next", "achieved_goal"): path, ("next", "is_success"): torch.zeros(1, 4, 1).bool()}, [1, 4]
+        )
+    )
+    metrics = log.pop_metrics()
+    # around the U's inner wall with a 0.5 margin: 18.3 exactly; the grid path within a few percent
+    assert 18.3 <= metrics["train/max_progress"] <= 18.3 * 1.05
+
+
+def test_training_episode_log_resumes_mid_epoch_exactly(geometry):
+    generator = torch.Generator().manual_seed(7)
+    batches = [_episodes(generator, 2, 5) for _ in range(5)]
+    whole = TrainingEpisodeLog(geometry)
+    for batch in batches[:2]:
+        whole.update(batch)
+    expected_first = whole.pop_metrics()
+    for batch in batches[2:]:
+        whole.update(batch)
+    expected = whole.pop_metrics()
+
+    first = TrainingEpisodeLog(geometry)
+    for batch in batches[:2]:
+        first.update(batch)
+    assert first.pop_metrics() == expected_first
+    first.update(batches[2])
+    state = json.loads(json.dumps(first.state_dict()))  # the recipe keeps it in its JSON counters
+    second = TrainingEpisodeLog(geometry)
+    second.load_state_dict(state)
+    for batch in batches[3:]:
+        second.update(batch)
+    assert second.pop_metrics() == expected
+    fresh = TrainingEpisodeLog(geometry)  # no frontier yet: -inf, stored as None
+    fresh.load_state_dict(json.loads(json.dumps(fresh.state_dict())))
+    assert fresh.state_dict() == TrainingEpisodeLog(geometry).state_dict()
+
+
+def test_training_episode_log_without_maze_or_shifting():
+    generator = torch.Generator().manual_seed(3)
+    log = TrainingEpisodeLog()  # an arm env: no geometry
+    empty = log.pop_metrics()
+    assert empty["train/episodes"] == 0 and math.isnan(empty["train/success"])
+    batch = _episodes(generator, 4, 6, shifted=False)
+    log.update(batch[0])  # one env's [T] episode
+    log.update(batch)
+    metrics = log.pop_metrics()
+    assert metrics["train/episodes"] == 5
+    assert set(metrics) == {"train/episodes", "train/success", "train/any_success"}
+
+
+def test_training_episode_log_errors(geometry):
+    log = TrainingEpisodeLog(geometry)
+    batch = _episodes(torch.Generator().manual_seed(0), 2, 3)
+    with pytest.raises(KeyError, match="is_success"):
+        log.update(batch.exclude(("next", "is_success")))
+    with pytest.raises(KeyError, match="achieved_goal"):
+        log.update(batch.exclude(("next", "achieved_goal")))
+    with pytest.raises(ValueError, match=r"\[num_envs, T\]"):
+        log.update(batch.unsqueeze(0))
+    with pytest.raises(KeyError, match="unknown entry 'steps'"):
+        log.load_state_dict({"steps": 3})
+
+
 def test_the_script_reads_a_run(tmp_path, capsys):
     run = tmp_path / "run"
     load_recipe().train(
@@ -73,6 +179,18 @@ def test_the_script_reads_a_run(tmp_path, capsys):
         run_dir=run,
     )
     capsys.readouterr()  # the training's own output
+    with (run / "metrics.csv").open() as file:  # the training episodes, per epoch
+        rows = list(csv.DictReader(file))
+    episodes = [int(float(r["train/episodes"])) for r in rows]
+    assert episodes == [
+        int(r["episodes"]) - int(p["episodes"])
+        for p, r in zip([{"episodes": 0}, *rows[:-1]], rows, strict=True)
+    ]
+    frontier = [float(r["train/frontier"]) for r in rows]
+    assert frontier == sorted(frontier) and frontier[0] > 0.0  # never recedes
+    assert all(float(r["train/max_progress"]) <= f + 1e-6 for r, f in zip(rows, frontier, strict=True))
+    assert all(0.0 <= float(r["train/success"]) <= float(r["train/any_success"]) <= 1.0 for r in rows)
+    assert "train/goal_shifted" not in rows[0]  # PointMaze trains without FGS
     out, summary = load_recipe("diagnose_exploration").main([str(run), "--episodes", "3", "--rows", "2"])
     printed = capsys.readouterr().out
     assert summary["episodes"] == len(out.episode_ids) <= 3 and len(out.episode_ids) >= 1

@@ -306,6 +306,20 @@ def test_spearman_matches_scipy_with_ties_and_inf():
     assert math.isnan(spearman_correlation(torch.ones(1), torch.ones(1)))
 
 
+def test_landmark_progress_is_the_furthest_landmark_along_the_maze():
+    geometry = MazeGeometry.from_maze("PointMaze", margin=0.5)
+    corridor = torch.tensor([[0.5, 0.0], [3.0, 1.0], [7.0, -0.5]])  # in sight of the start: Euclidean
+    graph = LandmarkGraph(cutoff=100.0).set_distance_matrix(corridor, corridor, torch.ones(3, 3))
+    assert graph_quality(geometry, graph, coverage_radius=2.0)["landmark_progress"] == pytest.approx(
+        corridor.norm(dim=-1).max().item()
+    )
+    behind = torch.cat([corridor, torch.tensor([[0.0, 8.0]])])  # around the inner wall: 18.3 exactly
+    graph = LandmarkGraph(cutoff=100.0).set_distance_matrix(behind, behind, torch.ones(4, 4))
+    assert 18.3 <= graph_quality(geometry, graph, coverage_radius=2.0)["landmark_progress"] <= 18.3 * 1.05
+    far = graph_quality(geometry, graph, coverage_radius=2.0, start=torch.tensor([0.0, 8.0]))
+    assert 18.3 <= far["landmark_progress"] <= 18.3 * 1.05  # from the goal end, the start is as far
+
+
 def test_landmark_coverage():
     geometry = MazeGeometry.from_maze("PointMaze", margin=0.5)
     every_cell = geometry.cell_centers[geometry.free]
@@ -367,6 +381,7 @@ def test_recipe_logs_diag_columns_and_the_tool_reads_the_checkpoint(tmp_path, ca
         "diag/distance_rank_corr",
         "diag/graph_distance_rank_corr",
         "diag/landmark_coverage",
+        "diag/landmark_progress",
     )
     for row in rows:
         has_graph = int(row["graph/landmarks"]) > 0

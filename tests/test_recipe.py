@@ -139,6 +139,10 @@ def test_ablation_switches_run(env, override, tmp_path):
     recipe.train(cfg, run_dir=tmp_path)
     rows = _metrics(tmp_path)
     landmarks = [int(r["graph/landmarks"]) for r in rows]
+    fgs = override == "fgs.enabled=true"  # the share of training goals it moved is logged with it only
+    assert ("train/goal_shifted" in rows[-1]) == fgs
+    assert not fgs or all(0.0 <= float(r["train/goal_shifted"]) <= 1.0 for r in rows)
+    assert ("train/frontier" in rows[-1]) == (env == "PointMaze")  # maze progress: mazes only
     if override == "planner.enabled=false":
         assert landmarks == [0, 0, 0]
     else:

@@ -57,7 +57,7 @@ from .evaluation import (
     goal_as_waypoint,
     record_video,
 )
-from .exploration_diagnostics import EpisodeProgress, episode_progress
+from .exploration_diagnostics import EpisodeProgress, TrainingEpisodeLog, episode_progress
 from .hierarchy_diagnostics import (
     HIERARCHY_DIAG_KEYS,
     LEARNED_DISTANCE_DIAG_KEYS,
@@ -104,6 +104,7 @@ __all__ = [
     "DISTANCES",
     "IMPLIED_WHEN_ABSENT",
     "EpisodeProgress",
+    "TrainingEpisodeLog",
     "EvaluationResult",
     "GracefulStop",
     "GraphDiagnosis",

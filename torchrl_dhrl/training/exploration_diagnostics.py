@@ -4,12 +4,15 @@ The frontier of a maze run moves only when training episodes reach beyond it. :f
 measures, for the episodes stored in a high-level replay buffer, how far along the maze each episode's goal
 is and how far the agent got, both as obstacle-free path lengths from the start (``MazeGeometry.path_length``),
 next to the furthest point the stored data has ever reached. ``recipes/diagnose_exploration.py`` prints it for
-a saved run.
+a saved run. :class:`TrainingEpisodeLog` follows the training episodes while a run trains: per epoch, how many
+reached their goal, how many goals frontier-based goal shifting moved, and (mazes) how far along the maze they got.
 """
 
 from __future__ import annotations
 
-from typing import NamedTuple
+import math
+from collections.abc import Mapping
+from typing import Any, NamedTuple
 
 import torch
 from tensordict import TensorDictBase
@@ -18,7 +21,7 @@ from torch import Tensor
 
 from .maze_diagnostics import MazeGeometry
 
-__all__ = ["EpisodeProgress", "episode_progress"]
+__all__ = ["EpisodeProgress", "TrainingEpisodeLog", "episode_progress"]
 
 
 class EpisodeProgress(NamedTuple):
@@ -114,3 +117,146 @@ def episode_progress(
         end_progress=progress[last_record][keep],
         explored=float(progress.max()),
     )
+
+
+class TrainingEpisodeLog:
+    """Per-epoch statistics of the training episodes, from the collector's batches of whole episodes.
+
+    :meth:`update` takes a batch ``[num_envs, T]`` holding one whole episode per env (the recipe's collector
+    yields them) and counts, per episode:
+
+    * ``train/success``: the fraction whose final step is a success (``success_key``, the env's own goal: under
+      frontier-based goal shifting the agent chases a shifted goal, the env still judges the real one);
+    * ``train/any_success``: the fraction with a success at any step;
+    * ``train/goal_shifted``: the fraction whose goal frontier-based goal shifting moved (``shifted_key``; only
+      reported when the batches hold it, i.e. with FGS);
+    * with a maze ``geometry``: ``train/max_progress``, the furthest obstacle-free path length from ``start``
+      that an episode of the epoch reached (:meth:`MazeGeometry.path_length`, goal units), and
+      ``train/frontier``, the furthest since the run began: the exploration frontier as a curve.
+
+    :meth:`pop_metrics` returns them for the episodes since the last call (``train/episodes`` their number) and
+    starts a new epoch; the frontier is kept. The state is a small JSON-able dict (:meth:`state_dict`), so a
+    checkpoint taken in the middle of an epoch resumes its counts exactly.
+
+    Args:
+        geometry (MazeGeometry, optional): the maze; ``None`` (arm envs) skips the progress.
+        start (Tensor, optional): ``[2]`` where progress is measured from. Defaults to the origin (every
+            maze's start).
+
+    Keyword Args:
+        success_key (NestedKey): per-step success flag. Defaults to ``("next", "is_success")``.
+        shifted_key (NestedKey): per-step bool, ``True`` in episodes whose goal FGS shifted. Defaults to
+            ``"goal_shifted"``.
+        achieved_goal_key (NestedKey): where the agent got to. Defaults to ``("next", "achieved_goal")``.
+
+    Examples:
+        >>> import torch
+        >>> from tensordict import TensorDict
+        >>> geometry = MazeGeometry.from_maze("PointMaze", margin=0.5)
+        >>> log = TrainingEpisodeLog(geometry)
+        >>> x = torch.tensor([[1.0, 2.0, 3.0], [1.0, 5.0, 2.0]])  # two episodes of 3 steps along y = 0
+        >>> batch = TensorDict({
+        ...     ("next", "achieved_goal"): torch.stack([x, torch.zeros_like(x)], -1),
+        ...     ("next", "is_success"): torch.tensor([[False, False, True], [False, True, False]]).unsqueeze(-1),
+        ... }, [2, 3])
+        >>> log.update(batch)
+        >>> metrics = log.pop_metrics()
+        >>> metrics["train/episodes"], metrics["train/success"], metrics["train/any_success"]
+        (2, 0.5, 1.0)
+        >>> metrics["train/max_progress"], metrics["train/frontier"], "train/goal_shifted" in metrics
+        (5.0, 5.0, False)
+        >>> log.pop_metrics()["train/episodes"], log.state_dict()["frontier"]  # a new epoch; the frontier stays
+        (0, 5.0)
+    """
+
+    def __init__(
+        self,
+        geometry: MazeGeometry | None = None,
+        start: Tensor | None = None,
+        *,
+        success_key: NestedKey = ("next", "is_success"),
+        shifted_key: NestedKey = "goal_shifted",
+        achieved_goal_key: NestedKey = ("next", "achieved_goal"),
+    ) -> None:
+        self.geometry = geometry
+        self.start = (
+            torch.zeros(2) if start is None else torch.as_tensor(start, dtype=torch.float32).reshape(2)
+        )
+        self.success_key = success_key
+        self.shifted_key = shifted_key
+        self.achieved_goal_key = achieved_goal_key
+        self._state = self._empty_epoch() | {"frontier": -math.inf}
+
+    @staticmethod
+    def _empty_epoch() -> dict[str, Any]:
+        return {"episodes": 0, "success": 0, "any_success": 0, "shifted": None, "max_progress": -math.inf}
+
+    @torch.no_grad()
+    def update(self, batch: TensorDictBase) -> None:
+        """Counts the episodes of ``batch`` (``[num_envs, T]``, or ``[T]`` for one env), one episode per row."""
+        if batch.ndim not in (1, 2) or batch.batch_size.numel() == 0:
+            raise ValueError(
+                f"TrainingEpisodeLog.update expects a non-empty [num_envs, T] batch of whole episodes, got "
+                f"{tuple(batch.shape)}."
+            )
+        if batch.ndim == 1:
+            batch = batch.unsqueeze(0)
+        success = batch.get(self.success_key, None)
+        if success is None:
+            raise KeyError(f"TrainingEpisodeLog: {self.success_key!r} is not in the batch.")
+        success = success.reshape(*batch.shape, -1).any(-1).cpu()  # [E, T]
+        state = self._state
+        state["episodes"] += batch.shape[0]
+        state["success"] += int(success[:, -1].sum())
+        state["any_success"] += int(success.any(-1).sum())
+        shifted = batch.get(self.shifted_key, None)
+        if shifted is not None:
+            shifted = shifted.reshape(*batch.shape, -1).any(-1).any(-1)
+            state["shifted"] = (state["shifted"] or 0) + int(shifted.sum())
+        if self.geometry is not None:
+            achieved = batch.get(self.achieved_goal_key, None)
+            if achieved is None:
+                raise KeyError(f"TrainingEpisodeLog: {self.achieved_goal_key!r} is not in the batch.")
+            progress = self.geometry.path_length(self.start, achieved[..., :2].reshape(-1, 2))
+            furthest = (
+                float(progress[torch.isfinite(progress)].max())
+                if torch.isfinite(progress).any()
+                else -math.inf
+            )
+            state["max_progress"] = max(state["max_progress"], furthest)
+            state["frontier"] = max(state["frontier"], furthest)
+
+    def pop_metrics(self) -> dict[str, float]:
+        """The ``train/...`` metrics of the episodes since the last call; starts a new epoch."""
+        state = self._state
+        episodes = state["episodes"]
+        ratio = (lambda n: n / episodes) if episodes else (lambda n: math.nan)
+        out: dict[str, float] = {
+            "train/episodes": episodes,
+            "train/success": ratio(state["success"]),
+            "train/any_success": ratio(state["any_success"]),
+        }
+        if state["shifted"] is not None:
+            out["train/goal_shifted"] = ratio(state["shifted"])
+        if self.geometry is not None:
+            finite = lambda v: v if math.isfinite(v) else math.nan  # noqa: E731
+            out["train/max_progress"] = finite(state["max_progress"])
+            out["train/frontier"] = finite(state["frontier"])
+        self._state = self._empty_epoch() | {"frontier": state["frontier"]}
+        return out
+
+    def state_dict(self) -> dict[str, Any]:
+        """The counts of the current epoch and the frontier (JSON-able; ``-inf`` stored as ``None``)."""
+        return {k: (None if isinstance(v, float) and math.isinf(v) else v) for k, v in self._state.items()}
+
+    def load_state_dict(self, state_dict: Mapping[str, Any]) -> None:
+        state = self._empty_epoch() | {"frontier": -math.inf}
+        for key, value in state_dict.items():
+            if key not in state:
+                raise KeyError(
+                    f"TrainingEpisodeLog.load_state_dict: unknown entry {key!r} (expected {sorted(state)})."
+                )
+            if key in ("max_progress", "frontier"):
+                value = -math.inf if value is None else float(value)
+            state[key] = value
+        self._state = state

@@ -53,6 +53,7 @@ DIAG_KEYS = (
     "diag/distance_rank_corr",
     "diag/graph_distance_rank_corr",
     "diag/landmark_coverage",
+    "diag/landmark_progress",
     "diag/start_subgoal_x",
     "diag/start_subgoal_y",
     "diag/start_subgoal_feasible",
@@ -513,9 +514,10 @@ def graph_quality(
     coverage_radius: float,
     max_sources: int | None = 64,
     shortcut_ratio: float = 1.5,
+    start: Tensor | None = None,
     return_pairs: bool = False,
 ):
-    """The planner's graph against the maze: edges through walls, distance ranks, coverage.
+    """The planner's graph against the maze: edges through walls, distance ranks, coverage, reach.
 
     * ``edges_crossing_walls``: the fraction of directed graph edges whose straight segment between the
       two landmark goals crosses a wall box (not inflated). An edge around a wall's corner counts too,
@@ -530,7 +532,9 @@ def graph_quality(
       ``i`` among the first ``max_sources`` landmarks (all pairs when ``None``);
     * ``graph_distance_rank_corr``: the same with the graph's all-pairs shortest distances (``inf`` for
       disconnected pairs, ranked last);
-    * ``landmark_coverage``: :func:`landmark_coverage` with ``coverage_radius``.
+    * ``landmark_coverage``: :func:`landmark_coverage` with ``coverage_radius``;
+    * ``landmark_progress``: how far the graph reaches into the maze, the largest true path length from
+      ``start`` to a landmark (goal units; the U of AntMaze is about 37 long from the start to the test goal).
 
     All ``NaN`` without a graph.
 
@@ -543,6 +547,8 @@ def graph_quality(
         max_sources (int, optional): landmarks whose rows enter the rank correlations (a distance field
             each). Defaults to ``64``.
         shortcut_ratio (float): see ``edges_shortcut``. Defaults to ``1.5``.
+        start (Tensor, optional): ``[2]`` where ``landmark_progress`` is measured from. Defaults to the
+            origin, every maze's start.
         return_pairs (bool): also return ``(rows, cols, true, learned, graph)`` tensors of those pairs.
 
     Examples:
@@ -555,6 +561,8 @@ def graph_quality(
         >>> out = graph_quality(geometry, graph, coverage_radius=2.0)
         >>> round(out["edges_crossing_walls"], 2), round(out["distance_rank_corr"], 2)
         (0.29, 0.72)
+        >>> round(out["landmark_progress"], 1)  # (0, 8): behind the U's inner wall, the long way round
+        19.0
     """
     graph = getattr(planner, "graph", planner)
     nan = {
@@ -563,6 +571,7 @@ def graph_quality(
         "distance_rank_corr": math.nan,
         "graph_distance_rank_corr": math.nan,
         "landmark_coverage": math.nan,
+        "landmark_progress": math.nan,
     }
     if not graph.has_graph:
         return (nan, None) if return_pairs else nan
@@ -588,6 +597,10 @@ def graph_quality(
         true = learned = shortest = torch.zeros(0)
         out["distance_rank_corr"] = out["graph_distance_rank_corr"] = math.nan
     out["landmark_coverage"] = landmark_coverage(geometry, goals, coverage_radius)
+    origin = torch.zeros(2) if start is None else torch.as_tensor(start, dtype=torch.float32).reshape(2)
+    reach = geometry.path_length(origin, goals)
+    reach = reach[torch.isfinite(reach)]
+    out["landmark_progress"] = float(reach.max()) if reach.numel() else math.nan
     if return_pairs:
         return out, (rows, cols, true, learned, shortest)
     return out
@@ -637,9 +650,9 @@ def maze_epoch_diagnostics(
       strictly inside a wall box, outside the arena (:func:`feasibility_fractions`);
     * ``diag/waypoints_in_walls``, ``diag/waypoints_outside``: the same for the waypoints of all steps;
     * ``diag/edges_crossing_walls``, ``diag/edges_shortcut``, ``diag/distance_rank_corr``,
-      ``diag/graph_distance_rank_corr``, ``diag/landmark_coverage``: :func:`graph_quality` (``NaN``
-      without a graph), the true path lengths on the grid of :meth:`MazeGeometry.from_maze` (cells of
-      ``resolution``) around walls inflated by ``margin``;
+      ``diag/graph_distance_rank_corr``, ``diag/landmark_coverage``, ``diag/landmark_progress``:
+      :func:`graph_quality` (``NaN`` without a graph), the true path lengths on the grid of
+      :meth:`MazeGeometry.from_maze` (cells of ``resolution``) around walls inflated by ``margin``;
     * ``diag/start_subgoal_x``, ``diag/start_subgoal_y``, ``diag/start_subgoal_feasible``: the deterministic
       high-level proposal at the start state of the rollout's first episode, for its goal
       (:func:`start_subgoal`), and whether it is feasible (``1.0``/``0.0``).
