@@ -29,6 +29,7 @@ from torchrl_dhrl.training import (
     start_subgoal,
 )
 from torchrl_dhrl.training.maze_diagnostics import DIAG_KEYS
+from torchrl_dhrl.training.plots import success_curve_series
 
 # -------------------------------------------------------------------------------------------------- helpers
 
@@ -396,6 +397,14 @@ def test_recipe_logs_diag_columns_and_the_tool_reads_the_checkpoint(tmp_path, ca
         assert -2.0 <= float(row["diag/start_subgoal_x"]) <= 10.0  # the subgoal box
     assert not math.isfinite(float(rows[0]["diag/landmark_coverage"]))  # warm-up epoch: no graph
     assert all(int(r["graph/landmarks"]) > 0 for r in rows[1:])
+    # the success curve draws the coverage (from the first graph on) and the training episodes' success
+    series = success_curve_series([{**r, "env_steps": int(r["env_steps"])} for r in rows])
+    coverage = series["landmark coverage of the free space"]
+    assert coverage == (
+        [int(r["env_steps"]) for r in rows[1:]],
+        [float(r["diag/landmark_coverage"]) for r in rows[1:]],
+    )
+    assert series["training episodes' success"][1] == [float(r["train/success"]) for r in rows]
 
     spec = importlib.util.spec_from_file_location("diagnose_graph", RECIPES / "diagnose_graph.py")
     cli = importlib.util.module_from_spec(spec)

@@ -78,7 +78,13 @@ from .maze_diagnostics import (
     start_subgoal,
 )
 from .planning_ablations import planning_ablations
-from .plots import graph_path_to_goal, plot_distance_scatter, plot_episode, plot_success_curve
+from .plots import (
+    graph_path_to_goal,
+    plot_distance_scatter,
+    plot_episode,
+    plot_success_curve,
+    success_curve_series,
+)
 from .run import (
     CONFIG_NAME,
     RESUME_AUTO,
@@ -159,6 +165,7 @@ __all__ = [
     "plot_episode",
     "plot_epoch",
     "plot_success_curve",
+    "success_curve_series",
     "reach_offsets",
     "reach_test",
     "rebuild_graph",

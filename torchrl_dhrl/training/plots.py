@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import math
 from collections.abc import Mapping, Sequence
 from pathlib import Path
 
@@ -13,7 +14,14 @@ from tensordict import TensorDictBase
 from torchrl_dhrl.envs import plot_env
 from torchrl_dhrl.planner import GraphPlanner
 
-__all__ = ["graph_path_to_goal", "plot_distance_scatter", "plot_episode", "plot_success_curve"]
+__all__ = [
+    "SUCCESS_CURVE_SERIES",
+    "graph_path_to_goal",
+    "plot_distance_scatter",
+    "plot_episode",
+    "plot_success_curve",
+    "success_curve_series",
+]
 
 
 def graph_path_to_goal(planner: GraphPlanner, state: torch.Tensor, goal: torch.Tensor) -> np.ndarray:
@@ -61,6 +69,47 @@ def plot_episode(
     return path
 
 
+#: The curves of :func:`plot_success_curve`: ``(metrics key, label, line style)``; the last two only where logged.
+SUCCESS_CURVE_SERIES = (
+    ("eval/success", "final-state success", "-"),
+    ("eval/any_success", "any-time success", "--"),
+    ("train/success", "training episodes' success", "-."),
+    ("diag/landmark_coverage", "landmark coverage of the free space", ":"),
+)
+
+
+def success_curve_series(history: Sequence[Mapping[str, float]]) -> dict[str, tuple[list, list]]:
+    """The curves :func:`plot_success_curve` draws: ``{label: (env steps, values)}``.
+
+    Evaluation success (final state and any time) always; the training episodes' success and the
+    landmark coverage of a maze's free space (both fractions too) where the history has finite values
+    of them (a run before the graph, an arm env or an older ``metrics.csv`` has none). Non-finite points
+    are left out of their curve.
+
+    Examples:
+        >>> history = [{"env_steps": 9000, "eval/success": 0.0, "eval/any_success": 0.1, "diag/landmark_coverage": float("nan")},
+        ...            {"env_steps": 18000, "eval/success": 0.5, "eval/any_success": 0.6, "diag/landmark_coverage": 0.4}]
+        >>> series = success_curve_series(history)
+        >>> list(series)
+        ['final-state success', 'any-time success', 'landmark coverage of the free space']
+        >>> series["landmark coverage of the free space"]
+        ([18000], [0.4])
+    """
+    out: dict[str, tuple[list, list]] = {}
+    for key, label, _ in SUCCESS_CURVE_SERIES:
+        points = [(h["env_steps"], float(h[key])) for h in history if key in h and _finite(h[key])]
+        if points or key in ("eval/success", "eval/any_success"):
+            out[label] = ([p[0] for p in points], [p[1] for p in points])
+    return out
+
+
+def _finite(value) -> bool:
+    try:
+        return math.isfinite(float(value))
+    except (TypeError, ValueError):
+        return False
+
+
 def plot_success_curve(
     history: Sequence[Mapping[str, float]],
     path: str | Path,
@@ -68,20 +117,29 @@ def plot_success_curve(
     title: str | None = None,
     reference: Mapping[float, float] | None = None,
 ) -> Path:
-    """Saves success rate (final state and any time) against env steps; ``reference`` maps steps to
-    the paper's success rates, drawn as crosses."""
-    steps = [h["env_steps"] for h in history]
+    """Saves success rate (final state and any time) against env steps, with the training episodes' success and
+    the landmark coverage where logged (:func:`success_curve_series`); ``reference`` maps steps to the paper's
+    success rates, drawn as crosses."""
     fig = Figure(figsize=(6, 4))
     ax = fig.subplots()
-    ax.plot(steps, [h["eval/success"] for h in history], marker="o", label="final-state success")
-    ax.plot(steps, [h["eval/any_success"] for h in history], ls="--", alpha=0.7, label="any-time success")
+    styles = {label: style for _, label, style in SUCCESS_CURVE_SERIES}
+    for label, (steps, values) in success_curve_series(history).items():
+        evaluation = label == "final-state success"
+        ax.plot(
+            steps,
+            values,
+            ls=styles[label],
+            marker="o" if evaluation else None,
+            alpha=1.0 if evaluation else 0.7,
+            label=label,
+        )
     if reference:
         ax.scatter(list(reference), list(reference.values()), marker="x", color="k", zorder=3, label="paper")
     ax.set_xlabel("env steps (warm-up included)")
-    ax.set_ylabel("success rate")
+    ax.set_ylabel("success rate / fraction")
     ax.set_ylim(-0.02, 1.02)
     ax.grid(alpha=0.3)
-    ax.legend(loc="lower right")
+    ax.legend(loc="upper left", fontsize="small")
     return _save(fig, ax, path, title)
 
 
