@@ -19,7 +19,7 @@ from tensordict import TensorDictBase
 from tensordict.utils import NestedKey
 from torch import Tensor
 
-from .maze_diagnostics import MazeGeometry
+from .maze_diagnostics import MazeGeometry, furthest_progress
 
 __all__ = ["EpisodeProgress", "TrainingEpisodeLog", "episode_progress"]
 
@@ -179,9 +179,7 @@ class TrainingEpisodeLog:
         achieved_goal_key: NestedKey = ("next", "achieved_goal"),
     ) -> None:
         self.geometry = geometry
-        self.start = (
-            torch.zeros(2) if start is None else torch.as_tensor(start, dtype=torch.float32).reshape(2)
-        )
+        self.start = start
         self.success_key = success_key
         self.shifted_key = shifted_key
         self.achieved_goal_key = achieved_goal_key
@@ -217,12 +215,7 @@ class TrainingEpisodeLog:
             achieved = batch.get(self.achieved_goal_key, None)
             if achieved is None:
                 raise KeyError(f"TrainingEpisodeLog: {self.achieved_goal_key!r} is not in the batch.")
-            progress = self.geometry.path_length(self.start, achieved[..., :2].reshape(-1, 2))
-            furthest = (
-                float(progress[torch.isfinite(progress)].max())
-                if torch.isfinite(progress).any()
-                else -math.inf
-            )
+            furthest = furthest_progress(self.geometry, achieved[..., :2], self.start)
             state["max_progress"] = max(state["max_progress"], furthest)
             state["frontier"] = max(state["frontier"], furthest)
 

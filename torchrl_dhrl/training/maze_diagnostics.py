@@ -32,6 +32,7 @@ __all__ = [
     "GraphDiagnosis",
     "MazeGeometry",
     "feasibility_fractions",
+    "furthest_progress",
     "graph_diagnosis",
     "graph_quality",
     "grid_moves",
@@ -474,6 +475,27 @@ def spearman_correlation(x: Tensor, y: Tensor) -> float:
     return (rx @ ry / norm).item() if norm > 0 else math.nan
 
 
+def furthest_progress(geometry: MazeGeometry, points: Tensor, start: Tensor | None = None) -> float:
+    """The largest true path length (:meth:`MazeGeometry.path_length`) from ``start`` to one of ``points [..., 2]``.
+
+    How far into the maze a set of points reaches: the graph's landmarks (``landmark_progress`` of
+    :func:`graph_quality`), the states of training episodes (:class:`TrainingEpisodeLog`). ``start`` defaults
+    to the origin, every maze's start; points cut off from it are ignored, and ``-inf`` is returned when none
+    is left.
+
+    Examples:
+        >>> geometry = MazeGeometry.from_maze("PointMaze", margin=0.5)
+        >>> furthest_progress(geometry, torch.tensor([[4.0, 0.0], [1.0, 0.0]]))  # along the first corridor
+        4.0
+        >>> furthest_progress(geometry, torch.zeros(0, 2))
+        -inf
+    """
+    origin = torch.zeros(2) if start is None else torch.as_tensor(start, dtype=torch.float32).reshape(2)
+    reach = geometry.path_length(origin, points.reshape(-1, 2))
+    reach = reach[torch.isfinite(reach)]
+    return float(reach.max()) if reach.numel() else -math.inf
+
+
 def landmark_coverage(geometry: MazeGeometry, landmarks: Tensor, radius: float) -> float:
     """The fraction of the free grid cells within ``radius`` of a landmark, in a straight line clear of walls.
 
@@ -597,10 +619,8 @@ def graph_quality(
         true = learned = shortest = torch.zeros(0)
         out["distance_rank_corr"] = out["graph_distance_rank_corr"] = math.nan
     out["landmark_coverage"] = landmark_coverage(geometry, goals, coverage_radius)
-    origin = torch.zeros(2) if start is None else torch.as_tensor(start, dtype=torch.float32).reshape(2)
-    reach = geometry.path_length(origin, goals)
-    reach = reach[torch.isfinite(reach)]
-    out["landmark_progress"] = float(reach.max()) if reach.numel() else math.nan
+    reach = furthest_progress(geometry, goals, start)
+    out["landmark_progress"] = reach if math.isfinite(reach) else math.nan
     if return_pairs:
         return out, (rows, cols, true, learned, shortest)
     return out
