@@ -5,10 +5,14 @@ goals and prints the ``diag/...`` numbers the recipe logs every epoch (subgoals 
 outside the arena, graph edges through walls, rank correlation of the learned distances with the true
 obstacle-free path lengths, landmark coverage, the high level's subgoal at the start), a table of learned
 vs true distances for a few landmark pairs, and saves their scatter plot (``distance_scatter.png`` in the
-run directory unless ``--plot`` says otherwise).
+run directory unless ``--plot`` says otherwise). With ``--budgets`` it also rebuilds the graph from the
+checkpoint's low-level buffer with other landmark and candidate counts and prints how far each reaches into
+the maze, next to how far the buffer itself reaches (:func:`~torchrl_dhrl.training.landmark_budget_sweep`):
+does a larger graph help, or is exploration what limits it?
 
     python recipes/diagnose_graph.py outputs/<date>/<time>            # the run directory
     python recipes/diagnose_graph.py run/checkpoint --no-rollout --pairs 12 --plot /tmp/scatter.png
+    python recipes/diagnose_graph.py run --no-rollout --budgets 200:3000 300:6000 --draws 3
 """
 
 from __future__ import annotations
@@ -18,9 +22,18 @@ import math
 from pathlib import Path
 
 import torch
-from dhrl_utils import agent_from_checkpoint, build_environment
+from dhrl_utils import agent_from_checkpoint, build_environment, build_replay_buffers
+from torchrl_dhrl.envs import get_maze_spec
 
-from torchrl_dhrl.training import GraphDiagnosis, checkpoint_file, graph_diagnosis, plot_distance_scatter
+from torchrl_dhrl.training import (
+    GraphDiagnosis,
+    MazeGeometry,
+    checkpoint_file,
+    graph_diagnosis,
+    landmark_budget_sweep,
+    load_checkpoint,
+    plot_distance_scatter,
+)
 
 
 def graph_diagnosis_from_checkpoint(
@@ -49,6 +62,35 @@ def graph_diagnosis_from_checkpoint(
         resolution=resolution,
     )
     return diagnosis, cfg
+
+
+def budget_table(path, budgets, *, draws: int = 3, seed: int = 0, device: str | torch.device = "cpu"):
+    """:func:`~torchrl_dhrl.training.landmark_budget_sweep` of a recipe checkpoint: its agent's learned
+    distance and its low-level buffer, the progress measured from the maze's start; returns the rows and the
+    buffer's progress."""
+    cfg, agent = agent_from_checkpoint(path, device)
+    low_rb, _ = build_replay_buffers(cfg, agent, torch.device(device))
+    low_rb.load_state_dict(load_checkpoint(path, map_location=device, components=("low_rb",))["low_rb"])
+    geometry = MazeGeometry.from_maze(cfg["env_name"], margin=cfg["planner"]["oracle_margin"])
+    return landmark_budget_sweep(
+        geometry,
+        agent.planner,
+        low_rb,
+        budgets,
+        draws=draws,
+        coverage_radius=get_maze_spec(cfg["env_name"]).layout.scale / 2,
+        generator=torch.Generator().manual_seed(seed),
+    )
+
+
+def _budget(text: str) -> tuple[int, int]:
+    try:
+        landmarks, candidates = (int(v) for v in text.split(":"))
+    except ValueError:
+        raise argparse.ArgumentTypeError(
+            f"a budget is LANDMARKS:CANDIDATES, e.g. 300:6000; got {text!r}"
+        ) from None
+    return landmarks, candidates
 
 
 def pair_table(diagnosis, count: int) -> list[dict]:
@@ -92,6 +134,15 @@ def main(argv: list[str] | None = None):
         default=None,
         help="grid cell size of the true paths (default: the recipe's)",
     )
+    parser.add_argument(
+        "--budgets",
+        nargs="+",
+        type=_budget,
+        default=None,
+        metavar="LANDMARKS:CANDIDATES",
+        help="also rebuild the graph from the buffer with these landmark and candidate counts",
+    )
+    parser.add_argument("--draws", type=int, default=3, help="rebuilds per budget (--budgets)")
     parser.add_argument("--device", default="cpu")
     args = parser.parse_args(argv)
     diagnosis, cfg = graph_diagnosis_from_checkpoint(
@@ -135,7 +186,25 @@ def main(argv: list[str] | None = None):
         print(f"\nScatter plot: {plot}")
     else:
         print("\nNo graph in this checkpoint: no distances to compare.")
-    return diagnosis, rows
+    budgets = None
+    if args.budgets:
+        budgets, buffer_progress = budget_table(
+            args.checkpoint, args.budgets, draws=args.draws, device=args.device
+        )
+        print(
+            f"\nGraphs rebuilt from the buffer ({args.draws} draws each): how far the landmarks reach along the maze "
+            f"from the start (path length; the buffer's furthest state: {buffer_progress:.2f})"
+        )
+        print(
+            f"{'landmarks':>9} {'candidates':>10} {'built':>6} {'progress':>8} {'min':>6} {'max':>6} {'coverage':>8}"
+        )
+        for row in budgets:
+            print(
+                f"{row['max_landmarks']:9d} {row['candidates']:10d} {row['landmarks']:6.0f} {row['progress_mean']:8.2f} "
+                f"{row['progress_min']:6.2f} {row['progress_max']:6.2f} {row['coverage_mean']:8.3f}"
+            )
+        budgets = (budgets, buffer_progress)
+    return diagnosis, rows, budgets
 
 
 if __name__ == "__main__":

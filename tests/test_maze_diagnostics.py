@@ -15,6 +15,7 @@ from scipy.sparse import coo_matrix
 from scipy.sparse.csgraph import dijkstra
 from scipy.stats import spearmanr
 from tensordict import TensorDict
+from torchrl.data import LazyTensorStorage, ReplayBuffer
 
 from torchrl_dhrl.modules import HighLevelActor
 from torchrl_dhrl.planner import CutoffEdgeRule, GraphPlanner, LandmarkGraph
@@ -23,6 +24,7 @@ from torchrl_dhrl.training import (
     feasibility_fractions,
     graph_quality,
     grid_shortest_paths,
+    landmark_budget_sweep,
     landmark_coverage,
     maze_epoch_diagnostics,
     spearman_correlation,
@@ -339,6 +341,79 @@ def test_landmark_coverage():
     assert expected < within - 0.1
 
 
+def _maze_points(geometry: MazeGeometry, count: int, generator: torch.Generator) -> torch.Tensor:
+    """``count`` random free grid-cell centres of ``geometry`` reachable from the start."""
+    centers = geometry.cell_centers[geometry.free]
+    centers = centers[torch.isfinite(geometry.path_length(torch.zeros(2), centers))]
+    return centers[torch.randint(0, centers.shape[0], (count,), generator=generator)]
+
+
+@pytest.mark.parametrize("lanes", [1, 3])
+def test_landmark_budget_sweep_against_direct_progress(lanes):
+    """Over random buffers of maze points: a graph reaches at most as far as its buffer, a budget holding every
+    point reaches exactly as far, more landmarks from the same candidates never reach less far (FPS is
+    greedy), the rows match a direct computation from the rebuilt landmarks, and the planner is untouched."""
+    geometry = MazeGeometry.from_maze("PointMaze", margin=0.5)
+    generator = torch.Generator().manual_seed(0)
+    distance = lambda s, g: (s[..., :2] - g).norm(dim=-1)  # noqa: E731
+    for trial in range(6):
+        count = int(torch.randint(4, 40, (1,), generator=generator)) * lanes
+        points = _maze_points(geometry, count, generator)
+        if trial == 0:
+            points[:] = points[:1]  # every state the same: a single landmark, progress of that point
+        storage = LazyTensorStorage(4 * count, ndim=2 if lanes > 1 else 1)  # max_size: elements, not rows
+        rb = ReplayBuffer(storage=storage)
+        data = TensorDict(
+            observation=torch.cat([points, torch.randn(count, 2)], -1),
+            achieved_goal=points,
+            batch_size=[count],
+        )
+        rb.extend(data.reshape(count // lanes, lanes) if lanes > 1 else data)
+        planner = GraphPlanner(LandmarkGraph(cutoff=3.0, early_stop=0.0), distance, goal_dim=2)
+        planner.build(data["observation"][:2], points[:2])
+        before = {k: v.clone() for k, v in planner.state_dict().items()}
+        budgets = [(1, 60 * count), (3, 60 * count), (count, 60 * count), (3, 5)]
+        rows, buffer_progress = landmark_budget_sweep(
+            geometry, planner, rb, budgets, draws=2, coverage_radius=2.0, generator=generator
+        )
+        expected = max(geometry.path_length(torch.zeros(2), points).tolist())
+        assert buffer_progress == pytest.approx(expected)
+        assert [(r["max_landmarks"], r["candidates"]) for r in rows] == budgets
+        for row in rows:
+            assert (
+                row["progress_min"] <= row["progress_mean"] <= row["progress_max"] <= buffer_progress + 1e-5
+            )
+            assert 0.0 < row["coverage_mean"] <= 1.0 and 1 <= row["landmarks"] <= row["max_landmarks"]
+        # 60 draws per point: every point among the candidates, and as many landmarks as points
+        assert rows[2]["progress_min"] == pytest.approx(buffer_progress)
+        assert rows[0]["progress_mean"] <= rows[1]["progress_mean"] + 1e-6 <= rows[2]["progress_mean"] + 2e-6
+        if trial == 0:
+            assert rows[0]["progress_max"] == pytest.approx(expected)
+        after = planner.state_dict()
+        assert before.keys() == after.keys() and all(torch.equal(before[k], after[k]) for k in before)
+        # the coverage of a row is the coverage of the landmarks a direct rebuild with the same draw gives
+        seeds = torch.Generator().manual_seed(trial)
+        one, _ = landmark_budget_sweep(
+            geometry, planner, rb, [(count, 60 * count)], draws=1, coverage_radius=2.0, generator=seeds
+        )
+        assert one[0]["coverage_mean"] == pytest.approx(landmark_coverage(geometry, points, 2.0))
+
+
+def test_landmark_budget_sweep_refuses_bad_input():
+    geometry = MazeGeometry.from_maze("PointMaze", margin=0.5)
+    planner = GraphPlanner(LandmarkGraph(cutoff=3.0), lambda s, g: (s - g).norm(dim=-1), goal_dim=2)
+    empty = ReplayBuffer(storage=LazyTensorStorage(10))
+    with pytest.raises(ValueError, match="empty"):
+        landmark_budget_sweep(geometry, planner, empty, [(10, 10)], coverage_radius=2.0)
+    rb = ReplayBuffer(storage=LazyTensorStorage(10))
+    rb.extend(TensorDict(observation=torch.zeros(4, 2), achieved_goal=torch.zeros(4, 2), batch_size=[4]))
+    for budgets in ([(0, 10)], [(10,)], [(10, 2.5)], [(True, 10)]):
+        with pytest.raises(ValueError, match="budgets"):
+            landmark_budget_sweep(geometry, planner, rb, budgets, coverage_radius=2.0)
+    with pytest.raises(ValueError, match="draws"):
+        landmark_budget_sweep(geometry, planner, rb, [(10, 10)], draws=0, coverage_radius=2.0)
+
+
 # ------------------------------------------------------------------------------------------ recipe and tool
 
 
@@ -410,7 +485,8 @@ def test_recipe_logs_diag_columns_and_the_tool_reads_the_checkpoint(tmp_path, ca
     cli = importlib.util.module_from_spec(spec)
     spec.loader.exec_module(cli)
     plot = tmp_path / "scatter.png"
-    diagnosis, table = cli.main([str(run), "--pairs", "4", "--plot", str(plot)])
+    diagnosis, table, budgets = cli.main([str(run), "--pairs", "4", "--plot", str(plot)])
+    assert budgets is None
     out = capsys.readouterr().out
     assert "diag/edges_crossing_walls" in out and "learned vs true distances" in out
     assert plot.stat().st_size > 1000
@@ -421,6 +497,25 @@ def test_recipe_logs_diag_columns_and_the_tool_reads_the_checkpoint(tmp_path, ca
     pairs = diagnosis.pairs
     assert pairs["true"].shape == pairs["learned"].shape == pairs["graph"].shape and pairs["true"].numel() > 0
     # without the evaluation rollout: the subgoal fractions are NaN, the graph numbers the same
-    quick, _ = cli.main([str(run / "checkpoint"), "--no-rollout", "--pairs", "0", "--plot", str(plot)])
+    quick, _, (budgets, buffer_progress) = cli.main(
+        [
+            str(run / "checkpoint"),
+            "--no-rollout",
+            "--pairs",
+            "0",
+            "--plot",
+            str(plot),
+            "--budgets",
+            "4:50",
+            "400:4000",
+        ]
+    )
     assert math.isnan(quick.metrics["diag/subgoals_in_walls"])
     assert quick.metrics["diag/distance_rank_corr"] == diagnosis.metrics["diag/distance_rank_corr"]
+    # the graph rebuilt from the run's buffer: never past the buffer's furthest state; the run's own graph kept
+    assert "the buffer's furthest state" in capsys.readouterr().out
+    assert [(row["max_landmarks"], row["candidates"]) for row in budgets] == [(4, 50), (400, 4000)]
+    assert 0.0 < budgets[0]["progress_mean"] <= budgets[1]["progress_max"] <= buffer_progress + 1e-5
+    assert quick.metrics["graph/landmarks"] == diagnosis.metrics["graph/landmarks"]
+    with pytest.raises(SystemExit):
+        cli.main([str(run), "--no-rollout", "--budgets", "300-6000"])
