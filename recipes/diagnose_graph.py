@@ -23,12 +23,12 @@ from pathlib import Path
 
 import torch
 from dhrl_utils import agent_from_checkpoint, build_environment, build_replay_buffers
-from torchrl_dhrl.envs import get_maze_spec
 
 from torchrl_dhrl.training import (
     GraphDiagnosis,
     MazeGeometry,
     checkpoint_file,
+    default_coverage_radius,
     graph_diagnosis,
     landmark_budget_sweep,
     load_checkpoint,
@@ -78,7 +78,7 @@ def budget_table(path, budgets, *, draws: int = 3, seed: int = 0, device: str | 
         low_rb,
         budgets,
         draws=draws,
-        coverage_radius=get_maze_spec(cfg["env_name"]).layout.scale / 2,
+        coverage_radius=default_coverage_radius(cfg["env_name"]),
         generator=torch.Generator().manual_seed(seed),
     )
 

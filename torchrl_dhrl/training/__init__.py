@@ -67,6 +67,7 @@ from .hierarchy_diagnostics import (
 from .maze_diagnostics import (
     GraphDiagnosis,
     MazeGeometry,
+    default_coverage_radius,
     feasibility_fractions,
     graph_diagnosis,
     graph_quality,
@@ -146,6 +147,7 @@ __all__ = [
     "grid_moves",
     "grid_shortest_paths",
     "hierarchy_diagnostics",
+    "default_coverage_radius",
     "landmark_budget_sweep",
     "landmark_coverage",
     "load_checkpoint",

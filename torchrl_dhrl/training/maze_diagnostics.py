@@ -35,6 +35,7 @@ __all__ = [
     "feasibility_fractions",
     "furthest_progress",
     "graph_diagnosis",
+    "default_coverage_radius",
     "graph_quality",
     "grid_moves",
     "grid_shortest_paths",
@@ -498,6 +499,19 @@ def furthest_progress(geometry: MazeGeometry, points: Tensor, start: Tensor | No
     return float(reach.max()) if reach.numel() else -math.inf
 
 
+def default_coverage_radius(env_name: str) -> float:
+    """The ``coverage_radius`` of the recipe's ``diag/landmark_coverage``: half the maze's scale, half a corridor width
+    (2 for PointMaze and AntMazeSmall, 4 for the other mazes).
+
+    Examples:
+        >>> default_coverage_radius("PointMaze"), default_coverage_radius("AntMaze")
+        (2.0, 4.0)
+    """
+    from torchrl_dhrl.envs import get_maze_spec
+
+    return get_maze_spec(env_name).layout.scale / 2
+
+
 def landmark_coverage(geometry: MazeGeometry, landmarks: Tensor, radius: float) -> float:
     """The fraction of the free grid cells within ``radius`` of a landmark, in a straight line clear of walls.
 
@@ -824,14 +838,14 @@ def maze_epoch_diagnostics(
         >>> maze_epoch_diagnostics("Reacher3D", planner, rollout, actor)
         {}
     """
-    from torchrl_dhrl.envs import MAZE_NAMES, get_maze_spec
+    from torchrl_dhrl.envs import MAZE_NAMES
 
     if env_name not in MAZE_NAMES:
         return {}
     start = time.perf_counter()
     geometry = _maze_geometry(env_name, float(margin), resolution)
     if coverage_radius is None:
-        coverage_radius = get_maze_spec(env_name).layout.scale / 2
+        coverage_radius = default_coverage_radius(env_name)
     metrics = {f"diag/{k}": v for k, v in feasibility_fractions(geometry, rollout).items()}
     quality = graph_quality(geometry, planner, coverage_radius=coverage_radius, max_sources=max_sources)
     metrics.update({f"diag/{k}": v for k, v in quality.items()})
