@@ -35,7 +35,7 @@ from torchrl_dhrl.training import (
     obstacle_boxes,
     start_run,
 )
-from torchrl_dhrl.training.config import BUILD_DTYPES, UPDATE_DTYPES, with_implied_keys
+from torchrl_dhrl.training.config import run_precisions, with_implied_keys
 
 #: The configuration directory; ``config.yaml`` there is the schema of every configuration key.
 CONFIG_DIR = Path(__file__).resolve().parent / "config"
@@ -196,7 +196,7 @@ def build_agent(cfg: dict, device: torch.device) -> DHRLAgent:
         cutoff=planner["cutoff"],
         max_landmarks=planner["max_landmarks"],
         early_stop=planner["early_stop"],
-        build_autocast_dtype=BUILD_DTYPES[planner["build_dtype"]],
+        build_autocast_dtype=run_precisions(cfg, device)[1],
         reach_radius=planner["reach_radius"],
     )
 
@@ -273,7 +273,7 @@ def build_updaters(cfg: dict, agent: DHRLAgent, low_rb, high_rb) -> tuple[LossUp
                 actor_update_interval=c["actor_update_interval"],
                 cudagraphs=cfg.get("cudagraphs", False),
                 compile=cfg.get("compile", False),
-                autocast_dtype=UPDATE_DTYPES[cfg.get("update_dtype", "float32")],
+                autocast_dtype=run_precisions(cfg, next(loss.parameters()).device)[0],
                 actor_after_critic_step=c["actor_after_critic_step"],
             )
         )

@@ -36,7 +36,9 @@ from .config import (
     ConfigError,
     check_known_keys,
     check_resume_config,
+    describe_precisions,
     resolve_device,
+    run_precisions,
     validate_config,
     with_implied_keys,
 )
@@ -87,6 +89,7 @@ from .plots import (
     plot_success_curve,
     success_curve_series,
 )
+from .precision import PRECISIONS, native_bfloat16, resolve_precision
 from .run import (
     CONFIG_NAME,
     RESUME_AUTO,
@@ -126,6 +129,7 @@ __all__ = [
     "ModuleTimer",
     "NonFiniteLossError",
     "RESUME_MUTABLE_KEYS",
+    "PRECISIONS",
     "ReachResult",
     "RunStart",
     "SEED_MAX",
@@ -148,6 +152,7 @@ __all__ = [
     "grid_shortest_paths",
     "hierarchy_diagnostics",
     "default_coverage_radius",
+    "describe_precisions",
     "landmark_budget_sweep",
     "landmark_coverage",
     "load_checkpoint",
@@ -162,6 +167,7 @@ __all__ = [
     "make_low_level_buffer",
     "make_updater",
     "maze_epoch_diagnostics",
+    "native_bfloat16",
     "observation_transforms",
     "obstacle_boxes",
     "planning_ablations",
@@ -175,8 +181,10 @@ __all__ = [
     "rebuild_graph",
     "record_video",
     "resolve_device",
+    "resolve_precision",
     "resolve_threads",
     "restore_checkpoint",
+    "run_precisions",
     "save_checkpoint",
     "set_threads",
     "spearman_correlation",

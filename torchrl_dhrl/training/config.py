@@ -16,6 +16,8 @@ from torchrl_dhrl.modules.critics import DISTANCE_OUTPUTS
 from torchrl_dhrl.planner.distances import TWIN_CHOICES
 from torchrl_dhrl.planner.fgs import FGS_TRIGGERS, FGS_WEIGHTINGS
 
+from .precision import native_bfloat16, resolve_precision
+
 __all__ = [
     "BUILD_DTYPES",
     "CHOICES",
@@ -29,15 +31,18 @@ __all__ = [
     "UPDATE_DTYPES",
     "check_known_keys",
     "check_resume_config",
+    "describe_precisions",
     "resolve_device",
+    "run_precisions",
     "validate_config",
     "with_implied_keys",
 ]
 
-#: Precisions of the distance evaluations of a graph rebuild (``None``: the networks' own, float32).
-BUILD_DTYPES = {"float32": None, "bfloat16": torch.bfloat16, "float16": torch.float16}
-#: Precisions of the networks' updates (``update_dtype``; ``None``: full precision, float32).
-UPDATE_DTYPES = {"float32": None, "bfloat16": torch.bfloat16}
+#: Precisions of the distance evaluations of a graph rebuild (``planner.build_dtype``; ``auto``: bfloat16 where the
+#: device has it natively, else float32; :func:`~torchrl_dhrl.training.resolve_precision`).
+BUILD_DTYPES = ("float32", "bfloat16", "float16", "auto")
+#: Precisions of the networks' updates (``update_dtype``; ``auto`` as for ``BUILD_DTYPES``).
+UPDATE_DTYPES = ("float32", "bfloat16", "auto")
 #: Graph distances the recipe can plan with.
 DISTANCES = ("learned", "oracle")
 #: Logger back ends (``none`` logs nothing but the progress bar).
@@ -47,8 +52,9 @@ SEED_MAX = 2**32 - 1
 #: Keys that may differ between a checkpoint's configuration and the one resuming it, as
 #: :func:`fnmatch.fnmatchcase` patterns over dotted keys: how long the run goes on, where and how it
 #: writes (paths, progress bar, logger, pictures, checkpoint period) and how it computes (device,
-#: threads, CUDA graphs, update precision). Every other key defines the experiment (environment,
-#: seed, networks, buffers, schedule, planner) and must match; see :func:`check_resume_config`.
+#: threads, CUDA graphs, compilation, update and graph-build precision). Every other key defines the
+#: experiment (environment, seed, networks, buffers, schedule, planner) and must match; see
+#: :func:`check_resume_config`.
 RESUME_MUTABLE_KEYS = (
     "total_steps",
     "progress",
@@ -59,6 +65,7 @@ RESUME_MUTABLE_KEYS = (
     "cudagraphs",
     "compile",
     "update_dtype",
+    "planner.build_dtype",
     "logger.*",
     "plots.*",
     "checkpoint.*",
@@ -284,6 +291,47 @@ def resolve_device(device: str | torch.device | None) -> torch.device:
     return resolved
 
 
+def run_precisions(cfg: Mapping, device: str | torch.device) -> tuple[torch.dtype | None, torch.dtype | None]:
+    """The autocast dtypes of a configuration's updates and graph builds on ``device`` (``None``: float32).
+
+    Resolves ``update_dtype`` and ``planner.build_dtype`` (``auto``: bfloat16 where ``device`` has it natively,
+    else float32; :func:`~torchrl_dhrl.training.resolve_precision`). Updates replayed as CUDA graphs
+    (``cudagraphs=true``) support float32 only, so ``auto`` means float32 there.
+
+    Examples:
+        >>> import torch
+        >>> run_precisions({"update_dtype": "bfloat16", "planner": {"build_dtype": "float32"}}, "cpu")
+        (torch.bfloat16, None)
+    """
+    update = resolve_precision(
+        cfg.get("update_dtype", "float32"),
+        device,
+        choices=UPDATE_DTYPES,
+        allow_reduced=not cfg.get("cudagraphs", False),
+    )
+    build = resolve_precision(_get(cfg, "planner.build_dtype"), device, choices=BUILD_DTYPES)
+    return update, build
+
+
+def describe_precisions(cfg: Mapping, device: str | torch.device) -> str:
+    """One start-up line: the precisions :func:`run_precisions` resolves to, and why when ``auto`` chose.
+
+    Examples:
+        >>> describe_precisions({"update_dtype": "float32", "planner": {"build_dtype": "float32"}}, "cpu")
+        'Precision: updates float32, graph builds float32.'
+    """
+    update, build = run_precisions(cfg, device)
+    line = f"Precision: updates {_dtype_name(update)}, graph builds {_dtype_name(build)}"
+    if "auto" in (cfg.get("update_dtype", "float32"), _get(cfg, "planner.build_dtype")):
+        has = "has" if native_bfloat16(device) else "has no"
+        line += f" (auto: {torch.device(device).type} {has} native bfloat16)"
+    return line + "."
+
+
+def _dtype_name(dtype: torch.dtype | None) -> str:
+    return "float32" if dtype is None else str(dtype).removeprefix("torch.")
+
+
 def _flatten(cfg: Mapping, prefix: str = "") -> dict[str, Any]:
     out: dict[str, Any] = {}
     for key, value in cfg.items():
@@ -491,7 +539,7 @@ def validate_config(cfg: Mapping, env_names: tuple[str, ...] | None = None) -> N
     update_dtype = cfg.get("update_dtype", "float32")
     if update_dtype not in UPDATE_DTYPES:
         raise ConfigError(f"`update_dtype` must be one of {tuple(UPDATE_DTYPES)}, got {update_dtype!r}.")
-    if update_dtype != "float32" and cfg.get("cudagraphs", False):
+    if update_dtype == "bfloat16" and cfg.get("cudagraphs", False):  # `auto` resolves to float32 there
         raise ConfigError(f"`update_dtype={update_dtype}` cannot be combined with `cudagraphs=true` (yet).")
     if cfg.get("compile", False) and cfg.get("cudagraphs", False):
         raise ConfigError("`compile=true` cannot be combined with `cudagraphs=true` (yet): pick one.")

@@ -21,7 +21,14 @@ import torch
 import yaml
 
 from .checkpoint import CHECKPOINT_COMPONENTS, CheckpointError, checkpoint_file, load_checkpoint
-from .config import ConfigError, check_known_keys, check_resume_config, resolve_device, validate_config
+from .config import (
+    ConfigError,
+    check_known_keys,
+    check_resume_config,
+    describe_precisions,
+    resolve_device,
+    validate_config,
+)
 from .evaluation import ModuleTimer
 from .threads import set_threads
 
@@ -129,6 +136,7 @@ def start_run(
     if cfg["plots"]["video"]:
         _check_offscreen_rendering()
     print(set_threads(cfg["threads"]))
+    print(describe_precisions(cfg, device))
     if notes:
         print(f"Resuming {resume} with: {'; '.join(notes)}.")
     run_dir.mkdir(parents=True, exist_ok=True)
