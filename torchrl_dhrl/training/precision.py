@@ -2,7 +2,7 @@
 
 bfloat16 autocast pays off only where the hardware multiplies bfloat16 natively: CPUs with AVX512-BF16 or AMX,
 CUDA GPUs of compute capability 8.0 and newer. Elsewhere PyTorch emulates it, and a bfloat16 update becomes many
-times *slower* than a float32 one (measured 14x on an AVX2-only AMD EPYC, ``benchmarks/README.md``). ``auto``
+times *slower* than a float32 one (measured 11-14x on an AVX2-only AMD EPYC, ``benchmarks/README.md``). ``auto``
 therefore picks bfloat16 where it is native and float32 everywhere else.
 """
 
