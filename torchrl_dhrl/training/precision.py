@@ -12,9 +12,9 @@ import torch
 
 __all__ = ["PRECISIONS", "native_bfloat16", "resolve_precision"]
 
-#: The precision names the recipe accepts, and the autocast dtype each stands for (``None``: float32, no autocast).
-#: ``auto`` is resolved per device by :func:`resolve_precision`.
-PRECISIONS = {"float32": None, "bfloat16": torch.bfloat16, "float16": torch.float16, "auto": None}
+#: The fixed precision names and the autocast dtype each stands for (``None``: float32, no autocast). The name
+#: ``"auto"`` is accepted besides them and resolved per device by :func:`resolve_precision`.
+PRECISIONS = {"float32": None, "bfloat16": torch.bfloat16, "float16": torch.float16}
 
 # CPU capability probes of torch (private, so looked up defensively: a missing probe counts as "no").
 _CPU_BF16_PROBES = ("_is_avx512_bf16_supported", "_is_amx_tile_supported")
@@ -59,7 +59,8 @@ def resolve_precision(
             :func:`native_bfloat16`, else float32).
 
     Keyword Args:
-        choices (tuple of str, optional): the names this caller accepts (default: all of :data:`PRECISIONS`).
+        choices (tuple of str, optional): the names this caller accepts (default: those of :data:`PRECISIONS`
+            and ``"auto"``).
         allow_reduced (bool): ``False`` makes ``auto`` resolve to float32 (for paths that support float32
             only, e.g. CUDA-graph updates). Defaults to ``True``.
 
@@ -74,7 +75,7 @@ def resolve_precision(
         >>> resolve_precision("auto", "cpu", allow_reduced=False) is None
         True
     """
-    choices = tuple(PRECISIONS) if choices is None else choices
+    choices = (*PRECISIONS, "auto") if choices is None else choices
     if name not in choices:
         raise ValueError(f"precision must be one of {choices}, got {name!r}.")
     if name == "auto":
