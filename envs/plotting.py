@@ -22,6 +22,9 @@ _WALL_COLOR = "#6b6b80"
 _EXTRA_WALL_COLOR = "#40405a"
 _BOARD_COLOR = "#8c6239"
 _GOAL_COLOR = "#d62728"
+#: Executed trajectories, one colour each in turn: dark and unlike the blue graph and the orange plan they
+#: are drawn over (the default colour cycle's first blue vanished among the graph's edges).
+_TRAJECTORY_COLORS = ("#111111", "#8c2d8c", "#2f6f2f", "#8b5a2b", "#555555")
 #: Projections of :func:`plot_arm`: view name -> (horizontal axis, vertical axis) of the goal space.
 ARM_VIEWS = {"top": (0, 1), "front": (1, 2), "side": (0, 2)}
 _AXIS_LABELS = "xyz"
@@ -94,10 +97,10 @@ def _draw_overlays(ax, axes: tuple[int, int], *, trajectory, landmarks, edges, p
         ax.scatter(nodes[:, 0], nodes[:, 1], s=8, c="#1f5fbf", zorder=3, label="landmarks")
     if trajectory is not None:
         for k, xy in enumerate(_trajectories(trajectory, axes)):
-            (line,) = ax.plot(
-                xy[:, 0], xy[:, 1], lw=1.0, alpha=0.8, zorder=4, label="trajectory" if k == 0 else None
-            )
-            ax.plot(xy[-1, 0], xy[-1, 1], "o", ms=3, color=line.get_color(), zorder=4)
+            color = _TRAJECTORY_COLORS[k % len(_TRAJECTORY_COLORS)]
+            label = "trajectory" if k == 0 else None
+            ax.plot(xy[:, 0], xy[:, 1], lw=1.3, alpha=0.9, color=color, zorder=5.5, label=label)
+            ax.plot(xy[-1, 0], xy[-1, 1], "o", ms=5, color=color, zorder=5.5)  # where it ended
     if path is not None:
         path = _as_numpy(path)[:, axes_list]
         ax.plot(path[:, 0], path[:, 1], "-o", color="#e08000", lw=2.0, ms=4, zorder=5, label="path")

@@ -13,6 +13,7 @@ import numpy as np  # noqa: E402
 import pytest  # noqa: E402
 import torch  # noqa: E402
 from matplotlib.collections import LineCollection  # noqa: E402
+from matplotlib.colors import to_hex  # noqa: E402
 from matplotlib.patches import Rectangle  # noqa: E402
 from torchrl_dhrl.envs import MAZE_NAMES, GymGoalEnv, get_maze_spec, make_env, plot_maze  # noqa: E402
 from torchrl_dhrl.envs.demo import main as demo_main  # noqa: E402
@@ -65,6 +66,13 @@ def test_plot_graph_path_and_trajectories():
     trajectory_lines = [line for line in ax.lines if len(line.get_xdata()) == 20]
     assert len(trajectory_lines) == 3
     np.testing.assert_allclose(trajectory_lines[0].get_xydata(), trajectories[0, :, :2])
+    # Readable over the graph: drawn above the planned path, each in its own colour, none the edges' blue
+    # nor the path's orange.
+    path_line = next(line for line in ax.lines if line.get_label() == "path")
+    colors = [to_hex(line.get_color()) for line in trajectory_lines]
+    assert all(line.get_zorder() > path_line.get_zorder() for line in trajectory_lines)
+    assert len(set(colors)) == 3
+    assert not {to_hex(path_line.get_color()), to_hex(collections[0].get_colors()[0])} & set(colors)
     # Segment edges [E, 2, 2] are accepted as they are.
     segments = landmarks.numpy()[edges]
     ax2 = plot_maze("AntMazeSmall", edges=segments)
