@@ -82,13 +82,15 @@ def test_run_precisions_of_a_configuration(monkeypatch, native):
     assert line == (
         f"Precision: updates {name}, graph builds {name} (auto: cpu {'has' if native else 'has no'} native bfloat16)."
     )
-    assert describe_precisions({"update_dtype": "bfloat16", "planner": {"build_dtype": "float32"}}, "cpu") == (
-        "Precision: updates bfloat16, graph builds float32."
-    )
+    assert describe_precisions(
+        {"update_dtype": "bfloat16", "planner": {"build_dtype": "float32"}}, "cpu"
+    ) == ("Precision: updates bfloat16, graph builds float32.")
 
 
 def test_auto_is_accepted_by_the_config_check_and_bad_values_are_named():
-    validate_config(recipe_config("env=PointMaze", "device=cpu", "update_dtype=auto", "planner.build_dtype=auto"))
+    validate_config(
+        recipe_config("env=PointMaze", "device=cpu", "update_dtype=auto", "planner.build_dtype=auto")
+    )
     with pytest.raises(ConfigError, match=r"`update_dtype` must be one of \('float32', 'bfloat16', 'auto'\)"):
         validate_config(recipe_config("env=PointMaze", "device=cpu", "update_dtype=float16"))
     with pytest.raises(ConfigError, match="`planner.build_dtype` must be one of"):
@@ -99,7 +101,9 @@ def test_the_cpu_preset_resumes_a_run_of_another_precision():
     # preset=cpu switched from bfloat16 to auto: a run checkpointed with bfloat16 must resume under the new preset
     from torchrl_dhrl.training import check_resume_config
 
-    saved = recipe_config("env=AntMaze", "preset=cpu", "update_dtype=bfloat16", "planner.build_dtype=bfloat16")
+    saved = recipe_config(
+        "env=AntMaze", "preset=cpu", "update_dtype=bfloat16", "planner.build_dtype=bfloat16"
+    )
     notes = check_resume_config(saved, recipe_config("env=AntMaze", "preset=cpu"))
     assert notes == ["planner.build_dtype: 'bfloat16' -> 'auto'", "update_dtype: 'bfloat16' -> 'auto'"]
 
