@@ -92,6 +92,11 @@ class AntAgent(MotorControl):
         density (float): geom density. Defaults to ``5``.
         friction (tuple of float): geom friction (slide, torsion, roll). Defaults to ``(1, 0.5, 0.5)``.
         margin (float): geom contact margin. Defaults to ``0.01``.
+        solref (tuple of float): contact ``solref`` of every geom of the scene (the reference's default
+            class; MuJoCo's default). Defaults to ``(0.02, 1)``.
+        solimp (tuple of float): contact ``solimp`` of every geom of the scene: the reference's default
+            class gives the ant, the floor and the walls ``(0.8, 0.8, 0.01)``, softer than MuJoCo's
+            ``(0.9, 0.95, 0.001)``. Defaults to ``(0.8, 0.8, 0.01)``.
         ctrl_limit (float): motors accept torques in ``[-ctrl_limit, ctrl_limit]``. Defaults to ``30``.
         init_qpos (tuple of float): reset pose before noise: torso (0, 0, 0.55), identity quaternion and
             joints ``(0, 1, 0, -1, 0, -1, 0, 1)``.
@@ -123,6 +128,8 @@ class AntAgent(MotorControl):
     density: float = 5.0
     friction: tuple[float, float, float] = (1.0, 0.5, 0.5)
     margin: float = 0.01
+    solref: tuple[float, float] = (0.02, 1.0)
+    solimp: tuple[float, float, float] = (0.8, 0.8, 0.01)
     ctrl_limit: float = 30.0
     # Torso position, identity quaternion, then (hip, ankle) of legs 1-4.
     init_qpos: tuple[float, ...] = (
@@ -159,6 +166,21 @@ class AntAgent(MotorControl):
         """Whether the agent's geoms collide with the floor (the ant walks on it)."""
         return True
 
+    @property
+    def scene_contact(self) -> dict:
+        """Contact parameters the arena gives the floor and the walls.
+
+        In the reference every geom of the scene (floor and wall blocks included) takes the model's default
+        class; MuJoCo mixes the two geoms' ``solref``/``solimp`` of a contact, so the static geoms must carry
+        the ant's values for its contacts to be the reference's.
+        """
+        return {
+            "solref": self.solref,
+            "solimp": self.solimp,
+            "friction": self.friction,
+            "margin": self.margin,
+        }
+
     def build_mjcf(self) -> mjcf.RootElement:
         """Builds the ant model (torso at the model origin, no root joint; see :meth:`attach_to`)."""
         root = mjcf.RootElement(model="ant")
@@ -173,6 +195,8 @@ class AntAgent(MotorControl):
         geom.density = self.density
         geom.friction = self.friction
         geom.margin = self.margin
+        geom.solref = self.solref
+        geom.solimp = self.solimp
         geom.rgba = (0.8, 0.6, 0.4, 1.0)
 
         torso = root.worldbody.add("body", name="torso")
@@ -206,9 +230,12 @@ class AntAgent(MotorControl):
                 fromto=(0.0, 0.0, 0.0) + upper,
             )
             ankle_body = hip_body.add("body", name=f"{leg}_foot", pos=upper)
-            # In-plane axis perpendicular to the leg direction (dx, dy): (-dy, dx, 0).
+            # In-plane axis perpendicular to the leg direction (dx, dy): sign * (-dy, dx, 0). A positive
+            # angle about (-dy, dx, 0) folds the lower leg down, so with the sign the ankle range (positive
+            # for legs 1 and 4, negative for 2 and 3) keeps every foot below its ankle, as in the reference.
+            axis = (-sign * dy, sign * dx, 0.0)
             joints[f"ankle_{number}"] = ankle_body.add(
-                "joint", name=f"ankle_{number}", type="hinge", axis=(-dy, dx, 0), range=ankle_range
+                "joint", name=f"ankle_{number}", type="hinge", axis=axis, range=ankle_range
             )
             ankle_body.add(
                 "geom",
@@ -339,6 +366,12 @@ class PointAgent:
     def touches_floor(self) -> bool:
         """The point slides on x/y joints only: it has no contact with the floor."""
         return False
+
+    @property
+    def scene_contact(self) -> dict:
+        """No extra contact attributes for the floor and walls (MuJoCo's defaults; the point's own
+        ``solref`` and ``priority`` decide its wall contacts)."""
+        return {}
 
     @property
     def control_period(self) -> float:

@@ -47,11 +47,18 @@ def new_scene(name: str, agent) -> mjcf.RootElement:
 
 
 def add_floor(
-    root: mjcf.RootElement, center, half_extent: float, *, height: float = 0.0, collides: bool
+    root: mjcf.RootElement,
+    center,
+    half_extent: float,
+    *,
+    height: float = 0.0,
+    collides: bool,
+    contact: dict | None = None,
 ) -> mjcf.Element:
     """A checkered floor plane (square, ``half_extent`` wide) under a directional light.
 
-    ``collides`` makes agent geoms collide with it (``conaffinity``).
+    ``collides`` makes agent geoms collide with it (``conaffinity``); ``contact`` holds extra contact
+    attributes of the plane (``solref``, ``solimp``, ``friction``, ``margin``).
     """
     root.asset.add(
         "texture",
@@ -85,16 +92,27 @@ def add_floor(
         contype=0,
         conaffinity=AGENT_CONTYPE if collides else 0,
         condim=3,
+        **(contact or {}),
     )
 
 
 def add_boxes(
-    root: mjcf.RootElement, boxes: tuple[WallBox, ...], *, prefix: str, rgba=_WALL_RGBA
+    root: mjcf.RootElement,
+    boxes: tuple[WallBox, ...],
+    *,
+    prefix: str,
+    rgba=_WALL_RGBA,
+    contact: dict | None = None,
 ) -> list[mjcf.Element]:
-    """Static box geoms ``<prefix>_<k>`` that agents collide with (walls, boards)."""
+    """Static box geoms ``<prefix>_<k>`` that agents collide with (walls, boards).
+
+    ``contact`` holds extra contact attributes of every box; a box's own ``friction`` takes precedence.
+    """
     geoms = []
     for k, box in enumerate(boxes):
-        extra = {} if box.friction is None else {"friction": box.friction}
+        extra = dict(contact or {})
+        if box.friction is not None:
+            extra["friction"] = box.friction
         geoms.append(
             root.worldbody.add(
                 "geom",
@@ -165,8 +183,9 @@ def build_maze_mjcf(maze: str | MazeSpec) -> mjcf.RootElement:
     low, high = spec.layout.extent
     center = (low + high) / 2
     half_extent = float(np.max(high - low)) / 2
-    add_floor(root, center, half_extent, collides=agent.touches_floor)
-    add_boxes(root, spec.layout.wall_boxes, prefix="wall")
+    contact = agent.scene_contact
+    add_floor(root, center, half_extent, collides=agent.touches_floor, contact=contact)
+    add_boxes(root, spec.layout.wall_boxes, prefix="wall", contact=contact)
     add_goal_marker(root, spec.reward_threshold)
     # A camera looking straight down (-z) with +y up; high enough to see the whole grid.
     height = half_extent / np.tan(np.deg2rad(_OVERVIEW_FOVY) / 2) * 1.05

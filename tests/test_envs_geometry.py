@@ -156,10 +156,13 @@ def _push_ant(sim, start_xy, force_xy, steps=150):
 def test_ant_sized_probe_cannot_pass_walls():
     """Pushing the ant's torso into a block wall and a thin bottleneck wall never gets it through.
 
-    The push, 50 N, is about 5.6 times the ant's weight (0.91 kg): far more than its legs can produce.
+    The push, 50 N, is about 5.6 times the ant's weight (0.91 kg): far more than its legs can produce. The
+    reference's soft contacts (``solimp (0.8, 0.8, 0.01)`` on the ant, the floor and the walls) let the torso,
+    pushed this hard, sink up to about 0.15 into a wall (0.06 into a block, 0.15 into a thin wall whose
+    friction 2 pins the legs): the tolerance keeps the torso's centre in front of the face.
     """
     torso_radius = get_maze_spec("AntMaze").agent.torso_radius
-    tolerance = 0.05
+    tolerance = 0.2
     push = 50.0
     sim = GoalSimulation("AntMazeSmall")
     path = _push_ant(sim, (7.0, 0.0), (push, 0.0))

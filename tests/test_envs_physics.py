@@ -47,6 +47,79 @@ def test_ant_model_facts():
         assert low <= qpos[8 + 2 * k] <= high
 
 
+@pytest.mark.parametrize("maze", ANT_MAZES)
+def test_ant_stands_on_four_feet(maze):
+    """At the reset pose every lower leg points down to the floor, as in the reference model.
+
+    Independent computation: the lower leg (length 0.4 * sqrt(2)) leaves its ankle at (+-0.4, +-0.4, 0.55)
+    and the ankle angle of 1 rad (legs 1, 4) or -1 rad (legs 2, 3) folds it down by 1 rad, so its tip lies at
+    height 0.55 - 0.4 sqrt(2) sin(1) and at 0.4 + 0.4 cos(1) from the torso along each axis.
+    """
+    model = compile_maze_model(maze)
+    data = mujoco.MjData(model)
+    data.qpos[:] = AntAgent().init_qpos
+    mujoco.mj_forward(model, data)
+    length = 0.4 * np.sqrt(2.0)
+    tip_height = 0.55 - length * np.sin(1.0)
+    tip_offset = 0.4 + 0.4 * np.cos(1.0)
+    for leg, (dx, dy) in [
+        ("front_left", (1, 1)),
+        ("front_right", (-1, 1)),
+        ("back_left", (-1, -1)),
+        ("back_right", (1, -1)),
+    ]:
+        geom = model.geom(f"ant/{leg}_lower_geom").id
+        axis = data.geom_xmat[geom].reshape(3, 3)[:, 2] * model.geom_size[geom][1]
+        ends = np.stack([data.geom_xpos[geom] + axis, data.geom_xpos[geom] - axis])
+        tip = ends[np.argmin(ends[:, 2])]
+        np.testing.assert_allclose(tip, [dx * tip_offset, dy * tip_offset, tip_height], atol=1e-6)
+    # Across each ankle's whole range the foot stays below its ankle (no leg can fold upwards).
+    hinges = {model.joint(j).name: j for j in range(1, model.njnt)}
+    for n, leg in enumerate(["front_left", "front_right", "back_left", "back_right"], start=1):
+        joint = hinges[f"ant/ankle_{n}"]
+        for angle in np.linspace(*model.jnt_range[joint], 5):
+            data.qpos[:] = AntAgent().init_qpos
+            data.qpos[model.jnt_qposadr[joint]] = angle
+            mujoco.mj_forward(model, data)
+            geom = model.geom(f"ant/{leg}_lower_geom").id
+            ankle_height = data.xpos[model.geom_bodyid[geom]][2]
+            axis = data.geom_xmat[geom].reshape(3, 3)[:, 2] * model.geom_size[geom][1]
+            lowest = min(data.geom_xpos[geom][2] + axis[2], data.geom_xpos[geom][2] - axis[2])
+            assert lowest < ankle_height - 0.2, (leg, angle)
+    # Left alone, the ant settles on its four feet: each lower leg touches the floor, the torso does not.
+    data.qpos[:] = AntAgent().init_qpos
+    data.qvel[:] = 0.0
+    for _ in range(250):
+        mujoco.mj_step(model, data)
+    floor = model.geom("floor").id
+    touching = {
+        model.geom(int(g)).name
+        for c in data.contact[: data.ncon]
+        for g in (c.geom1, c.geom2)
+        if floor in (c.geom1, c.geom2) and g != floor
+    }
+    assert {
+        f"ant/{leg}_lower_geom" for leg in ("front_left", "front_right", "back_left", "back_right")
+    } <= touching
+    assert "ant/torso_geom" not in touching
+    assert data.qpos[2] > 0.3
+
+
+def test_ant_scene_contact_parameters():
+    """Every geom the ant touches carries the reference default class's contact parameters (MuJoCo mixes
+    the two geoms' solref/solimp, so the floor and walls must carry them too)."""
+    model = compile_maze_model("AntMazeBottleneck")
+    names = [model.geom(g).name for g in range(model.ngeom)]
+    contact = [g for g, n in enumerate(names) if n.startswith(("ant/", "wall_", "floor"))]
+    assert len(contact) > 20
+    for g in contact:
+        np.testing.assert_allclose(model.geom_solimp[g][:3], [0.8, 0.8, 0.01], err_msg=names[g])
+        np.testing.assert_allclose(model.geom_solref[g], [0.02, 1.0], err_msg=names[g])
+        np.testing.assert_allclose(model.geom_margin[g], 0.01, err_msg=names[g])
+    # The bottleneck's thin walls keep their own friction.
+    assert any(np.allclose(model.geom_friction[g], [2.0, 0.1, 0.002]) for g in contact)
+
+
 def test_ant_collides_only_with_floor_and_walls():
     model = compile_maze_model("AntMaze")
     ant = [g for g in range(model.ngeom) if model.geom(g).name.startswith("ant/")]
