@@ -98,8 +98,11 @@ class AntAgent(MotorControl):
             class gives the ant, the floor and the walls ``(0.8, 0.8, 0.01)``, softer than MuJoCo's
             ``(0.9, 0.95, 0.001)``. Defaults to ``(0.8, 0.8, 0.01)``.
         ctrl_limit (float): motors accept torques in ``[-ctrl_limit, ctrl_limit]``. Defaults to ``30``.
-        init_qpos (tuple of float): reset pose before noise: torso (0, 0, 0.55), identity quaternion and
-            joints ``(0, 1, 0, -1, 0, -1, 0, 1)``.
+        init_qpos (tuple of float): reset pose before noise: the model's ``qpos0``, torso (0, 0, 0.75),
+            identity quaternion and every joint at 0, as in the reference, whose gym ``MujocoEnv`` resets
+            around the state at load (its XML's custom ``init_qpos`` numeric, torso at 0.55 with the ankles at
+            +-1 rad, is never read). The ankles start outside their ranges; the joint limits fold the legs down
+            within 3 env steps while the ant drops onto its feet, and it stands still after about 10.
         qpos_noise (float): reset noise ``U(-qpos_noise, qpos_noise)`` on every ``qpos`` entry (the
             quaternion is renormalised afterwards). Defaults to ``0.1``.
         qvel_noise (float): reset noise ``N(0, qvel_noise)`` on every ``qvel`` entry. Defaults to ``0.1``.
@@ -131,10 +134,8 @@ class AntAgent(MotorControl):
     solref: tuple[float, float] = (0.02, 1.0)
     solimp: tuple[float, float, float] = (0.8, 0.8, 0.01)
     ctrl_limit: float = 30.0
-    # Torso position, identity quaternion, then (hip, ankle) of legs 1-4.
-    init_qpos: tuple[float, ...] = (
-        (0.0, 0.0, 0.55) + (1.0, 0.0, 0.0, 0.0) + (0.0, 1.0, 0.0, -1.0, 0.0, -1.0, 0.0, 1.0)
-    )
+    # Torso position, identity quaternion, then (hip, ankle) of legs 1-4: the model's qpos0.
+    init_qpos: tuple[float, ...] = (0.0, 0.0, 0.75) + (1.0, 0.0, 0.0, 0.0) + (0.0,) * 8
     qpos_noise: float = 0.1
     qvel_noise: float = 0.1
     timestep: float = 0.02

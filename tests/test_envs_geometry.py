@@ -139,10 +139,12 @@ def test_bottleneck_gap_by_raycast():
 
 
 def _push_ant(sim, start_xy, force_xy, steps=150):
-    """Places the ant at ``start_xy`` and pushes its torso with a constant force; returns the torso xy path."""
+    """Places the ant, standing, at ``start_xy`` and pushes its torso with a constant force; returns the torso
+    xy path."""
     model, data = sim.model, sim.datas[0]
     mujoco.mj_resetData(model, data)
-    data.qpos[:] = sim.agent.init_qpos
+    # Standing on its four feet (torso at 0.55, ankles folded down), not the reset pose it drops from.
+    data.qpos[:] = (0.0, 0.0, 0.55, 1.0, 0.0, 0.0, 0.0) + (0.0, 1.0, 0.0, -1.0, 0.0, -1.0, 0.0, 1.0)
     data.qpos[:2] = start_xy
     torso = model.body("ant/").id
     path = []

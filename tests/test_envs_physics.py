@@ -40,16 +40,14 @@ def test_ant_model_facts():
     np.testing.assert_allclose(model.dof_damping[6:], 1.0)
     np.testing.assert_allclose(model.dof_armature[6:], 1.0)
     assert model.geom("ant/torso_geom").size[0] == 0.25
-    # Init qpos: joints (0, 1, 0, -1, 0, -1, 0, 1) in leg order 1-4 lie inside the joint ranges.
-    qpos = np.array(AntAgent().init_qpos)
-    for k, n in enumerate((1, 2, 3, 4)):
-        low, high = model.jnt_range[hinges[f"ant/ankle_{n}"]]
-        assert low <= qpos[8 + 2 * k] <= high
+    # The reset pose is the model's qpos0 (the reference's gym env resets around the state at load).
+    np.testing.assert_array_equal(np.array(AntAgent().init_qpos), model.qpos0)
 
 
 @pytest.mark.parametrize("maze", ANT_MAZES)
 def test_ant_stands_on_four_feet(maze):
-    """At the reset pose every lower leg points down to the floor, as in the reference model.
+    """In the reference's folded pose every lower leg points down to the floor, and from the reset pose the ant
+    settles on its four feet.
 
     Independent computation: the lower leg (length 0.4 * sqrt(2)) leaves its ankle at (+-0.4, +-0.4, 0.55)
     and the ankle angle of 1 rad (legs 1, 4) or -1 rad (legs 2, 3) folds it down by 1 rad, so its tip lies at
@@ -57,7 +55,8 @@ def test_ant_stands_on_four_feet(maze):
     """
     model = compile_maze_model(maze)
     data = mujoco.MjData(model)
-    data.qpos[:] = AntAgent().init_qpos
+    folded = (0.0, 0.0, 0.55, 1.0, 0.0, 0.0, 0.0) + (0.0, 1.0, 0.0, -1.0, 0.0, -1.0, 0.0, 1.0)
+    data.qpos[:] = folded
     mujoco.mj_forward(model, data)
     length = 0.4 * np.sqrt(2.0)
     tip_height = 0.55 - length * np.sin(1.0)
@@ -78,7 +77,7 @@ def test_ant_stands_on_four_feet(maze):
     for n, leg in enumerate(["front_left", "front_right", "back_left", "back_right"], start=1):
         joint = hinges[f"ant/ankle_{n}"]
         for angle in np.linspace(*model.jnt_range[joint], 5):
-            data.qpos[:] = AntAgent().init_qpos
+            data.qpos[:] = folded
             data.qpos[model.jnt_qposadr[joint]] = angle
             mujoco.mj_forward(model, data)
             geom = model.geom(f"ant/{leg}_lower_geom").id
@@ -103,6 +102,10 @@ def test_ant_stands_on_four_feet(maze):
     } <= touching
     assert "ant/torso_geom" not in touching
     assert data.qpos[2] > 0.3
+    for n in (1, 2, 3, 4):  # the joint limits folded the ankles into their ranges (slack for soft limits)
+        joint = hinges[f"ant/ankle_{n}"]
+        low, high = model.jnt_range[joint]
+        assert low - 0.05 <= data.qpos[model.jnt_qposadr[joint]] <= high + 0.05
 
 
 def test_ant_scene_contact_parameters():
