@@ -264,6 +264,25 @@ class AntAgent(MotorControl):
         frame.add("freejoint", name="root")
         return frame
 
+    @staticmethod
+    def is_upside_down(observation):
+        """Whether the torso's up axis points below the horizon, from observations ``[..., 29]``.
+
+        The torso quaternion ``(w, x, y, z)`` sits at ``observation[..., 3:7]``; the world z component of the
+        torso's z axis is ``1 - 2 (x^2 + y^2)``. Works on NumPy arrays and torch tensors alike.
+
+        Examples:
+            >>> import numpy as np
+            >>> from torchrl_dhrl.envs import AntAgent
+            >>> obs = np.zeros((2, 29))
+            >>> obs[0, 3] = 1.0  # identity: upright
+            >>> obs[1, 4] = 1.0  # half a turn about x: upside down
+            >>> AntAgent.is_upside_down(obs).tolist()
+            [False, True]
+        """
+        x, y = observation[..., 4], observation[..., 5]
+        return 1.0 - 2.0 * (x * x + y * y) < 0.0
+
     def normalize_qpos(self, qpos: np.ndarray) -> None:
         """Renormalises the torso quaternion ``qpos[..., 3:7]`` in place (after additive reset noise)."""
         quat = qpos[..., 3:7]

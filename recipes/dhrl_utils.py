@@ -369,14 +369,16 @@ def build_episode_log(cfg: dict, state: dict | None = None) -> TrainingEpisodeLo
     ``state``: a :meth:`TrainingEpisodeLog.state_dict` to continue from (the recipe keeps it in its
     checkpointed counters, so a run stopped in the middle of an epoch resumes its counts).
     """
-    from torchrl_dhrl.envs import MAZE_NAMES
+    from torchrl_dhrl.envs import MAZE_NAMES, get_maze_spec
 
     from torchrl_dhrl.training.maze_diagnostics import MazeGeometry
 
-    geometry = None
+    geometry = upside_down = None
     if cfg["env_name"] in MAZE_NAMES:
         geometry = MazeGeometry.from_maze(cfg["env_name"], margin=cfg["planner"]["oracle_margin"])
-    log = TrainingEpisodeLog(geometry)
+        # The ant can flip over (nothing rights it): log how much of the training it spends so.
+        upside_down = getattr(get_maze_spec(cfg["env_name"]).agent, "is_upside_down", None)
+    log = TrainingEpisodeLog(geometry, upside_down=upside_down)
     if state:
         log.load_state_dict(state)
     return log

@@ -8,7 +8,9 @@ import math
 import pytest
 import torch
 from _recipe import load_recipe, recipe_config
+from scipy.spatial.transform import Rotation
 from tensordict import TensorDict
+from torchrl_dhrl.envs import AntAgent
 
 from torchrl_dhrl.training import MazeGeometry, TrainingEpisodeLog, episode_progress
 
@@ -106,6 +108,43 @@ def test_training_episode_log_against_a_direct_count(geometry, num_envs):
         assert metrics["train/frontier"] == pytest.approx(frontier, rel=1e-5)  # the largest so far
 
 
+def test_ant_upside_down_against_scipy_rotations():
+    """The torso's up axis below the horizon, checked on random orientations (scipy rotates (0, 0, 1))."""
+    quats = Rotation.random(2000, random_state=0).as_quat()  # (x, y, z, w)
+    obs = torch.zeros(2000, 29, dtype=torch.float64)
+    obs[:, 3] = torch.as_tensor(quats[:, 3])
+    obs[:, 4:7] = torch.as_tensor(quats[:, :3])
+    expected = Rotation.from_quat(quats).apply([0.0, 0.0, 1.0])[:, 2] < 0
+    assert AntAgent.is_upside_down(obs).tolist() == expected.tolist()
+    assert 0.3 < expected.mean() < 0.7  # both cases well represented
+
+
+def test_training_episode_log_counts_upside_down_steps(geometry):
+    """train/upside_down (fraction of steps) and train/ended_upside_down (of episodes) against a direct count,
+    across a mid-epoch checkpoint."""
+    generator = torch.Generator().manual_seed(11)
+    batches = []
+    for _ in range(3):
+        batch = _episodes(generator, 3, 8)
+        flipped = torch.rand(3, 8, generator=generator) < 0.4
+        obs = torch.zeros(3, 8, 29)
+        obs[..., 3] = (~flipped).float()  # identity quaternion: upright
+        obs[..., 4] = flipped.float()  # half a turn about x: upside down
+        batch.set(("next", "observation"), obs)
+        batches.append((batch, flipped))
+    log = TrainingEpisodeLog(geometry, upside_down=AntAgent.is_upside_down)
+    log.update(batches[0][0])
+    resumed = TrainingEpisodeLog(geometry, upside_down=AntAgent.is_upside_down)
+    resumed.load_state_dict(json.loads(json.dumps(log.state_dict())))
+    for batch, _ in batches[1:]:
+        resumed.update(batch)
+    metrics = resumed.pop_metrics()
+    flipped = torch.cat([f for _, f in batches])
+    assert metrics["train/upside_down"] == pytest.approx(flipped.float().mean().item())
+    assert metrics["train/ended_upside_down"] == pytest.approx(flipped[:, -1].float().mean().item())
+    assert math.isnan(resumed.pop_metrics()["train/upside_down"])  # an empty epoch
+
+
 def test_training_episode_log_progress_behind_the_wall(geometry):
     log = TrainingEpisodeLog(geometry)
     path = torch.tensor([[[1.0, 0.0], [8.0, 0.0], [8.0, 8.0], [0.0, 8.0]]])
@@ -168,8 +207,11 @@ def test_training_episode_log_errors(geometry):
         log.update(batch.exclude(("next", "achieved_goal")))
     with pytest.raises(ValueError, match=r"\[num_envs, T\]"):
         log.update(batch.unsqueeze(0))
-    with pytest.raises(KeyError, match="unknown entry 'steps'"):
-        log.load_state_dict({"steps": 3})
+    with pytest.raises(KeyError, match="unknown entry 'bogus'"):
+        log.load_state_dict({"bogus": 3})
+    flips = TrainingEpisodeLog(geometry, upside_down=AntAgent.is_upside_down)
+    with pytest.raises(KeyError, match="observation"):
+        flips.update(batch)
 
 
 def test_the_script_reads_a_run(tmp_path, capsys):
@@ -200,3 +242,15 @@ def test_the_script_reads_a_run(tmp_path, capsys):
     assert all(math.isfinite(v) for v in out.max_progress.tolist())
     assert (out.max_progress <= summary["explored"] + 1e-6).all()
     assert summary["reached_frontier"] == int((out.max_progress >= 0.9 * summary["explored"]).sum())
+
+
+@pytest.mark.parametrize(
+    ("env", "tracks_flips"), [("AntMazeSmall", True), ("PointMaze", False), ("Reacher3D", False)]
+)
+def test_the_recipe_logs_upside_down_for_the_ant(env, tracks_flips):
+    """The recipe's training-episode log counts the steps spent upside down in the ant mazes only."""
+    from dhrl_utils import build_episode_log
+
+    log = build_episode_log(recipe_config(f"env={env}"))
+    assert (log.upside_down is AntAgent.is_upside_down) is tracks_flips
+    assert (log.upside_down is None) is not tracks_flips

@@ -11,7 +11,7 @@ reached their goal, how many goals frontier-based goal shifting moved, and (maze
 from __future__ import annotations
 
 import math
-from collections.abc import Mapping
+from collections.abc import Callable, Mapping
 from typing import Any, NamedTuple
 
 import torch
@@ -132,7 +132,11 @@ class TrainingEpisodeLog:
       reported when the batches hold it, i.e. with FGS);
     * with a maze ``geometry``: ``train/max_progress``, the furthest obstacle-free path length from ``start``
       that an episode of the epoch reached (:meth:`MazeGeometry.path_length`, goal units), and
-      ``train/frontier``, the furthest since the run began: the exploration frontier as a curve.
+      ``train/frontier``, the furthest since the run began: the exploration frontier as a curve;
+    * with an ``upside_down`` test (the ant's :meth:`~torchrl_dhrl.envs.AntAgent.is_upside_down`):
+      ``train/upside_down``, the fraction of the epoch's training steps the agent spent upside down, and
+      ``train/ended_upside_down``, the fraction of episodes that ended so. Nothing rights a flipped ant (as in
+      the reference), so the rest of such an episode explores nothing.
 
     :meth:`pop_metrics` returns them for the episodes since the last call (``train/episodes`` their number) and
     starts a new epoch; the frontier is kept. The state is a small JSON-able dict (:meth:`state_dict`), so a
@@ -142,12 +146,16 @@ class TrainingEpisodeLog:
         geometry (MazeGeometry, optional): the maze; ``None`` (arm envs) skips the progress.
         start (Tensor, optional): ``[2]`` where progress is measured from. Defaults to the origin (every
             maze's start).
+        upside_down (callable, optional): maps observations ``[..., obs_dim]`` to a bool tensor ``[...]``,
+            ``True`` where the agent lies upside down. ``None`` (the default) skips the two metrics.
 
     Keyword Args:
         success_key (NestedKey): per-step success flag. Defaults to ``("next", "is_success")``.
         shifted_key (NestedKey): per-step bool, ``True`` in episodes whose goal FGS shifted. Defaults to
             ``"goal_shifted"``.
         achieved_goal_key (NestedKey): where the agent got to. Defaults to ``("next", "achieved_goal")``.
+        observation_key (NestedKey): the observations ``upside_down`` reads. Defaults to
+            ``("next", "observation")``.
 
     Examples:
         >>> import torch
@@ -177,17 +185,30 @@ class TrainingEpisodeLog:
         success_key: NestedKey = ("next", "is_success"),
         shifted_key: NestedKey = "goal_shifted",
         achieved_goal_key: NestedKey = ("next", "achieved_goal"),
+        upside_down: Callable[[Tensor], Tensor] | None = None,
+        observation_key: NestedKey = ("next", "observation"),
     ) -> None:
         self.geometry = geometry
         self.start = start
         self.success_key = success_key
         self.shifted_key = shifted_key
         self.achieved_goal_key = achieved_goal_key
+        self.upside_down = upside_down
+        self.observation_key = observation_key
         self._state = self._empty_epoch() | {"frontier": -math.inf}
 
     @staticmethod
     def _empty_epoch() -> dict[str, Any]:
-        return {"episodes": 0, "success": 0, "any_success": 0, "shifted": None, "max_progress": -math.inf}
+        return {
+            "episodes": 0,
+            "success": 0,
+            "any_success": 0,
+            "shifted": None,
+            "max_progress": -math.inf,
+            "steps": 0,
+            "upside_down_steps": 0,
+            "ended_upside_down": 0,
+        }
 
     @torch.no_grad()
     def update(self, batch: TensorDictBase) -> None:
@@ -218,6 +239,14 @@ class TrainingEpisodeLog:
             furthest = furthest_progress(self.geometry, achieved[..., :2], self.start)
             state["max_progress"] = max(state["max_progress"], furthest)
             state["frontier"] = max(state["frontier"], furthest)
+        if self.upside_down is not None:
+            observation = batch.get(self.observation_key, None)
+            if observation is None:
+                raise KeyError(f"TrainingEpisodeLog: {self.observation_key!r} is not in the batch.")
+            flipped = torch.as_tensor(self.upside_down(observation)).reshape(batch.shape).cpu()  # [E, T]
+            state["steps"] += flipped.numel()
+            state["upside_down_steps"] += int(flipped.sum())
+            state["ended_upside_down"] += int(flipped[:, -1].sum())
 
     def pop_metrics(self) -> dict[str, float]:
         """The ``train/...`` metrics of the episodes since the last call; starts a new epoch."""
@@ -235,6 +264,11 @@ class TrainingEpisodeLog:
             finite = lambda v: v if math.isfinite(v) else math.nan  # noqa: E731
             out["train/max_progress"] = finite(state["max_progress"])
             out["train/frontier"] = finite(state["frontier"])
+        if self.upside_down is not None:
+            out["train/upside_down"] = (
+                state["upside_down_steps"] / state["steps"] if state["steps"] else math.nan
+            )
+            out["train/ended_upside_down"] = ratio(state["ended_upside_down"])
         self._state = self._empty_epoch() | {"frontier": state["frontier"]}
         return out
 

@@ -69,21 +69,23 @@ def plot_episode(
     return path
 
 
-#: The curves of :func:`plot_success_curve`: ``(metrics key, label, line style)``; the last two only where logged.
+#: The curves of :func:`plot_success_curve`: ``(metrics key, label, line style)``; the last three only where
+#: logged.
 SUCCESS_CURVE_SERIES = (
     ("eval/success", "final-state success", "-"),
     ("eval/any_success", "any-time success", "--"),
     ("train/success", "training episodes' success", "-."),
     ("diag/landmark_coverage", "landmark coverage of the free space", ":"),
+    ("train/upside_down", "training steps upside down (ant)", (0, (1, 3))),
 )
 
 
 def success_curve_series(history: Sequence[Mapping[str, float]]) -> dict[str, tuple[list, list]]:
     """The curves :func:`plot_success_curve` draws: ``{label: (env steps, values)}``.
 
-    Evaluation success (final state and any time) always; the training episodes' success and the
-    landmark coverage of a maze's free space (both fractions too) where the history has finite values
-    of them (a run before the graph, an arm env or an older ``metrics.csv`` has none). Non-finite points
+    Evaluation success (final state and any time) always; the training episodes' success, the
+    landmark coverage of a maze's free space and the fraction of training steps an ant spent upside down
+    (all fractions too) where the history has finite values of them (a run before the graph, an arm env or an older ``metrics.csv`` has none). Non-finite points
     are left out of their curve.
 
     Examples:
