@@ -83,10 +83,10 @@ SUCCESS_CURVE_SERIES = (
 def success_curve_series(history: Sequence[Mapping[str, float]]) -> dict[str, tuple[list, list]]:
     """The curves :func:`plot_success_curve` draws: ``{label: (env steps, values)}``.
 
-    Evaluation success (final state and any time) always; the training episodes' success, the
-    landmark coverage of a maze's free space and the fraction of training steps an ant spent upside down
-    (all fractions too) where the history has finite values of them (a run before the graph, an arm env or an older ``metrics.csv`` has none). Non-finite points
-    are left out of their curve.
+    Evaluation success (final state and any time) always; the training episodes' success, the landmark
+    coverage of a maze's free space and the fraction of training steps an ant spent upside down (all
+    fractions too) where the history has finite values of them (a run before the graph, an arm env or an
+    older ``metrics.csv`` has none). Non-finite points are left out of their curve.
 
     Examples:
         >>> history = [{"env_steps": 9000, "eval/success": 0.0, "eval/any_success": 0.1, "diag/landmark_coverage": float("nan")},

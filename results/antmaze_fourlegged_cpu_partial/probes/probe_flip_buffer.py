@@ -1,9 +1,11 @@
-"""Fraction of training time the ant spends upside down, per epoch of the low-level buffer."""
+"""Fraction of training time the ant spends upside down, for every other 9000-step block of the low-level
+buffer (``AntAgent.is_upside_down``)."""
 
 import sys
 
 import torch
 from dhrl_utils import agent_from_checkpoint, build_replay_buffers
+from torchrl_dhrl.envs import AntAgent
 
 from torchrl_dhrl.training import load_checkpoint
 
@@ -15,9 +17,7 @@ n = len(st)
 rec = st[:n]
 print(rec.batch_size, list(rec.keys())[:12])
 obs = rec["observation"].reshape(-1, 29) if rec["observation"].ndim > 2 else rec["observation"]
-x, y = obs[:, 4], obs[:, 5]
-up = 1 - 2 * (x * x + y * y)
-flipped = (up < 0).float()
+flipped = AntAgent.is_upside_down(obs).float()
 T = obs.shape[0]
 chunk = 9000
 for s in range(0, T, chunk * 2):
