@@ -283,6 +283,30 @@ class AntAgent(MotorControl):
         x, y = observation[..., 4], observation[..., 5]
         return 1.0 - 2.0 * (x * x + y * y) < 0.0
 
+    def upright_qpos(self, qpos: np.ndarray) -> np.ndarray:
+        """The reset pose (:attr:`init_qpos`, no noise) moved to the ant's (x, y) and turned to its heading.
+
+        The heading is the yaw of the torso's x axis projected on the floor (``0`` when that axis is vertical).
+        Used by :class:`~torchrl_dhrl.envs.GoalSimulation` to right a flipped ant (``right_flipped_after``).
+
+        Examples:
+            >>> import numpy as np
+            >>> from torchrl_dhrl.envs import AntAgent
+            >>> flipped = np.zeros(15)
+            >>> flipped[:3] = (2.0, 3.0, 0.3)
+            >>> flipped[3:7] = (0.0, 1.0, 0.0, 0.0)  # half a turn about x: upside down, heading 0
+            >>> AntAgent().upright_qpos(flipped)[:7].round(3).tolist()
+            [2.0, 3.0, 0.75, 1.0, 0.0, 0.0, 0.0]
+        """
+        qpos = np.asarray(qpos, dtype=np.float64)
+        w, x, y, z = (qpos[..., k] for k in range(3, 7))
+        yaw = np.arctan2(2.0 * (x * y + w * z), 1.0 - 2.0 * (y * y + z * z))
+        out = np.broadcast_to(np.asarray(self.init_qpos, dtype=np.float64), qpos.shape).copy()
+        out[..., :2] = qpos[..., :2]
+        out[..., 3] = np.cos(yaw / 2.0)
+        out[..., 6] = np.sin(yaw / 2.0)
+        return out
+
     def normalize_qpos(self, qpos: np.ndarray) -> None:
         """Renormalises the torso quaternion ``qpos[..., 3:7]`` in place (after additive reset noise)."""
         quat = qpos[..., 3:7]

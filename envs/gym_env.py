@@ -40,6 +40,9 @@ class GymGoalEnv(gym.Env):
             ``MUJOCO_GL=egl`` or ``osmesa``).
         width (int): render width. Defaults to ``480``.
         height (int): render height. Defaults to ``480``.
+        right_flipped_after (int, optional): ant mazes only: put a flipped ant back on its feet after this
+            many consecutive env steps upside down (see :class:`~torchrl_dhrl.envs.GoalSimulation`).
+            Defaults to ``None``: never, as the reference.
 
     ``reset(options={"goal": goal})`` sets the goal explicitly (it must lie inside the goal bounds).
 
@@ -70,13 +73,20 @@ class GymGoalEnv(gym.Env):
         render_mode: str | None = None,
         width: int = 480,
         height: int = 480,
+        right_flipped_after: int | None = None,
     ) -> None:
         spec = get_env_spec(task)
         if render_mode is not None and render_mode not in self.metadata["render_modes"]:
             raise ValueError(
                 f"render_mode must be None or one of {self.metadata['render_modes']}, got {render_mode!r}."
             )
-        self._sim = GoalSimulation(spec, 1, max_episode_steps=max_episode_steps, eval_goals=eval)
+        self._sim = GoalSimulation(
+            spec,
+            1,
+            max_episode_steps=max_episode_steps,
+            eval_goals=eval,
+            right_flipped_after=right_flipped_after,
+        )
         self.render_mode = render_mode
         self.width, self.height = width, height
         self.metadata = {**self.metadata, "render_fps": int(round(1.0 / self._sim.dt))}

@@ -21,6 +21,17 @@ __all__ = ["GoalSimulation", "sparse_reward"]
 # Goals set explicitly may sit this far outside the goal bounds (float round-off of user inputs).
 _GOAL_BOUNDS_TOLERANCE = 1e-6
 _AXES = "xyz"
+# Where a righted ant may be moved to get clear of walls: no move, then rings of 16 directions, 0.1 to 2 away.
+_SEPARATION_OFFSETS = np.concatenate(
+    [
+        np.zeros((1, 2)),
+        *(
+            radius * np.stack([np.cos(angles), np.sin(angles)], axis=-1)
+            for radius in np.arange(1, 21) / 10.0
+            for angles in [np.arange(16) * (2.0 * np.pi / 16)]
+        ),
+    ]
+)
 
 
 def sparse_reward(achieved_goal, desired_goal, threshold: float = 0.5) -> np.ndarray:
@@ -61,6 +72,12 @@ class GoalSimulation:
         max_episode_steps (int, optional): time limit in env steps; defaults to the task's episode length.
         eval_goals (bool): if ``True``, resets draw test goals instead of train goals. Defaults to ``False``.
         seed (int, optional): seed of the per-env RNG streams (``None``: fresh OS entropy).
+        right_flipped_after (int, optional): ant mazes only: after this many consecutive env steps upside
+            down (:meth:`~torchrl_dhrl.envs.AntAgent.is_upside_down`), the ant is put back on its feet at its
+            (x, y) and heading, in the reset pose at rest (:meth:`~torchrl_dhrl.envs.AntAgent.upright_qpos`),
+            pushed clear of any wall it would overlap; the episode goes on. ``None`` (the default, as the
+            reference): a flipped ant stays flipped until the episode ends. The count of consecutive steps
+            upside down (:attr:`upside_down_steps`) is part of :meth:`get_state`.
 
     Examples:
         >>> import numpy as np
@@ -86,6 +103,7 @@ class GoalSimulation:
         max_episode_steps: int | None = None,
         eval_goals: bool = False,
         seed: int | None = None,
+        right_flipped_after: int | None = None,
     ) -> None:
         self.spec = spec = get_env_spec(task)
         if not isinstance(num_envs, int) or isinstance(num_envs, bool) or num_envs < 1:
@@ -94,6 +112,22 @@ class GoalSimulation:
             max_episode_steps = spec.episode_length
         if not isinstance(max_episode_steps, int) or max_episode_steps < 1:
             raise ValueError(f"max_episode_steps must be a positive integer, got {max_episode_steps!r}.")
+        if right_flipped_after is not None:
+            if (
+                isinstance(right_flipped_after, bool)
+                or not isinstance(right_flipped_after, (int, np.integer))
+                or right_flipped_after < 1
+            ):
+                raise ValueError(
+                    f"right_flipped_after must be None or a positive number of env steps, got {right_flipped_after!r}."
+                )
+            if not hasattr(spec.agent, "upright_qpos"):
+                raise ValueError(
+                    f"right_flipped_after is for the ant mazes (an agent that can flip over); {spec.name}'s "
+                    f"{type(spec.agent).__name__} cannot. Leave it None."
+                )
+            right_flipped_after = int(right_flipped_after)
+        self.right_flipped_after = right_flipped_after
         self.num_envs = num_envs
         self.max_episode_steps = max_episode_steps
         self.eval_goals = bool(eval_goals)
@@ -114,6 +148,11 @@ class GoalSimulation:
         self.achieved_goal = np.zeros((num_envs, goal_dim), dtype=np.float64)
         self.desired_goal = np.zeros((num_envs, goal_dim), dtype=np.float64)
         self.step_count = np.zeros(num_envs, dtype=np.int64)
+        #: Consecutive env steps each ant has been upside down (counted with ``right_flipped_after`` only).
+        self.upside_down_steps = np.zeros(num_envs, dtype=np.int64)
+        if right_flipped_after is not None:
+            self._agent_geoms = self._geoms_of_agent()
+            self._plane_geoms = model.geom_type == mujoco.mjtGeom.mjGEOM_PLANE
         self.rngs: list[np.random.Generator] = []
         self.seed(seed)
         # A valid, noise-free state until the first reset (it consumes no randomness).
@@ -258,6 +297,7 @@ class GoalSimulation:
             "physics": physics,
             "desired_goal": self.desired_goal.copy(),
             "step_count": self.step_count.copy(),
+            "upside_down_steps": self.upside_down_steps.copy(),
             "rngs": [rng.bit_generator.state for rng in self.rngs],
             "eval_goals": self.eval_goals,
         }
@@ -279,6 +319,8 @@ class GoalSimulation:
             )
         self.desired_goal[:] = state["desired_goal"]
         self.step_count[:] = state["step_count"]
+        # states saved before the righting switch existed: no ant was being counted
+        self.upside_down_steps[:] = state.get("upside_down_steps", 0)
         self.eval_goals = bool(state["eval_goals"])
         for i, data in enumerate(self.datas):
             mujoco.mj_setState(self.model, data, physics[i], spec)
@@ -319,6 +361,7 @@ class GoalSimulation:
             self.desired_goal[i] = sampler.sample(rng, 1)[0] if goals is None else goals[k]
             self.set_state(i, qpos, qvel)
             self.step_count[i] = 0
+            self.upside_down_steps[i] = 0
 
     def step(self, actions) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """Advances every env by one env step (``frame_skip`` physics steps).
@@ -339,8 +382,54 @@ class GoalSimulation:
             mujoco.mj_step(model, data, nstep)
             observe(i, data)
         self.step_count += 1
+        if self.right_flipped_after is not None:
+            self._right_flipped()
         reward, success = self.evaluate()
         return reward, success, self.step_count >= self.max_episode_steps
+
+    def _geoms_of_agent(self) -> np.ndarray:
+        """Boolean mask over the model's geoms: those of the agent (every body below the world's child that
+        holds the agent's root joint)."""
+        model = self.model
+        root = model.body_rootid[model.jnt_bodyid[0]]
+        return model.body_rootid[model.geom_bodyid] == root
+
+    def _right_flipped(self) -> None:
+        """Counts the consecutive steps each ant has been upside down and rights those at the limit."""
+        flipped = self.agent.is_upside_down(self.observation[:, self._qpos_slice])
+        self.upside_down_steps = np.where(flipped, self.upside_down_steps + 1, 0)
+        for i in np.flatnonzero(self.upside_down_steps >= self.right_flipped_after):  # rare: no hot path
+            data = self.datas[i]
+            data.qpos[:] = self.agent.upright_qpos(data.qpos)
+            self._separate_from_walls(i)  # sets the velocities to zero and observes the new state
+            self.upside_down_steps[i] = 0
+
+    def _separate_from_walls(self, index: int) -> None:
+        """Moves agent ``index`` to the nearest place in the floor plane where none of its geoms overlaps a wall.
+
+        Candidates are the current (x, y), then rings of 16 directions at radii 0.1, 0.2, ..., 2 around it;
+        the first one clear of every non-floor static geom is kept (none clear: the agent stays put and the
+        contacts push it out).
+        """
+        data = self.datas[index]
+        qpos = data.qpos.copy()
+        for offset in _SEPARATION_OFFSETS:
+            data.qpos[:2] = qpos[:2] + offset
+            mujoco.mj_forward(self.model, data)
+            if not self._overlaps_wall(data):
+                break
+        else:
+            data.qpos[:2] = qpos[:2]
+        self.set_state(index, data.qpos.copy())
+
+    def _overlaps_wall(self, data: mujoco.MjData) -> bool:
+        """Whether a geom of the agent penetrates a static geom other than the floor plane."""
+        agent, planes = self._agent_geoms, self._plane_geoms
+        for contact in data.contact[: data.ncon]:
+            g1, g2 = contact.geom
+            if contact.dist < 0.0 and agent[g1] != agent[g2] and not (planes[g1] or planes[g2]):
+                return True
+        return False
 
     def evaluate(self) -> tuple[np.ndarray, np.ndarray]:
         """Sparse reward (``-1``/``0`` at the reward threshold) and success (within the evaluation threshold)

@@ -61,6 +61,9 @@ class GoalEnv(EnvBase):
             Can be changed later through the :attr:`eval_goals` attribute.
         device (torch.device, optional): device of the output tensors. Defaults to CPU.
         seed (int, optional): seed passed to :meth:`set_seed`.
+        right_flipped_after (int, optional): ant mazes only: put a flipped ant back on its feet after this
+            many consecutive env steps upside down (see :class:`~torchrl_dhrl.envs.GoalSimulation`).
+            Defaults to ``None``: never, as the reference.
 
     Examples:
         >>> import torch
@@ -91,9 +94,16 @@ class GoalEnv(EnvBase):
         eval_goals: bool = False,
         device=None,
         seed: int | None = None,
+        right_flipped_after: int | None = None,
     ) -> None:
         spec = get_env_spec(task)
-        sim = GoalSimulation(spec, num_envs, max_episode_steps=max_episode_steps, eval_goals=eval_goals)
+        sim = GoalSimulation(
+            spec,
+            num_envs,
+            max_episode_steps=max_episode_steps,
+            eval_goals=eval_goals,
+            right_flipped_after=right_flipped_after,
+        )
         super().__init__(device=device, batch_size=torch.Size([num_envs]))
         self._sim = sim
         self._make_specs()
@@ -266,6 +276,7 @@ def make_env(
     device=None,
     eval: bool = False,  # noqa: A002 - the documented option name
     max_episode_steps: int | None = None,
+    right_flipped_after: int | None = None,
 ) -> EnvBase:
     """Builds a DHRL environment as a native batched TorchRL environment.
 
@@ -285,9 +296,12 @@ def make_env(
             episode; Reacher3D: the train distribution; UR3Obstacle: goals inside the bin, behind the
             fence). Defaults to ``False`` (train goals).
         max_episode_steps (int, optional): time limit override (defaults to the paper's episode length).
+        right_flipped_after (int, optional): built-in ant mazes only: put a flipped ant back on its feet
+            after this many consecutive env steps upside down. Defaults to ``None`` (never, as the reference).
 
     Raises:
-        ValueError: for an unknown name; the message lists the valid ones.
+        ValueError: for an unknown name; the message lists the valid ones; for ``right_flipped_after``
+            with an env that has no ant.
         GoalEnvError: when a registered factory returns an env that does not meet the contract.
 
     Examples:
@@ -300,6 +314,10 @@ def make_env(
     """
     factory = get_env_factory(name)
     if factory is not None:
+        if right_flipped_after is not None:
+            raise ValueError(
+                f"right_flipped_after is an option of the built-in ant mazes, not of the registered env {name!r}."
+            )
         env = factory(
             num_envs=num_envs, seed=seed, device=device, eval=eval, max_episode_steps=max_episode_steps
         )
@@ -321,4 +339,5 @@ def make_env(
         eval_goals=eval,
         device=device,
         seed=seed,
+        right_flipped_after=right_flipped_after,
     )

@@ -147,6 +147,7 @@ def build_environment(cfg: dict, device: torch.device, *, eval: bool = False, ag
             angle_features=cfg.get("angle_features"),
             agent=agent,
             goal_shifting=_goal_shifting(cfg) if cfg["fgs"]["enabled"] and not eval else None,
+            right_flipped_after=cfg.get("right_flipped_after"),
         )
     except GoalEnvError as err:
         raise ConfigError(f"env_name={cfg['env_name']}: {err}") from err

@@ -293,6 +293,7 @@ def make_environment(
     angle_features: Sequence[int] | None = None,
     agent: DHRLAgent | None = None,
     goal_shifting: Mapping[str, Any] | None = None,
+    right_flipped_after: int | None = None,
 ) -> EnvBase:
     """A batched env of :func:`~torchrl_dhrl.envs.make_env` (``eval``: on the test goals), with the agent's primers.
 
@@ -303,6 +304,7 @@ def make_environment(
     exists). With ``agent``, the subgoal scheduler's and the planner's primers are appended, and
     ``goal_shifting`` (the keyword arguments of :class:`~torchrl_dhrl.planner.FrontierGoalShifting`:
     ``noise``, ``weighting``, ``trigger``) adds frontier-based goal shifting at every reset.
+    ``right_flipped_after`` (ant mazes) is passed to :func:`~torchrl_dhrl.envs.make_env`.
 
     Raises:
         GoalEnvError: when the env does not meet the contract.
@@ -319,6 +321,7 @@ def make_environment(
         device=device,
         eval=eval,
         max_episode_steps=max_episode_steps,
+        right_flipped_after=right_flipped_after,
     )
     features = observation_transforms(angle_features)
     if agent is None:  # the whole contract once, with a short rollout that draws no random numbers

@@ -77,6 +77,7 @@ RESUME_MUTABLE_KEYS = (
 IMPLIED_WHEN_ABSENT = {
     "low.distance_output": "softplus",  # 0.3.x and before: softplus distances
     "high.distance_output": "softplus",
+    "right_flipped_after": None,  # runs from before the switch: a flipped ant stayed flipped
 }
 #: Keys with a fixed set of values (the first is the default; see docs/faithfulness.md).
 CHOICES = {
@@ -190,11 +191,28 @@ def _check_angle_features(cfg: Mapping, name: str, obs_dim: int | None) -> None:
         )
 
 
+def _check_right_flipped(cfg: Mapping, name: str, spec) -> None:
+    """``right_flipped_after``: null, or a positive number of env steps for an env whose agent can flip."""
+    steps = _get(cfg, "right_flipped_after")
+    if steps is None:
+        return
+    if isinstance(steps, bool) or not isinstance(steps, int) or steps < 1:
+        raise ConfigError(
+            f"`right_flipped_after` must be null or a positive number of env steps, got {steps!r}."
+        )
+    if spec is None or not hasattr(getattr(spec, "agent", None), "upright_qpos"):
+        raise ConfigError(
+            f"`right_flipped_after` rights a flipped ant: it applies to the ant mazes only, not to {name}; "
+            "leave it null."
+        )
+
+
 def _check_against_env(cfg: Mapping, name: str) -> None:
     """Sizes that must agree with the environment's spec (read without building it) and with each other."""
     from torchrl_dhrl.envs import ENVS
 
     spec = ENVS.get(name)
+    _check_right_flipped(cfg, name, spec)
     if spec is None:  # a registered user env (or ``env_names`` given): its sizes are checked when it is built
         _check_angle_features(cfg, name, None)
         return
