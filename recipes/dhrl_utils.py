@@ -377,7 +377,7 @@ def build_episode_log(cfg: dict, state: dict | None = None) -> TrainingEpisodeLo
     geometry = upside_down = None
     if cfg["env_name"] in MAZE_NAMES:
         geometry = MazeGeometry.from_maze(cfg["env_name"], margin=cfg["planner"]["oracle_margin"])
-        # The ant can flip over (nothing rights it): log how much of the training it spends so.
+        # The ant can flip over (righted only with `right_flipped_after`): log how much of the training it spends so.
         upside_down = getattr(get_maze_spec(cfg["env_name"]).agent, "is_upside_down", None)
     log = TrainingEpisodeLog(geometry, upside_down=upside_down)
     if state:

@@ -135,8 +135,9 @@ class TrainingEpisodeLog:
       ``train/frontier``, the furthest since the run began: the exploration frontier as a curve;
     * with an ``upside_down`` test (the ant's :meth:`~torchrl_dhrl.envs.AntAgent.is_upside_down`):
       ``train/upside_down``, the fraction of the epoch's training steps the agent spent upside down, and
-      ``train/ended_upside_down``, the fraction of episodes that ended so. Nothing rights a flipped ant (as in
-      the reference), so the rest of such an episode explores nothing.
+      ``train/ended_upside_down``, the fraction of episodes that ended so. By default nothing rights a flipped
+      ant (as in the reference; see the env's ``right_flipped_after``), so the rest of such an episode explores
+      nothing.
 
     :meth:`pop_metrics` returns them for the episodes since the last call (``train/episodes`` their number) and
     starts a new epoch; the frontier is kept. The state is a small JSON-able dict (:meth:`state_dict`), so a
