@@ -1,6 +1,9 @@
 """Cost of DHRL's replay relabelling: low-level sample + FutureGoalRelabel, high-level building and relabel.
 
 The relabellers run inside ``RelabelReplayBuffer.sample()``; each is also timed alone, on a sample drawn once.
+The capture-safe sampler (``rb.capturable_sampler()``: the same draw and relabelling with tensor operations only)
+is timed eagerly, compiled whole (``torch.compile(fullgraph=True)``, ``--compile``) and, on CUDA, replayed as a
+CUDA graph, with its ratio to ``rb.sample()`` in the same run.
 
 Run: ``OMP_NUM_THREADS=1 python benchmarks/bench_relabel.py`` (add ``--device cuda`` on a GPU machine).
 Figures are medians over repeats, in milliseconds per call.
@@ -67,6 +70,7 @@ def main() -> None:
     parser.add_argument("--capacity", type=int, default=200_000)
     parser.add_argument("--batch-size", type=int, default=1024)
     parser.add_argument("--repeats", type=int, default=30)
+    parser.add_argument("--compile", action="store_true", help="also time the compiled capture-safe sampler")
     args = parser.parse_args()
     device = torch.device(args.device)
     num_envs, horizon, episode = 4, 600, 600
@@ -83,7 +87,26 @@ def main() -> None:
     print(
         f"device={device}, low-level storage {tuple(rb.storage.shape)}, batch {args.batch_size}, window 150"
     )
-    print(f"  rb.sample() (relabelled):             {median_ms(rb.sample, args.repeats):7.3f} ms")
+    sample_ms = median_ms(rb.sample, args.repeats)
+    print(f"  rb.sample() (relabelled):             {sample_ms:7.3f} ms")
+    capturable = rb.capturable_sampler()
+    variants = {"capture-safe sampler, eager": capturable}
+    if args.compile:
+        compiled = torch.compile(capturable, fullgraph=True, options={"fallback_random": True})
+        start = time.perf_counter()
+        compiled()
+        print(f"  (compiling the capture-safe sampler: {time.perf_counter() - start:.1f} s)")
+        variants["capture-safe sampler, compiled"] = compiled
+    if device.type == "cuda":
+        for _ in range(3):
+            capturable()
+        graph = torch.cuda.CUDAGraph()
+        with torch.cuda.graph(graph):
+            capturable()
+        variants["capture-safe sampler, CUDA graph"] = graph.replay
+    for name, fn in variants.items():
+        ms = median_ms(fn, args.repeats)
+        print(f"  {name + ':':<37}{ms:7.3f} ms  ({sample_ms / ms:.2f}x rb.sample())")
     relabel_ms = median_ms(
         lambda: relabel.relabel_sample(
             sample.clone(), info["index"], rb.storage, newest_index=rb.newest_index

@@ -141,6 +141,7 @@ def train(cfg: DictConfig | dict, run_dir: str | Path | None = None) -> dict:
     timer = LoopTimer(agent.planner, env_steps=counters["env_steps"])
     wall_start, wall_before = time.perf_counter(), counters["wall_s"]
     stop = GracefulStop()
+    capture_reported: set[str] = set()
     # What exists now (torch, Hydra, the agent, buffers, envs: about 0.5M objects) lives for the whole run: out of
     # the cyclic garbage collector's reach, its full collections stop walking it (they took 6% of a PointMaze quick
     # run's first 12k steps, 2.7% with the freeze). Reference counting still frees these objects; unfrozen at the end.
@@ -167,6 +168,10 @@ def train(cfg: DictConfig | dict, run_dir: str | Path | None = None) -> dict:
             n_high = trained_steps // schedule["high_update_interval"] - high_updater.num_updates
             high_out = high_updater.run(n_high) if len(high_rb) else None
             timer.lap("update")
+            for level, updater in (("low", low_updater), ("high", high_updater)):
+                if updater.sampling_captured is not None and level not in capture_reported:
+                    capture_reported.add(level)  # cudagraphs=true or capture_sampling=true
+                    print(f"Sampling, {level} level: {updater.sampling_note}.")
             bar.update(batch.numel())
             # ---- phase: random warm-up, then the policies
             _set_phase(cfg, agent, counters["episodes"])

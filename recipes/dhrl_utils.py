@@ -274,6 +274,8 @@ def build_updaters(cfg: dict, agent: DHRLAgent, low_rb, high_rb) -> tuple[LossUp
                 actor_update_interval=c["actor_update_interval"],
                 cudagraphs=cfg.get("cudagraphs", False),
                 compile=cfg.get("compile", False),
+                # the high-level buffer has no capture-safe sampler (its gradual penalty queries the graph)
+                capture_sampling=cfg.get("capture_sampling") if level == "low" else None,
                 autocast_dtype=run_precisions(cfg, next(loss.parameters()).device)[0],
                 actor_after_critic_step=c["actor_after_critic_step"],
             )

@@ -231,11 +231,60 @@ def test_cudagraph_updates_match_eager_updates():
         _updater_run(True, steps=8, nan=True)
 
 
-def test_recipe_with_cudagraphs(tmp_path):
+def test_capturable_sampler_replayed_as_a_cuda_graph_sees_later_writes():
+    """The capture-safe sampler captured alone in a CUDA graph: every replay draws from the rows written so far
+    (the device counters move in place) and relabels within the ground-truth windows, seam included."""
+    from test_capturable_sampling import _filled_buffer
+
+    rb, relabel, stream = _filled_buffer(3, 40, 1, 10, window=9, seed=3, device=CUDA)
+    sample = rb.capturable_sampler(batch_size=512)
+    for _ in range(3):  # warm-up calls before the capture
+        sample()
+    graph = torch.cuda.CUDAGraph()
+    with torch.cuda.graph(graph):
+        out = sample()
+    seen_new_rows = False
+    for write in range(1, 9):  # fills the 40 rows at write 4, then wraps
+        rb.extend(stream.batch(10).to(CUDA))
+        graph.replay()
+        batch = out.clone().cpu()
+        time = batch["index"][:, 0]
+        assert int(time.max()) < min(10 * (write + 1), 40)
+        seen_new_rows |= write == 3 and int(time.max()) >= 30
+        window = stream.expected_window(batch["achieved_goal"], 9)
+        assert torch.equal(
+            relabel.window_lengths(batch["index"].to(CUDA), rb.storage, rb.newest_index).cpu(), window
+        )
+        check_goals(batch, "graph_goal", window)
+    assert seen_new_rows
+
+
+def test_cudagraph_updates_capture_sampling():
+    """``cudagraphs=True`` on the low-level buffer: the graphs sample themselves and train (finite losses, moved
+    parameters, both graphs), and after new writes keep training on them."""
+    from test_capturable_sampling import _filled_buffer, _loss
+
+    loss = _loss().to(CUDA)
+    start = {k: v.clone() for k, v in loss.state_dict().items()}
+    rb, _, stream = _filled_buffer(2, 50, 3, 10, window=6, seed=0, device=CUDA)
+    updater = LossUpdater(loss, rb, make_optimizers(loss), target_update_interval=3, cudagraphs=True)
+    means = updater.run(10)
+    assert updater.sampling_captured and set(updater._graphs) == {False, True}
+    rb.extend(stream.batch(10).to(CUDA))
+    means2 = updater.run(10)
+    for out in (means, means2):
+        assert all(bool(torch.isfinite(v)) for k, v in out.items() if k.startswith("loss_"))
+    assert sum(not torch.equal(v, start[k]) for k, v in loss.state_dict().items()) > 4
+
+
+def test_recipe_with_cudagraphs(tmp_path, capsys):
     summary = recipe.train(
         recipe_config(*SMOKE, "device=cuda", "cudagraphs=true", "total_steps=240"), run_dir=tmp_path
     )
     assert 0.0 <= summary["eval/success"] <= 1.0
+    printed = capsys.readouterr().out
+    assert "Sampling, low level: sampling and relabelling captured." in printed
+    assert "Sampling, high level: capturable_sampler: the relabel step HindsightSubgoalRelabel" in printed
     recipe.train(
         recipe_config(*SMOKE, "device=cuda", "cudagraphs=true", "total_steps=480", f"resume={tmp_path}"),
         run_dir=tmp_path,

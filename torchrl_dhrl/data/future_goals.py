@@ -283,14 +283,22 @@ class FutureGoalRelabel(UnregisteredAttributes, _SampleTransform, Transform):
         return storage
 
     @staticmethod
-    def _field(storage: TensorStorage, key: NestedKey, required: bool = False) -> torch.Tensor | None:
+    def _field(
+        storage: TensorStorage, key: NestedKey, required: bool = False, whole: bool = False
+    ) -> torch.Tensor | None:
         """The written part of one storage entry, shape ``[T_len, *lanes, *feature]`` (a view).
 
         Reads the one entry and slices it: ``storage.get(key)`` would first slice every entry of the
-        storage's TensorDict (about a sixth of a sample's time at the quick preset).
+        storage's TensorDict (about a sixth of a sample's time at the quick preset). With ``whole=True``
+        the whole preallocated entry (``[T_max, *lanes, *feature]``, static shape) is returned.
         """
         data = storage._storage
         if not is_tensor_collection(data):
+            if whole:
+                raise TypeError(
+                    "FutureGoalRelabel: a capture-safe relabelling needs a TensorDict storage (e.g. "
+                    f"LazyTensorStorage), got entries of type {type(data).__name__}."
+                )
             data = storage.get(slice(None))  # the rows written so far
         value = data.get(key, None)
         if value is None:
@@ -299,12 +307,31 @@ class FutureGoalRelabel(UnregisteredAttributes, _SampleTransform, Transform):
                     f"FutureGoalRelabel: {key!r} is not in the storage; the replay buffer must store it."
                 )
             return None
+        if whole:
+            return value
         lanes = value.shape[1 : storage.ndim].numel()
         return value[: -(-len(storage) // lanes)]  # the rows written so far (all of a full storage)
 
+    def _storage_fields(self, storage: TensorStorage, whole: bool = False) -> dict[str, torch.Tensor | None]:
+        """The storage entries the relabelling reads: achieved goals and the episode markers found."""
+        fields = {"achieved": self._field(storage, self.achieved_goal_key, required=True, whole=whole)}
+        for name, key in (("traj", self.traj_key), ("count", self.step_count_key), ("done", self.done_key)):
+            fields[name] = None if key is None else self._field(storage, key, whole=whole)
+        if fields["traj"] is None and fields["count"] is None and fields["done"] is None:
+            raise KeyError(
+                "FutureGoalRelabel: none of the episode markers "
+                f"{[k for k in (self.traj_key, self.step_count_key, self.done_key) if k is not None]} is in "
+                "the storage, so episode boundaries cannot be told apart."
+            )
+        return fields
+
     @staticmethod
-    def _newest_time_index(storage: TensorStorage, length: int, newest_index: int | None) -> int | None:
-        """Time coordinate of the most recently written record, or ``None`` if unknown."""
+    def _newest_time_index(
+        storage: TensorStorage, length: int, newest_index: int | torch.Tensor | None
+    ) -> int | torch.Tensor | None:
+        """Time coordinate of the most recently written record, or ``None`` if unknown (a tensor stays one)."""
+        if isinstance(newest_index, torch.Tensor):
+            return torch.remainder(newest_index, length)
         if newest_index is not None:
             return int(newest_index) % length
         if len(storage) < storage.max_size:  # not wrapped around yet: the last written row is the newest
@@ -343,7 +370,7 @@ class FutureGoalRelabel(UnregisteredAttributes, _SampleTransform, Transform):
 
     # ------------------------------------------------------------------ relabelling
     def window_lengths(
-        self, coords: torch.Tensor, storage: Storage, newest_index: int | None = None
+        self, coords: torch.Tensor, storage: Storage, newest_index: int | torch.Tensor | None = None
     ) -> torch.Tensor:
         """Number of usable future records ``min(T_t, W)`` for storage coordinates ``coords``.
 
@@ -359,10 +386,35 @@ class FutureGoalRelabel(UnregisteredAttributes, _SampleTransform, Transform):
             coords = coords.unsqueeze(-1)
         if coords.ndim != 2 or coords.shape[-1] != ndim:
             raise ValueError(f"coords must have shape [B, {ndim}], got {tuple(coords.shape)}.")
-        achieved = self._field(storage, self.achieved_goal_key, required=True)
+        fields = self._storage_fields(storage, whole=isinstance(newest_index, torch.Tensor))
+        newest = self._resolve_newest(storage, fields, newest_index)
+        return self._window_lengths(coords.to(fields["achieved"].device), fields, ndim, newest)
+
+    def _resolve_newest(
+        self, storage: TensorStorage, fields: dict, newest_index: int | torch.Tensor | None
+    ) -> int | torch.Tensor | None:
+        """The newest record's time coordinate on the fields' time line; warns once when it is unknown."""
+        newest = self._newest_time_index(storage, fields["achieved"].shape[0], newest_index)
+        if newest is None and not self._warned_seam:
+            warnings.warn(
+                "FutureGoalRelabel: the storage is full and its newest write position is unknown "
+                "(newest_index=None); episode markers alone guard the wrap-around seam.",
+                stacklevel=3,
+            )
+            self._warned_seam = True
+        return newest
+
+    def _window_lengths(
+        self,
+        coords: torch.Tensor,
+        fields: dict[str, torch.Tensor | None],
+        ndim: int,
+        newest: int | torch.Tensor | None,
+    ) -> torch.Tensor:
+        """:meth:`window_lengths` on the storage's entries: tensor operations only, static shapes."""
+        achieved = fields["achieved"]
         length = achieved.shape[0]
         device = achieved.device
-        coords = coords.to(device)
         time = coords[:, 0]
         steps = torch.arange(self.window, device=device)
         positions = torch.remainder(time.unsqueeze(1) + steps, length)  # [B, W] on the circular time line
@@ -370,46 +422,24 @@ class FutureGoalRelabel(UnregisteredAttributes, _SampleTransform, Transform):
         flat = positions
         for d, size in enumerate(achieved.shape[1:ndim], start=1):
             flat = flat * size + coords[:, d : d + 1]
-
-        newest = self._newest_time_index(storage, length, newest_index)
         if newest is None:
-            if not self._warned_seam:
-                warnings.warn(
-                    "FutureGoalRelabel: the storage is full and its newest write position is unknown "
-                    "(newest_index=None); episode markers alone guard the wrap-around seam.",
-                    stacklevel=2,
-                )
-                self._warned_seam = True
             valid = torch.ones(positions.shape, dtype=torch.bool, device=device)
         else:
             valid = steps <= torch.remainder(newest - time, length).unsqueeze(1)
-
-        found = False
-        if self.traj_key is not None and (traj := self._field(storage, self.traj_key)) is not None:
-            traj = self._marker(traj, ndim, flat)
+        if fields["traj"] is not None:
+            traj = self._marker(fields["traj"], ndim, flat)
             valid &= traj == traj[:, :1]
-            found = True
-        if (
-            self.step_count_key is not None
-            and (count := self._field(storage, self.step_count_key)) is not None
-        ):
-            count = self._marker(count, ndim, flat)
+        if fields["count"] is not None:
+            count = self._marker(fields["count"], ndim, flat)
             valid &= (count - count[:, :1]) == steps
-            found = True
-        if self.done_key is not None and (done := self._field(storage, self.done_key)) is not None:
-            done = self._marker(done, ndim, flat).bool()
+        if fields["done"] is not None:
+            done = self._marker(fields["done"], ndim, flat).bool()
             valid[:, 1:] &= ~done[:, :-1]  # record t + j needs no episode end at t + j - 1
-            found = True
-        if not found:
-            raise KeyError(
-                "FutureGoalRelabel: none of the episode markers "
-                f"{[k for k in (self.traj_key, self.step_count_key, self.done_key) if k is not None]} is in "
-                "the storage, so episode boundaries cannot be told apart."
-            )
-        # the window ends at the first rejected record (record t itself is always accepted)
+        # the window ends at the first rejected record (record t itself is always accepted): its length is
+        # the number of leading accepted records (a running product; argmax over ties is not order-safe
+        # in every compiled backend)
         valid[:, 0] = True
-        first_rejected = (~valid).byte().argmax(1)
-        return torch.where(valid.all(1), self.window, first_rejected)
+        return valid.long().cumprod(1).sum(1)
 
     def forward(self, tensordict: TensorDictBase) -> TensorDictBase:
         raise RuntimeError(
@@ -425,7 +455,7 @@ class FutureGoalRelabel(UnregisteredAttributes, _SampleTransform, Transform):
         index: torch.Tensor | tuple,
         storage: Storage,
         *,
-        newest_index: int | None = None,
+        newest_index: int | torch.Tensor | None = None,
     ) -> TensorDictBase:
         """Relabels ``tensordict``, the records of ``storage`` at ``index``, in place and returns it.
 
@@ -443,7 +473,9 @@ class FutureGoalRelabel(UnregisteredAttributes, _SampleTransform, Transform):
                 recently written record, where the write seam of a full circular storage lies (see
                 :attr:`RelabelReplayBuffer.newest_index <torchrl_dhrl.data.RelabelReplayBuffer.newest_index>`).
                 ``None`` for a storage that has not wrapped around (the last written row is the newest);
-                for a full storage it leaves the seam to the episode markers, with a warning.
+                for a full storage it leaves the seam to the episode markers, with a warning. A 0-d tensor
+                (on the storage's device) is used as it is, without reading it on the host, and the whole
+                preallocated storage is read (static shapes, the same result).
         """
         if not is_tensor_collection(tensordict):
             raise TypeError(f"FutureGoalRelabel expects a TensorDict, got {type(tensordict).__name__}.")
@@ -456,7 +488,6 @@ class FutureGoalRelabel(UnregisteredAttributes, _SampleTransform, Transform):
             if value is None:
                 raise KeyError(f"FutureGoalRelabel: {key!r} is missing from the sample.")
         batch_size = tensordict.batch_size
-        numel = batch_size.numel()
         goal_shape = goal.shape[len(batch_size) :]
         if achieved_next.shape[len(batch_size) :] != goal_shape:
             raise ValueError(
@@ -464,19 +495,68 @@ class FutureGoalRelabel(UnregisteredAttributes, _SampleTransform, Transform):
                 f"{tuple(goal_shape)} and {tuple(achieved_next.shape[len(batch_size) :])}."
             )
         coords = self._coordinates(index, batch_size, storage.ndim)
-
-        achieved_store = self._field(storage, self.achieved_goal_key, required=True)
+        whole = isinstance(newest_index, torch.Tensor)
+        fields = self._storage_fields(storage, whole=whole)
+        achieved_store = fields["achieved"]
         if achieved_store.shape[storage.ndim :] != goal_shape:
             raise ValueError(
                 f"Stored {self.achieved_goal_key!r} has goal shape "
                 f"{tuple(achieved_store.shape[storage.ndim :])}, the sampled {self.goal_key!r} has "
                 f"{tuple(goal_shape)}."
             )
-        n_valid = self.window_lengths(coords, storage, newest_index)
+        coords = coords.to(achieved_store.device)
+        newest = self._resolve_newest(storage, fields, newest_index)
+        n_valid = self._window_lengths(coords, fields, storage.ndim, newest)
+        return self._write_goals(tensordict, coords, n_valid, fields, storage.ndim)
+
+    def capturable_relabel(
+        self, storage: Storage
+    ) -> Callable[[TensorDictBase, torch.Tensor, torch.Tensor], TensorDictBase]:
+        """The relabelling of :meth:`relabel_sample` as a capture-safe function of tensors.
+
+        Returns ``relabel(tensordict, coords, newest_index)``: ``coords`` the ``[B, ndim]`` storage
+        coordinates of the records in ``tensordict`` (batch ``[B]``), ``newest_index`` a 0-d integer
+        tensor on the storage's device (the time coordinate of the newest written record; for a storage
+        that has not wrapped around, the last written row). It reads the storage's whole preallocated
+        entries, so its shapes never change as the storage fills, and it makes no host synchronisation:
+        it can be captured in a CUDA graph or compiled with ``torch.compile(fullgraph=True)``, and writes
+        made between calls are seen. Given the same coordinates and random state it writes exactly what
+        :meth:`relabel_sample` writes (rows past the newest one are never used). The function holds the
+        storage's tensors: build it again after the storage is reallocated (``load_state_dict``).
+        :meth:`RelabelReplayBuffer.capturable_sampler
+        <torchrl_dhrl.data.RelabelReplayBuffer.capturable_sampler>` builds it.
+        """
+        storage = self._check_storage(storage)
+        if len(storage) == 0:
+            raise RuntimeError("FutureGoalRelabel: the storage is empty; write to it before capturing.")
+        fields = self._storage_fields(storage, whole=True)
+        ndim = storage.ndim
+        length = fields["achieved"].shape[0]
+
+        def relabel(tensordict: TensorDictBase, coords: torch.Tensor, newest_index: torch.Tensor):
+            n_valid = self._window_lengths(coords, fields, ndim, torch.remainder(newest_index, length))
+            return self._write_goals(tensordict, coords, n_valid, fields, ndim)
+
+        return relabel
+
+    def _write_goals(
+        self,
+        tensordict: TensorDictBase,
+        coords: torch.Tensor,
+        n_valid: torch.Tensor,
+        fields: dict[str, torch.Tensor | None],
+        ndim: int,
+    ) -> TensorDictBase:
+        """Draws the future offsets and writes each output's goal and reward (tensor operations only)."""
+        achieved_store = fields["achieved"]
         store_device = achieved_store.device
-        coords = coords.to(store_device)
+        goal = tensordict.get(self.goal_key)
+        achieved_next = tensordict.get(self.achieved_goal_key)
+        batch_size = tensordict.batch_size
+        numel = batch_size.numel()
+        goal_shape = goal.shape[len(batch_size) :]
         time = coords[:, 0]
-        lanes = tuple(coords[:, d] for d in range(1, storage.ndim))
+        lanes = tuple(coords[:, d] for d in range(1, ndim))
         length = achieved_store.shape[0]
 
         goal_flat = goal.reshape(numel, *goal_shape)

@@ -8,8 +8,9 @@ from pathlib import Path
 from typing import Any
 
 import torch
-from tensordict import TensorDictBase
-from torchrl.data import TensorDictReplayBuffer
+from tensordict import TensorDictBase, is_tensor_collection
+from torchrl.data import RandomSampler, TensorDictReplayBuffer
+from torchrl.data.replay_buffers.storages import TensorStorage
 from torchrl.data.replay_buffers.utils import pin_memory_output
 from torchrl.envs.transforms import Compose
 
@@ -124,6 +125,9 @@ class RelabelReplayBuffer(TensorDictReplayBuffer):
                 )
         self._relabel = steps
         self._newest_index: int | None = None
+        # (rows written, newest row) as 0-d tensors on the storage's device, made by capturable_sampler()
+        # and kept up to date in place by every write, so captured samplers see them change
+        self._device_counters: tuple[torch.Tensor, torch.Tensor] | None = None
         super().__init__(**kwargs)
 
     def share(self, shared: bool = True):
@@ -161,6 +165,15 @@ class RelabelReplayBuffer(TensorDictReplayBuffer):
         if ndim > 1 and index.ndim > 1 and index.shape[-1] == ndim:
             index = index[..., 0]
         self._newest_index = int(index.reshape(-1)[-1])
+        self._sync_device_counters()
+
+    def _sync_device_counters(self) -> None:
+        """Copies the rows written and the newest row into the capture-safe counters, in place (no sync)."""
+        if self._device_counters is None:
+            return
+        rows, newest = self._device_counters
+        rows.fill_(self._storage.shape[0] if len(self._storage) else 0)
+        newest.fill_(-1 if self._newest_index is None else self._newest_index)
 
     def extend(self, tensordicts: TensorDictBase, *, update_priority: bool | None = None) -> torch.Tensor:
         with self._replay_lock:  # no sample is drawn between the write and the newest position
@@ -178,6 +191,7 @@ class RelabelReplayBuffer(TensorDictReplayBuffer):
         with self._replay_lock:
             super().empty(empty_write_count=empty_write_count)
             self._newest_index = None
+            self._sync_device_counters()
 
     # ------------------------------------------------------------------ sampling
     @pin_memory_output
@@ -201,6 +215,129 @@ class RelabelReplayBuffer(TensorDictReplayBuffer):
                         data = step(data)
         return data, info
 
+    def capturable_sampler(self, batch_size: int | None = None) -> Callable[[], TensorDictBase]:
+        """A function drawing relabelled batches with tensor operations only: capture-safe sampling.
+
+        ``sample = rb.capturable_sampler()`` returns a function of no argument whose every call draws
+        ``batch_size`` records uniformly, with replacement, from the records written so far (the
+        distribution of :class:`~torchrl.data.RandomSampler`), reads them from the storage, runs the
+        relabel steps' capture-safe forms (``step.capturable_relabel(storage)``, e.g.
+        :meth:`FutureGoalRelabel.capturable_relabel
+        <torchrl_dhrl.data.FutureGoalRelabel.capturable_relabel>`) and writes the storage coordinates under
+        ``"index"``, as :meth:`sample` does. It makes no host synchronisation, its shapes are static
+        (the whole preallocated storage is read) and the number of rows written and the newest row are
+        0-d tensors on the storage's device that every ``extend`` / ``add`` updates in place: the
+        function can be captured in a CUDA graph together with the update that consumes its batch
+        (:class:`~torchrl_dhrl.training.LossUpdater` with ``cudagraphs=True`` does) or compiled with
+        ``torch.compile(fullgraph=True)``, and sees every later write without being captured again.
+
+        Its random draws come from the storage device's default generator (``torch.rand`` /
+        ``torch.randint``; on CUDA the graph-safe Philox stream), not from the sampler's, so it draws
+        other batches than :meth:`sample` does from the same seed. Build it after the first write and
+        again after anything that reallocates the storage (``load_state_dict``, ``loads``); ``empty``
+        keeps the allocation, and a sampler called on an emptied buffer draws from the stale rows.
+
+        Args:
+            batch_size (int, optional): records per batch. Defaults to the buffer's ``batch_size``.
+
+        Raises:
+            RuntimeError: on an empty buffer, a full storage whose newest row is unknown (a state loaded
+                from a buffer that did not track it: write once more), a sampler other than
+                :class:`~torchrl.data.RandomSampler`, a sample-side ``transform``, ``prefetch``, or a
+                relabel step without a ``capturable_relabel`` form (the error names it).
+
+        Examples:
+            >>> import torch
+            >>> from tensordict import TensorDict
+            >>> from torchrl.data import LazyTensorStorage
+            >>> from torchrl_dhrl.data import FutureGoalRelabel
+            >>> T = 10  # one env, one episode; achieved goals (step + 1, 0)
+            >>> episode = TensorDict(
+            ...     {
+            ...         "desired_goal": torch.full((T, 2), 100.0),
+            ...         "step_count": torch.arange(T).unsqueeze(-1),
+            ...         ("next", "achieved_goal"): torch.stack([torch.arange(1, T + 1), torch.zeros(T)], -1),
+            ...         ("next", "done"): (torch.arange(T) == T - 1).unsqueeze(-1),
+            ...     },
+            ...     batch_size=[T],
+            ... )
+            >>> rb = RelabelReplayBuffer(storage=LazyTensorStorage(100), relabel=[FutureGoalRelabel(window=4)],
+            ...     batch_size=32)
+            >>> _ = rb.extend(episode)
+            >>> sample = rb.capturable_sampler()
+            >>> batch = sample()
+            >>> bool((batch["index"] < T).all())  # only written rows are drawn
+            True
+            >>> ahead = batch["graph_goal"][:, 0] - batch["next", "achieved_goal"][:, 0]
+            >>> bool(((ahead >= 0) & (ahead < 4)).all())
+            True
+            >>> _ = rb.extend(episode)  # the same function sees the new rows
+            >>> bool((torch.cat([sample()["index"] for _ in range(20)]) >= T).any())
+            True
+        """
+        storage = self._storage
+        batch_size = self._batch_size if batch_size is None else batch_size
+        if isinstance(batch_size, bool) or not isinstance(batch_size, int) or batch_size < 1:
+            raise ValueError(f"capturable_sampler: batch_size must be a positive int, got {batch_size!r}.")
+        if type(self._sampler) is not RandomSampler:
+            raise RuntimeError(
+                "capturable_sampler draws uniformly like RandomSampler; this buffer's sampler is "
+                f"{type(self._sampler).__name__}, whose draws it would not reproduce."
+            )
+        for step in self._relabel:
+            if not callable(getattr(step, "capturable_relabel", None)):
+                raise RuntimeError(
+                    f"capturable_sampler: the relabel step {type(step).__name__} has no capture-safe form "
+                    "(a `capturable_relabel(storage)` method); sample with rb.sample() instead."
+                )
+        if len(self._transform):
+            raise RuntimeError(
+                "capturable_sampler does not run the buffer's sample-side `transform` "
+                f"({self._transform}); put capture-safe steps in `relabel` instead."
+            )
+        if self._prefetch:
+            raise RuntimeError(
+                "capturable_sampler cannot be used with prefetch: it samples on the caller's thread."
+            )
+        if not isinstance(storage, TensorStorage) or len(storage) == 0:
+            raise RuntimeError(
+                "capturable_sampler needs a TensorStorage (e.g. LazyTensorStorage) that has been written to; "
+                f"got {type(storage).__name__} with {len(storage)} records."
+            )
+        if not is_tensor_collection(storage._storage):
+            raise RuntimeError("capturable_sampler needs a storage of TensorDicts, not of plain tensors.")
+        if self._newest_index is None:
+            raise RuntimeError(
+                "capturable_sampler: the newest written row is unknown (a state loaded from a buffer that "
+                "did not track it); write to the buffer once before building the sampler."
+            )
+        relabels = [step.capturable_relabel(storage) for step in self._relabel]
+        data = storage._storage  # the whole preallocated storage: [T_max, *lanes]
+        device = data.device if data.device is not None else data.get(next(iter(data.keys()))).device
+        if self._device_counters is None or self._device_counters[0].device != device:
+            self._device_counters = (
+                torch.zeros((), dtype=torch.long, device=device),
+                torch.zeros((), dtype=torch.long, device=device),
+            )
+        self._sync_device_counters()
+        rows, newest = self._device_counters
+        lanes = tuple(data.shape[1 : storage.ndim])
+        ndim = storage.ndim
+
+        def sample() -> TensorDictBase:
+            time = (torch.rand(batch_size, device=device) * rows).long()
+            time = torch.minimum(time, rows - 1)  # float round-off at the top of the range
+            coords = torch.stack(
+                [time, *(torch.randint(size, (batch_size,), device=device) for size in lanes)], -1
+            )
+            batch = data[tuple(coords.unbind(-1))]
+            for relabel in relabels:
+                batch = relabel(batch, coords, newest)
+            batch.set("index", coords if ndim > 1 else time)
+            return batch
+
+        return sample
+
     # ------------------------------------------------------------------ checkpoints
     def state_dict(self) -> dict[str, Any]:
         state = super().state_dict()
@@ -211,6 +348,7 @@ class RelabelReplayBuffer(TensorDictReplayBuffer):
         super().load_state_dict(state_dict)
         with self._replay_lock:
             self._newest_index = state_dict.get(_STATE_KEY)
+            self._sync_device_counters()
 
     def dumps(self, path) -> None:
         super().dumps(path)
@@ -223,6 +361,7 @@ class RelabelReplayBuffer(TensorDictReplayBuffer):
         newest = json.loads(file.read_text())["newest_index"] if file.exists() else None
         with self._replay_lock:
             self._newest_index = newest
+            self._sync_device_counters()
 
     def __repr__(self) -> str:
         text = super().__repr__()

@@ -50,6 +50,7 @@ IGNORED_KEYS = (
     "device",
     "cudagraphs",
     "compile",
+    "capture_sampling",
     "logger.*",
     "plots.*",
     "checkpoint.*",

@@ -64,6 +64,7 @@ RESUME_MUTABLE_KEYS = (
     "threads",
     "cudagraphs",
     "compile",
+    "capture_sampling",
     "update_dtype",
     "planner.build_dtype",
     "logger.*",
@@ -561,6 +562,10 @@ def validate_config(cfg: Mapping, env_names: tuple[str, ...] | None = None) -> N
         raise ConfigError(f"`update_dtype={update_dtype}` cannot be combined with `cudagraphs=true` (yet).")
     if cfg.get("compile", False) and cfg.get("cudagraphs", False):
         raise ConfigError("`compile=true` cannot be combined with `cudagraphs=true` (yet): pick one.")
+    if cfg.get("capture_sampling") not in (None, True, False):
+        raise ConfigError(
+            f"`capture_sampling` must be null (auto), true or false, got {cfg.get('capture_sampling')!r}."
+        )
     _number(cfg, "total_steps", low=0, strict=True, integer=True)
     _number(cfg, "num_envs", low=1, integer=True)
     length = _get(cfg, "episode_length")

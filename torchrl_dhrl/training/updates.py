@@ -78,7 +78,13 @@ class LossUpdater:
     With ``cudagraphs=True`` (loss on a CUDA device) the loss, backward pass and Adam steps are captured
     in two CUDA graphs with :class:`tensordict.nn.CudaGraphModule`, one with and one without the actor
     step, and replayed: on an H100 this cuts an SQGC update at batch 1024 from about 9 ms to about 1 ms
-    (``benchmarks/bench_losses.py --device cuda``). Sampling, relabelling, the delayed-actor schedule
+    (``benchmarks/bench_losses.py --device cuda``). Where the buffer offers a capture-safe sampler
+    (:meth:`RelabelReplayBuffer.capturable_sampler <torchrl_dhrl.data.RelabelReplayBuffer.capturable_sampler>`:
+    uniform draws and relabel steps with a capture-safe form, such as the low-level buffer's
+    :class:`~torchrl_dhrl.data.FutureGoalRelabel`), sampling and relabelling are captured in the same graphs
+    (``capture_sampling``): a replay is then the whole update from the storage on, with no host work but
+    the replay itself. Otherwise (e.g. the high-level buffer, whose gradual penalty queries the planner's
+    graph) the batch is sampled eagerly and copied into the graph's inputs. The delayed-actor schedule
     (decided on the host from :attr:`num_updates`) and Polyak averaging stay eager. The optimisers are
     switched to ``capturable`` Adam, and the graphs are captured after a few eager warm-up steps: load
     any state (``resume``) before the first step. The non-finite check then runs after the steps (once
@@ -125,6 +131,15 @@ class LossUpdater:
             (see above; needs a loss with ``loss_terms`` and ``actor_loss``). Defaults to ``False``.
         compile (bool): run the loss's forward terms (and so their backward) through
             :func:`torch.compile` (see above). Not combined with ``cudagraphs``. Defaults to ``False``.
+        capture_sampling (bool, optional): draw batches with the buffer's capture-safe sampler
+            (:meth:`~torchrl_dhrl.data.RelabelReplayBuffer.capturable_sampler`) instead of ``sample()``:
+            with ``cudagraphs=True`` inside the update's graphs (see above), with ``compile=True`` compiled
+            whole (``fullgraph=True``), else eagerly (no sampler object, no slicing of the storage: faster
+            on a CPU too). ``None`` (default): inside the graphs when ``cudagraphs=True`` and the buffer
+            can, otherwise ``sample()``; ``True``: always (the buffer's reason is raised at the first update
+            if it cannot); ``False``: never. :attr:`sampling_captured` and :attr:`sampling_note` say what
+            was chosen, once the first update ran. It draws other batches than ``sample()`` from the same
+            seed (the same distribution: uniform over the written records).
 
     Examples:
         >>> import torch
@@ -163,6 +178,7 @@ class LossUpdater:
         autocast_dtype: torch.dtype | None = None,
         actor_after_critic_step: bool = False,
         compile: bool = False,  # noqa: A002 - the flag's name in TorchRL's recipes
+        capture_sampling: bool | None = None,
     ) -> None:
         if set(optimizers) != {"actor", "critic"}:
             raise ValueError(f"`optimizers` must have keys 'actor' and 'critic', got {sorted(optimizers)}.")
@@ -204,6 +220,14 @@ class LossUpdater:
         self.target_updater = SoftUpdate(loss, eps=polyak)
         self.num_updates = 0
         self.cudagraphs = bool(cudagraphs)
+        if capture_sampling not in (None, True, False):
+            raise ValueError(f"`capture_sampling` must be None, True or False, got {capture_sampling!r}.")
+        self.capture_sampling = capture_sampling
+        #: whether batches come from the capture-safe sampler (``None`` until the first update that decides)
+        self.sampling_captured: bool | None = None
+        #: why the graphs do (not) sample themselves, set with :attr:`sampling_captured`
+        self.sampling_note = ""
+        self._captured_sample: Callable[[], TensorDictBase] | None = None
         self._graphs: dict[bool, CudaGraphModule] = {}
         self.compile = bool(compile)
         if self.compile and (reason := compile_available()) is not None:
@@ -219,11 +243,7 @@ class LossUpdater:
             if self._actor_fn is not None:
                 self._actor_fn = torch.compile(self._actor_fn, options=COMPILE_OPTIONS)
         if self.cudagraphs:
-            devices = {p.device.type for p in loss.parameters()}
-            if devices != {"cuda"}:
-                raise ValueError(
-                    f"`cudagraphs=True` needs the loss on a CUDA device, its parameters are on {devices}."
-                )
+            self._check_cuda()
             if not hasattr(loss, "loss_terms"):
                 raise TypeError(
                     f"`cudagraphs=True` needs a loss with `loss_terms`, got {type(loss).__name__}."
@@ -231,6 +251,13 @@ class LossUpdater:
             for optimizer in self.optimizers.values():
                 for group in optimizer.param_groups:
                     group["capturable"] = True  # Adam's step counts stay on the GPU
+
+    def _check_cuda(self) -> None:
+        devices = {p.device.type for p in self.loss.parameters()}
+        if devices != {"cuda"}:
+            raise ValueError(
+                f"`cudagraphs=True` needs the loss on a CUDA device, its parameters are on {devices}."
+            )
 
     def step(self) -> TensorDictBase:
         """One update; returns the loss's output (detached) as a TensorDict of scalars."""
@@ -240,6 +267,10 @@ class LossUpdater:
         return out
 
     def _sample(self) -> TensorDictBase:
+        if self.capture_sampling and not self.cudagraphs:  # the capture-safe sampler, outside any graph
+            if self.sampling_captured is None:
+                self._setup_sampling()
+            return self._captured_sample()
         return self.replay_buffer.sample()
 
     def actor_update_due(self) -> bool:
@@ -314,9 +345,11 @@ class LossUpdater:
             self.target_updater.step()
 
     def _graph_update(self, update_actor: bool):
-        """The captured part of a step: loss terms, backward, Adam steps (no host synchronisation)."""
+        """The captured part of a step: [sampling,] loss terms, backward, Adam steps (no host synchronisation)."""
 
         def update(sample: TensorDictBase) -> TensorDictBase:
+            if self._captured_sample is not None:  # the input is empty: the graph samples itself
+                sample = self._captured_sample()
             if self.actor_after_critic_step:
                 return self._sequential_update(sample, update_actor, check=False).detach()
             out = self._loss_terms(sample, update_actor)
@@ -325,11 +358,44 @@ class LossUpdater:
 
         return update
 
+    def _setup_sampling(self) -> None:
+        """Decides (once, again after a restore) whether the capture-safe sampler is used, and builds it."""
+        self._captured_sample = None
+        self.sampling_captured = False
+        self.sampling_note = "the buffer has no capture-safe sampler"
+        if self.capture_sampling is False:
+            self.sampling_note = "capture_sampling=False"
+            return
+        make = getattr(self.replay_buffer, "capturable_sampler", None)
+        if make is None:
+            if self.capture_sampling:
+                raise RuntimeError(
+                    f"capture_sampling=True: {type(self.replay_buffer).__name__} has no capturable_sampler()."
+                )
+            return
+        try:
+            self._captured_sample = make()
+        except RuntimeError as err:
+            if self.capture_sampling:
+                raise
+            self.sampling_note = str(err)
+            return
+        self.sampling_captured = True
+        if self.cudagraphs:
+            self.sampling_note = "sampling and relabelling captured"
+        elif self.compile:
+            self._captured_sample = torch.compile(self._captured_sample, fullgraph=True, options=COMPILE_OPTIONS)
+            self.sampling_note = "capture-safe sampler, compiled"
+        else:
+            self.sampling_note = "capture-safe sampler"
+
     def _graph_step(self) -> TensorDictBase:
-        sample = self._sample()
+        if self.sampling_captured is None:
+            self._setup_sampling()
         due = self.actor_update_due()  # decided on the host: the graphs cannot branch
         if due not in self._graphs:
             self._graphs[due] = CudaGraphModule(self._graph_update(due), warmup=3, in_keys=[], out_keys=[])
+        sample = TensorDict() if self.sampling_captured else self._sample()
         out = self._graphs[due](sample).clone()  # the graph's output buffers are reused by the next replay
         self._count_update()
         return out
@@ -376,3 +442,4 @@ class LossUpdater:
                         if "step" in state:
                             state["step"] = state["step"].to(param.device, torch.float32)
         self._graphs = {}  # captured graphs point at the replaced optimiser state: capture again
+        self.sampling_captured = None  # and the sampler at storage that a restore may have reallocated
