@@ -330,16 +330,20 @@ def test_updater_capture_sampling_outside_graphs(graphs_on_cpu):
 
 
 @pytest.mark.slow
-def test_updater_capture_sampling_compiled_agrees_with_eager():
-    """``compile=True capture_sampling=True``: the sampler compiled whole (same draws through the eager generator)
-    and the compiled loss follow the eager updater to float round-off."""
+@pytest.mark.parametrize("graphs", [False, True], ids=["eager", "cudagraphs-pass-through"])
+def test_updater_capture_sampling_compiled_agrees_with_eager(graphs_on_cpu, graphs):
+    """``compile=True capture_sampling=True``, also with ``cudagraphs=True`` (whose CudaGraphModule passes its
+    calls through on a CPU): the sampler compiled whole (same draws through the eager generator) and the compiled
+    loss follow the eager updater to float round-off."""
     from torchrl_dhrl.training.updates import compile_available
 
     if compile_available() is not None:
         pytest.skip(f"torch.compile unavailable here: {compile_available()}")
     eager_loss, _, eager_outs = _capture_run(graphs=False, steps=20)
-    compiled_loss, compiled, compiled_outs = _capture_run(graphs=False, compile_=True, steps=20)
-    assert compiled.sampling_note == "capture-safe sampler, compiled"
+    compiled_loss, compiled, compiled_outs = _capture_run(graphs=graphs, compile_=True, steps=20)
+    assert compiled.compile and compiled.cudagraphs == graphs
+    prefix = "sampling and relabelling captured" if graphs else "capture-safe sampler"
+    assert compiled.sampling_note == prefix + ", compiled"
     for key, value in eager_loss.state_dict().items():
         if value.is_floating_point():
             torch.testing.assert_close(compiled_loss.state_dict()[key], value, rtol=1e-4, atol=1e-5, msg=key)

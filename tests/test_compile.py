@@ -150,20 +150,13 @@ def test_compile_falls_back_with_a_message_where_unavailable(monkeypatch):
     assert torch.isfinite(out["loss_policy_qvalue"])
 
 
-def test_compile_is_not_combined_with_cudagraphs():
-    loss = _sqgc()
-    with pytest.raises(ValueError, match="`compile=True` is not supported together with `cudagraphs=True`"):
-        LossUpdater(loss, _low_buffer(), make_optimizers(loss), compile=True, cudagraphs=True)
-
-
 def test_compile_key_is_validated_and_reaches_the_updaters(monkeypatch):
     with pytest.raises(ConfigError, match="`compile` must be true or false"):
         validate_config(recipe_config("env=PointMaze", "device=cpu", "compile=yes"))
-    with pytest.raises(ConfigError, match="compile=true` cannot be combined with `cudagraphs=true"):
-        cfg = recipe_config("env=PointMaze", "device=cpu", "compile=true", "cudagraphs=true")
-        cfg["device"] = "cuda"  # past the CUDA check: the combination itself is refused
-        monkeypatch.setattr("torchrl_dhrl.training.config.resolve_device", lambda d: torch.device("cuda"))
-        validate_config(cfg)
+    cfg = recipe_config("env=PointMaze", "device=cpu", "compile=true", "cudagraphs=true")
+    cfg["device"] = "cuda"  # past the CUDA check: the combination itself is accepted
+    monkeypatch.setattr("torchrl_dhrl.training.config.resolve_device", lambda d: torch.device("cuda"))
+    validate_config(cfg)
     from dhrl_utils import build_agent, build_replay_buffers, build_updaters
 
     cfg = recipe_config("env=PointMaze", "preset=smoke", "compile=true")

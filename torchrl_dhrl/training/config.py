@@ -560,8 +560,6 @@ def validate_config(cfg: Mapping, env_names: tuple[str, ...] | None = None) -> N
         raise ConfigError(f"`update_dtype` must be one of {tuple(UPDATE_DTYPES)}, got {update_dtype!r}.")
     if update_dtype == "bfloat16" and cfg.get("cudagraphs", False):  # `auto` resolves to float32 there
         raise ConfigError(f"`update_dtype={update_dtype}` cannot be combined with `cudagraphs=true` (yet).")
-    if cfg.get("compile", False) and cfg.get("cudagraphs", False):
-        raise ConfigError("`compile=true` cannot be combined with `cudagraphs=true` (yet): pick one.")
     if cfg.get("capture_sampling") not in (None, True, False):
         raise ConfigError(
             f"`capture_sampling` must be null (auto), true or false, got {cfg.get('capture_sampling')!r}."

@@ -108,7 +108,9 @@ class LossUpdater:
     the same noise as an eager one and the two agree to float round-off (fusion reorders sums). The first
     updates pay the compilation (tens of seconds on a small CPU; inductor's on-disk cache makes later runs
     start faster). Where ``torch.compile`` does not work (:func:`compile_available`), the updater warns
-    once and runs eagerly.
+    once and runs eagerly. ``compile=True`` combines with ``cudagraphs=True`` (as TorchRL's and LeanRL's
+    recipes do): the compiled functions (and the capture-safe sampler, compiled whole) run in the eager
+    warm-up calls, where they compile, and their kernels are then captured in the graphs.
 
     Args:
         loss (LossModule): the loss, returning ``loss_*`` entries; a DHRL loss
@@ -130,7 +132,7 @@ class LossUpdater:
         actor_after_critic_step (bool): evaluate and step the actor loss after the critic step
             (see above; needs a loss with ``loss_terms`` and ``actor_loss``). Defaults to ``False``.
         compile (bool): run the loss's forward terms (and so their backward) through
-            :func:`torch.compile` (see above). Not combined with ``cudagraphs``. Defaults to ``False``.
+            :func:`torch.compile` (see above). Defaults to ``False``.
         capture_sampling (bool, optional): draw batches with the buffer's capture-safe sampler
             (:meth:`~torchrl_dhrl.data.RelabelReplayBuffer.capturable_sampler`) instead of ``sample()``:
             with ``cudagraphs=True`` inside the update's graphs (see above), with ``compile=True`` compiled
@@ -201,10 +203,6 @@ class LossUpdater:
             )
         if autocast_dtype is not None and cudagraphs:
             raise ValueError("`autocast_dtype` is not supported together with `cudagraphs=True`.")
-        if compile and cudagraphs:
-            raise ValueError(
-                "`compile=True` is not supported together with `cudagraphs=True` (yet): pick one."
-            )
         if actor_after_critic_step and not (hasattr(loss, "loss_terms") and hasattr(loss, "actor_loss")):
             raise TypeError(
                 f"`actor_after_critic_step=True` needs a loss with `loss_terms` and `actor_loss`, got "
@@ -381,13 +379,14 @@ class LossUpdater:
             self.sampling_note = str(err)
             return
         self.sampling_captured = True
-        if self.cudagraphs:
-            self.sampling_note = "sampling and relabelling captured"
-        elif self.compile:
-            self._captured_sample = torch.compile(self._captured_sample, fullgraph=True, options=COMPILE_OPTIONS)
-            self.sampling_note = "capture-safe sampler, compiled"
-        else:
-            self.sampling_note = "capture-safe sampler"
+        self.sampling_note = (
+            "sampling and relabelling captured" if self.cudagraphs else "capture-safe sampler"
+        )
+        if self.compile:
+            self._captured_sample = torch.compile(
+                self._captured_sample, fullgraph=True, options=COMPILE_OPTIONS
+            )
+            self.sampling_note += ", compiled"
 
     def _graph_step(self) -> TensorDictBase:
         if self.sampling_captured is None:
