@@ -229,41 +229,6 @@ def graphs_on_cpu(monkeypatch):
         yield
 
 
-@pytest.mark.parametrize("actor_after_critic_step", [False, True])
-def test_updater_with_captured_sampling_trains_as_an_eager_updater(graphs_on_cpu, actor_after_critic_step):
-    """The graphs sample themselves: 12 updates (two graphs, 4 target updates, writes in between) give the
-    parameters and losses an eager updater gives when fed by the same capture-safe sampler."""
-    runs = []
-    for captured in (True, False):
-        loss = _loss()
-        rb, stream = _low_buffer()
-        updater = LossUpdater(
-            loss,
-            rb,
-            make_optimizers(loss),
-            target_update_interval=3,
-            cudagraphs=captured,
-            actor_after_critic_step=actor_after_critic_step,
-        )
-        if not captured:  # the eager reference draws from the same capture-safe sampler
-            updater._sample = rb.capturable_sampler()
-        torch.manual_seed(11)
-        outs = [updater.run(4)]
-        rb.extend(stream.batch(10))
-        outs += [updater.run(4), updater.run(4)]
-        runs.append((loss, updater, outs))
-    (graph_loss, graph, graph_outs), (eager_loss, _, eager_outs) = runs
-    assert graph.sampling_captured and graph.sampling_note == "sampling and relabelling captured"
-    assert set(graph._graphs) == {False, True} and graph.num_updates == 12
-    for key, value in eager_loss.state_dict().items():
-        assert torch.equal(graph_loss.state_dict()[key], value), key
-    for got, expected in zip(graph_outs, eager_outs, strict=True):
-        for key in expected.keys():
-            assert torch.equal(got[key], expected[key]), key
-    moved = sum(not torch.equal(v, _loss().state_dict()[k]) for k, v in eager_loss.state_dict().items())
-    assert moved > 4
-
-
 def test_updater_capture_sampling_switch(graphs_on_cpu):
     loss = _loss()
     rb, _ = _low_buffer()
@@ -296,9 +261,18 @@ def test_updater_capture_sampling_switch(graphs_on_cpu):
     assert captured.sampling_captured
 
 
-def _capture_run(graphs: bool, compile_: bool = False, steps: int = 12):
-    loss = _loss()
-    rb, stream = _low_buffer()
+def _capture_run(
+    graphs: bool,
+    compile_: bool = False,
+    steps: int = 12,
+    *,
+    capture_sampling: bool | None = True,
+    actor_after_critic_step: bool = False,
+    device="cpu",
+):
+    """``steps`` updates of a fresh SQGC updater on a fresh low-level buffer, with new rows written halfway."""
+    loss = _loss().to(device)
+    rb, _, stream = _filled_buffer(2, 50, 3, 10, window=6, seed=0, device=device)
     updater = LossUpdater(
         loss,
         rb,
@@ -306,27 +280,37 @@ def _capture_run(graphs: bool, compile_: bool = False, steps: int = 12):
         target_update_interval=3,
         cudagraphs=graphs,
         compile=compile_,
-        capture_sampling=True,
+        capture_sampling=capture_sampling,
+        actor_after_critic_step=actor_after_critic_step,
     )
     torch.manual_seed(11)
     outs = [updater.run(steps // 2)]
-    rb.extend(stream.batch(10))
+    rb.extend(stream.batch(10).to(device))
     outs.append(updater.run(steps - steps // 2))
     return loss, updater, outs
 
 
-def test_updater_capture_sampling_outside_graphs(graphs_on_cpu):
-    """``capture_sampling=True`` without graphs: the eager updater draws from the capture-safe sampler and trains
-    exactly as the (CPU pass-through) graph path does."""
-    eager_loss, eager, eager_outs = _capture_run(graphs=False)
-    graph_loss, graph, graph_outs = _capture_run(graphs=True)
+@pytest.mark.parametrize("actor_after_critic_step", [False, True])
+def test_updater_with_captured_sampling_trains_as_an_eager_updater(graphs_on_cpu, actor_after_critic_step):
+    """The graphs sample themselves (``capture_sampling`` left to auto): 12 updates (two graphs, 4 target updates,
+    writes in between) give the parameters and losses of an eager updater that draws from the same capture-safe
+    sampler (``capture_sampling=True`` outside graphs)."""
+    graph_loss, graph, graph_outs = _capture_run(
+        graphs=True, capture_sampling=None, actor_after_critic_step=actor_after_critic_step
+    )
+    eager_loss, eager, eager_outs = _capture_run(
+        graphs=False, actor_after_critic_step=actor_after_critic_step
+    )
+    assert graph.sampling_captured and graph.sampling_note == "sampling and relabelling captured"
+    assert set(graph._graphs) == {False, True} and graph.num_updates == 12
     assert eager.sampling_captured and eager.sampling_note == "capture-safe sampler" and not eager._graphs
-    assert graph.sampling_note == "sampling and relabelling captured"
-    for key, value in graph_loss.state_dict().items():
-        assert torch.equal(eager_loss.state_dict()[key], value), key
-    for got, expected in zip(eager_outs, graph_outs, strict=True):
+    for key, value in eager_loss.state_dict().items():
+        assert torch.equal(graph_loss.state_dict()[key], value), key
+    for got, expected in zip(graph_outs, eager_outs, strict=True):
         for key in expected.keys():
             assert torch.equal(got[key], expected[key]), key
+    moved = sum(not torch.equal(v, _loss().state_dict()[k]) for k, v in eager_loss.state_dict().items())
+    assert moved > 4
 
 
 @pytest.mark.slow

@@ -281,28 +281,16 @@ def test_compiled_cudagraph_updates_match_eager_updates():
     """``compile=True cudagraphs=True``: compiled kernels captured in the graphs, sampling captured too; after 16
     updates the parameters follow an eager updater fed by the same capture-safe sampler (random draws inside
     the graphs come from the graph-safe Philox stream, so the batches differ: statistics, not bits)."""
-    from test_capturable_sampling import _filled_buffer, _loss
+    from test_capturable_sampling import _capture_run, _loss
 
-    results = []
-    for graphs in (True, False):
-        loss = _loss().to(CUDA)
-        rb, _, _ = _filled_buffer(2, 50, 3, 10, window=6, seed=0, device=CUDA)
-        updater = LossUpdater(
-            loss,
-            rb,
-            make_optimizers(loss),
-            target_update_interval=3,
-            cudagraphs=graphs,
-            compile=graphs,
-            capture_sampling=True,
-        )
-        results.append((loss, updater, updater.run(16)))
-    (graph_loss, graph, graph_means), (eager_loss, _, eager_means) = results
+    graph_loss, graph, graph_outs = _capture_run(graphs=True, compile_=True, steps=16, device=CUDA)
+    _, _, eager_outs = _capture_run(graphs=False, steps=16, device=CUDA)
     assert graph.sampling_note == "sampling and relabelling captured, compiled"
     assert set(graph._graphs) == {False, True}
-    for key in ("loss_policy_qvalue", "loss_graph_qvalue"):
-        assert torch.isfinite(graph_means[key])
-        torch.testing.assert_close(graph_means[key], eager_means[key], rtol=0.5, atol=0.05, msg=key)
+    for graph_means, eager_means in zip(graph_outs, eager_outs, strict=True):
+        for key in ("loss_policy_qvalue", "loss_graph_qvalue"):
+            assert torch.isfinite(graph_means[key])
+            torch.testing.assert_close(graph_means[key], eager_means[key], rtol=0.5, atol=0.05, msg=key)
     assert (
         sum(not torch.equal(v, _loss().to(CUDA).state_dict()[k]) for k, v in graph_loss.state_dict().items())
         > 4
