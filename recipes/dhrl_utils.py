@@ -198,6 +198,7 @@ def build_agent(cfg: dict, device: torch.device) -> DHRLAgent:
         max_landmarks=planner["max_landmarks"],
         early_stop=planner["early_stop"],
         build_autocast_dtype=run_precisions(cfg, device)[1],
+        capturable_planner=bool(cfg.get("compile_policy", False)),
         reach_radius=planner["reach_radius"],
     )
 
@@ -304,7 +305,12 @@ def build_run(cfg: dict, device: torch.device) -> RunParts:
     eval_env = build_environment(cfg, device, eval=True, agent=agent)
     low_rb, high_rb = build_replay_buffers(cfg, agent, device)
     low_updater, high_updater = build_updaters(cfg, agent, low_rb, high_rb)
-    collector = make_collector(train_env, agent, train_env.base_env.max_episode_steps)
+    collector = make_collector(
+        train_env,
+        agent,
+        train_env.base_env.max_episode_steps,
+        compile_policy=bool(cfg.get("compile_policy", False)),
+    )
     return RunParts(agent, train_env, eval_env, low_rb, high_rb, low_updater, high_updater, collector)
 
 

@@ -438,9 +438,20 @@ class LandmarkGraph(UnregisteredAttributes, nn.Module):
         padded[rows, slots] = costs[rows, cols]
         return index, padded
 
-    def _reach(self, start_cost: Tensor) -> tuple[Tensor, Tensor]:
+    @staticmethod
+    def _dense(costs: Tensor) -> tuple[Tensor, Tensor]:
+        """:meth:`_padded`'s output over every column: ``[B, K]`` indices ``0..K-1`` and the costs themselves.
+
+        Static shapes and no host synchronisation (the capturable path); ``inf`` entries never win a
+        minimum that a finite entry can win, and the finite entries keep their column order, so minima
+        and their first-occurrence indices agree with the padded form.
+        """
+        index = torch.arange(costs.shape[-1], device=costs.device).expand(costs.shape)
+        return index, costs
+
+    def _reach(self, start_cost: Tensor, capturable: bool = False) -> tuple[Tensor, Tensor]:
         """Graph distance start -> every landmark and the entry landmark achieving it: ``[B, K]`` each."""
-        entries, entry_cost = self._padded(start_cost)  # [B, E]
+        entries, entry_cost = (self._dense if capturable else self._padded)(start_cost)  # [B, E]
         if entries.shape[1] == 0:
             return torch.full_like(start_cost, math.inf), torch.zeros_like(start_cost, dtype=torch.int64)
         through = entry_cost.unsqueeze(-1) + self.shortest_distances[entries]  # [B, E, K]
@@ -510,7 +521,13 @@ class LandmarkGraph(UnregisteredAttributes, nn.Module):
 
     @torch.no_grad()
     def plan(
-        self, states: Tensor, subgoals: Tensor, distance: TemporalDistance, max_path_length: int | None = None
+        self,
+        states: Tensor,
+        subgoals: Tensor,
+        distance: TemporalDistance,
+        max_path_length: int | None = None,
+        *,
+        capturable: bool = False,
     ) -> GraphPlan:
         """Plans waypoint sequences for a batch of ``(state, subgoal)`` queries.
 
@@ -529,6 +546,15 @@ class LandmarkGraph(UnregisteredAttributes, nn.Module):
             max_path_length (int, optional): landmarks kept per path; longer paths are truncated
                 (``GraphPlan.truncated``). Defaults to no limit.
 
+        Keyword Args:
+            capturable (bool): plan with tensor operations of static shapes only, without a host
+                synchronisation (no ``nonzero``, no ``.item()``, no branch on the data), so that the call
+                can be traced whole by ``torch.compile(fullgraph=True)`` or captured in a CUDA graph.
+                Every (entry, exit) landmark pair is considered, and the fallback is computed for every
+                row; the plans are the same as without it (ties resolved alike), at ``O(B K^2)`` work
+                instead of ``O(B E X)`` over the landmarks actually connected. Needs ``max_path_length``
+                (the width of the paths). Defaults to ``False``.
+
         Returns:
             GraphPlan: the plans, one row per query.
         """
@@ -536,6 +562,11 @@ class LandmarkGraph(UnregisteredAttributes, nn.Module):
             raise ValueError(
                 "`states` [B, obs_dim] and `subgoals` [B, goal_dim] must be 2-D with the same B, got "
                 f"{tuple(states.shape)} and {tuple(subgoals.shape)}."
+            )
+        if capturable and (isinstance(max_path_length, bool) or not isinstance(max_path_length, int)):
+            raise ValueError(
+                "`capturable=True` needs `max_path_length` (an int: the static width of the paths), got "
+                f"{max_path_length!r}."
             )
         self._check_query(states, subgoals)
         num_rows, device = states.shape[0], states.device
@@ -569,8 +600,9 @@ class LandmarkGraph(UnregisteredAttributes, nn.Module):
         rows = torch.arange(num_rows, device=device)
         # best route through the graph: min over (entry i, exit j) of d(s, i) + D*[i, j] + d(j, sg),
         # over the few landmarks connected to the state and to the subgoal only
-        entry_ids, entry_cost = self._padded(start_cost)  # [B, E]
-        exit_ids, exit_padded = self._padded(exit_cost)  # [B, X]
+        connected = self._dense if capturable else self._padded
+        entry_ids, entry_cost = connected(start_cost)  # [B, E]
+        exit_ids, exit_padded = connected(exit_cost)  # [B, X]
         via_cost = torch.full((num_rows,), math.inf, dtype=to_landmarks.dtype, device=device)
         via_entry = torch.zeros(num_rows, dtype=torch.int64, device=device)
         via_exit = torch.zeros(num_rows, dtype=torch.int64, device=device)
@@ -588,17 +620,22 @@ class LandmarkGraph(UnregisteredAttributes, nn.Module):
         stuck = ~use_direct & ~use_graph
         use_fallback = torch.zeros_like(stuck)
         exits, entries = via_exit.clone(), via_entry.clone()
-        if bool(stuck.any()):
+        if capturable:  # the fallback of every row, kept where the row is stuck
+            near_cost, near_exit, near_entry = self._fallback(start_cost, from_landmarks, True)
+            use_fallback = stuck & torch.isfinite(near_cost)
+            exits = torch.where(stuck, near_exit, exits)
+            entries = torch.where(stuck, near_entry, entries)
+        elif bool(stuck.any()):
             idx = stuck.nonzero().squeeze(-1)
-            reach, entry = self._reach(start_cost[idx])
-            near = torch.where(torch.isfinite(reach), from_landmarks[idx], inf)
-            near_cost, near_exit = near.min(dim=-1)
+            near_cost, near_exit, near_entry = self._fallback(start_cost[idx], from_landmarks[idx], False)
             use_fallback[idx] = torch.isfinite(near_cost)
             exits[idx] = near_exit
-            entries[idx] = entry.gather(1, near_exit.unsqueeze(1)).squeeze(1)
+            entries[idx] = near_entry
         has_path = use_graph | use_fallback
         sources = torch.where(has_path, entries, exits)
-        paths, lengths = reconstruct_paths(self.next_hop, self.hop_counts, sources, exits, max_path_length)
+        paths, lengths = reconstruct_paths(
+            self.next_hop, self.hop_counts, sources, exits, max_path_length, capturable=capturable
+        )
         full_lengths = torch.where(has_path, self.hop_counts[sources, exits] + 1, 0)
         lengths = torch.where(has_path, lengths, 0)
         paths = paths.masked_fill(~has_path.unsqueeze(-1), -1)
@@ -632,6 +669,16 @@ class LandmarkGraph(UnregisteredAttributes, nn.Module):
             cost=cost,
             reachable=use_direct | use_graph,
         )
+
+    def _fallback(
+        self, start_cost: Tensor, from_landmarks: Tensor, capturable: bool
+    ) -> tuple[Tensor, Tensor, Tensor]:
+        """The reachable landmark nearest to the subgoal: its distance to it, its index and the entry landmark."""
+        reach, entry = self._reach(start_cost, capturable)
+        inf = torch.full((), math.inf, dtype=from_landmarks.dtype, device=from_landmarks.device)
+        near = torch.where(torch.isfinite(reach), from_landmarks, inf)
+        near_cost, near_exit = near.min(dim=-1)
+        return near_cost, near_exit, entry.gather(1, near_exit.unsqueeze(1)).squeeze(1)
 
     # ------------------------------------------------------------------ state dict
     def _load_from_state_dict(

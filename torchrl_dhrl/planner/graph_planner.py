@@ -93,6 +93,14 @@ class GraphPlanner(UnregisteredAttributes, Transform):
             space. Defaults to ``0.5``.
         max_path_length (int): landmarks stored per plan; a longer path is cut and replanned
             (from the state reached) once its stored part is used up. Defaults to ``32``.
+        capturable (bool): track and plan with tensor operations of static shapes only: every env
+            is planned on every call (:meth:`LandmarkGraph.plan` with ``capturable=True``) and the new
+            plans are kept where a replan is due, instead of planning only those rows behind a
+            host-side branch. The waypoints and tracking state are the same; the acting policy then
+            compiles whole (``torch.compile(fullgraph=True)``, e.g. the collector's
+            ``compile_policy``), at the cost of one planning query per env and call (``O(K^2)`` per
+            env on top of ``2 K`` distance evaluations, ``K`` landmarks): meant for GPUs; on a CPU it
+            costs more than compiling saves (``benchmarks/bench_acting.py``). Defaults to ``False``.
         observation_key (NestedKey): Defaults to ``"observation"``.
         achieved_goal_key (NestedKey): Defaults to ``"achieved_goal"``.
         subgoal_key (NestedKey): Defaults to ``"subgoal"``.
@@ -135,6 +143,7 @@ class GraphPlanner(UnregisteredAttributes, Transform):
         *,
         reach_radius: float = 0.5,
         max_path_length: int = 32,
+        capturable: bool = False,
         observation_key: NestedKey = "observation",
         achieved_goal_key: NestedKey = "achieved_goal",
         subgoal_key: NestedKey = "subgoal",
@@ -180,7 +189,10 @@ class GraphPlanner(UnregisteredAttributes, Transform):
         )
         self.goal_dim = goal_dim
         self.reach_radius = float(reach_radius)
+        if not isinstance(capturable, bool):
+            raise TypeError(f"`capturable` must be a bool, got {capturable!r}.")
         self.max_path_length = max_path_length
+        self.capturable = capturable
         self.graph = graph
         self.distance = distance
         check_supports_autocast(distance, graph.build_autocast_dtype)
@@ -269,7 +281,9 @@ class GraphPlanner(UnregisteredAttributes, Transform):
 
     def plan(self, states: Tensor, subgoals: Tensor) -> GraphPlan:
         """Plans for ``states[B, obs_dim]`` and ``subgoals[B, goal_dim]`` (see :meth:`LandmarkGraph.plan`)."""
-        return self.graph.plan(states, subgoals, self.distance, self.max_path_length)
+        return self.graph.plan(
+            states, subgoals, self.distance, self.max_path_length, capturable=self.capturable
+        )
 
     # ------------------------------------------------------------------ specs and primer
     def state_spec(
@@ -413,7 +427,10 @@ class GraphPlanner(UnregisteredAttributes, Transform):
         replan = replan | used_up
         if active is not None:
             replan = replan & active.reshape(num)
-        if num and bool(replan.any()):
+        if self.capturable:
+            if num:  # every row planned, the new plans kept where a replan is due
+                self._merge_plan(st, replan, self.plan(obs, subgoal), version)
+        elif num and bool(replan.any()):
             rows = replan.nonzero().squeeze(-1)
             plan = self.plan(obs[rows], subgoal[rows])
             st["path"][rows] = plan.path
@@ -432,6 +449,23 @@ class GraphPlanner(UnregisteredAttributes, Transform):
             shape = (*batch, value.shape[-1]) if name in ("path", "budgets") else (*batch, 1)
             out.set(key, value.reshape(shape))
         return out
+
+    @staticmethod
+    def _merge_plan(st: dict[str, Tensor], replan: Tensor, plan: GraphPlan, version: Tensor) -> None:
+        """``st`` takes ``plan``'s rows where ``replan`` (``[n]`` bool) is set: tensor operations only."""
+        fresh = {
+            "path": plan.path,
+            "path_length": plan.length,
+            "budgets": plan.budgets.to(st["budgets"].dtype),
+            "truncated": plan.truncated,
+            "index": torch.zeros_like(st["index"]),
+            "steps": torch.zeros_like(st["steps"]),
+            "has_plan": torch.ones_like(st["has_plan"]),
+            "graph_version": version.expand_as(st["graph_version"]),
+        }
+        for name, value in fresh.items():
+            mask = replan.reshape(-1, *([1] * (st[name].ndim - 1)))
+            st[name] = torch.where(mask, value, st[name])
 
     def _waypoints(self, st: dict[str, Tensor], subgoal: Tensor, on_path: Tensor) -> Tensor:
         if not self.has_graph:
@@ -499,5 +533,6 @@ class GraphPlanner(UnregisteredAttributes, Transform):
     def extra_repr(self) -> str:
         return (
             f"goal_dim={self.goal_dim}, reach_radius={self.reach_radius}, "
-            f"max_path_length={self.max_path_length}, waypoint_key={self.waypoint_key!r}"
+            f"max_path_length={self.max_path_length}, capturable={self.capturable}, "
+            f"waypoint_key={self.waypoint_key!r}"
         )

@@ -149,7 +149,13 @@ def count_hops(next_hop: Tensor) -> Tensor:
 
 @torch.no_grad()
 def reconstruct_paths(
-    next_hop: Tensor, hop_counts: Tensor, sources: Tensor, targets: Tensor, max_length: int | None = None
+    next_hop: Tensor,
+    hop_counts: Tensor,
+    sources: Tensor,
+    targets: Tensor,
+    max_length: int | None = None,
+    *,
+    capturable: bool = False,
 ) -> tuple[Tensor, Tensor]:
     """Reads a batch of shortest paths out of a next-hop table, all rows at once.
 
@@ -163,6 +169,12 @@ def reconstruct_paths(
             source get an empty path.
         max_length (int, optional): keep at most this many nodes per path (the first ones).
             Defaults to the longest path in the batch.
+
+    Keyword Args:
+        capturable (bool): return exactly ``max_length`` columns (padded with ``-1``) instead of
+            reading the longest path's length back to the host, so that the call has static shapes
+            and no host synchronisation (``torch.compile(fullgraph=True)``, CUDA graphs). Needs
+            ``max_length``. Defaults to ``False``.
 
     Returns:
         ``(paths, lengths)``: ``paths`` is ``[B, L]`` int64 (node indices, ``source`` first and
@@ -184,11 +196,16 @@ def reconstruct_paths(
             f"`sources` and `targets` must be 1-D of equal shape, got {tuple(sources.shape)} "
             f"and {tuple(targets.shape)}."
         )
+    if capturable and (isinstance(max_length, bool) or not isinstance(max_length, int)):
+        raise ValueError(f"`capturable=True` needs `max_length` (an int), got {max_length!r}.")
     num = sources.shape[0]
     reachable = next_hop[sources, targets] >= 0 if num else sources.new_zeros(0, dtype=torch.bool)
     full_lengths = torch.where(reachable, hop_counts[sources, targets] + 1, 0)
-    longest = int(full_lengths.max()) if num else 0
-    width = longest if max_length is None else min(longest, max_length)
+    if capturable:
+        width = max_length
+    else:
+        longest = int(full_lengths.max()) if num else 0
+        width = longest if max_length is None else min(longest, max_length)
     lengths = full_lengths.clamp_max(width)
     paths = torch.full((num, width), -1, dtype=torch.int64, device=sources.device)
     cursor = sources.clone()

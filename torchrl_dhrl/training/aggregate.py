@@ -51,6 +51,7 @@ IGNORED_KEYS = (
     "cudagraphs",
     "compile",
     "capture_sampling",
+    "compile_policy",
     "logger.*",
     "plots.*",
     "checkpoint.*",

@@ -155,6 +155,7 @@ def make_agent(
     early_stop: float = 10.0,
     build_autocast_dtype: torch.dtype | None = None,
     reach_radius: float = 0.5,
+    capturable_planner: bool = False,
 ) -> DHRLAgent:
     """Builds both levels (actors, critics, losses), the graph planner and the acting policy on ``device``.
 
@@ -187,6 +188,10 @@ def make_agent(
         cutoff, max_landmarks, early_stop, build_autocast_dtype: the
             :class:`~torchrl_dhrl.planner.LandmarkGraph`'s.
         reach_radius (float): a waypoint counts as reached within this distance (goal units).
+        capturable_planner (bool): the :class:`~torchrl_dhrl.planner.GraphPlanner`'s ``capturable``: plans
+            with static shapes and no host synchronisation, every env at every step, so that the acting
+            policy compiles whole (:func:`make_collector`'s ``compile_policy``). Same plans. Defaults to
+            ``False``.
 
     Raises:
         ValueError: when the subgoal box does not match the goal space, or ``relative_goal`` lacks
@@ -264,7 +269,9 @@ def make_agent(
     )
     if distance is None:
         distance = GoalDistance.from_loss(sqgc_loss, twin=twin)
-    planner = GraphPlanner(graph, distance, goal_dim, reach_radius=reach_radius).to(device)
+    planner = GraphPlanner(
+        graph, distance, goal_dim, reach_radius=reach_radius, capturable=capturable_planner
+    ).to(device)
     policy = TensorDictSequential(high_policy, planner, TensorDictSequential(actor, exploration))
     return DHRLAgent(high_policy, actor, exploration, sqgc_loss, high_loss, planner, policy)
 
@@ -333,7 +340,9 @@ def make_environment(
     return TransformedEnv(env, Compose(*transforms))
 
 
-def make_collector(env: EnvBase, agent: DHRLAgent, episode_length: int) -> Collector:
+def make_collector(
+    env: EnvBase, agent: DHRLAgent, episode_length: int, *, compile_policy: bool | Mapping[str, Any] = False
+) -> Collector:
     """A :class:`~torchrl.collectors.Collector` yielding one whole episode per env and batch.
 
     Episodes only truncate, so every env ends its episode at the last step of a batch and the
@@ -343,7 +352,22 @@ def make_collector(env: EnvBase, agent: DHRLAgent, episode_length: int) -> Colle
     The policy runs on that device too (``device=env.device``): the collector's step tensordict then
     keeps a device and the env does not cast it, key by key, on every step (a collector that infers the
     policy's device leaves it ``None``; 0.2 ms of a 1.46 ms warm-up env step on PointMaze, same data).
+
+    ``compile_policy`` (``True`` or the keyword arguments of :func:`torchrl._utils.compile_with_warmup`)
+    is the collector's own: the acting policy (high level, planner, low level) is compiled with
+    ``torch.compile`` after a warm-up call. It needs a capturable planner (``make_agent(...,
+    capturable_planner=True)``), whose policy compiles as one graph; the same actions up to float
+    round-off (and, in a compiled graph, other random draws for the exploration noise).
+
+    Raises:
+        ValueError: ``compile_policy`` with a planner that is not ``capturable``.
     """
+    if compile_policy not in (False, None) and not agent.planner.capturable:
+        raise ValueError(
+            "`compile_policy` needs a capturable planner (make_agent(..., capturable_planner=True), or "
+            "agent.planner.capturable = True): the planner's replanning branch would split the compiled "
+            "policy into pieces at every step."
+        )
     num_envs = env.batch_size.numel()
     # The planner and the subgoal scheduler carry their state with TensorDictPrimers (already on the env);
     # they do not need the InitTracker the collector would add for recurrent-looking modules.
@@ -354,6 +378,7 @@ def make_collector(env: EnvBase, agent: DHRLAgent, episode_length: int) -> Colle
         total_frames=-1,
         device=env.device,
         auto_register_policy_transforms=False,
+        compile_policy=None if compile_policy is False else compile_policy,
     )
 
 

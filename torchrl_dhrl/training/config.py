@@ -65,6 +65,7 @@ RESUME_MUTABLE_KEYS = (
     "cudagraphs",
     "compile",
     "capture_sampling",
+    "compile_policy",
     "update_dtype",
     "planner.build_dtype",
     "logger.*",
@@ -156,7 +157,7 @@ def _check_run_keys(cfg: Mapping) -> None:
         value = _get(cfg, path)
         if value is not None and (not isinstance(value, str) or not value):
             raise ConfigError(f"`{path}` must be null or a path, got {value!r}.")
-    optional = tuple(key for key in ("cudagraphs", "compile") if key in cfg)
+    optional = tuple(key for key in ("cudagraphs", "compile", "compile_policy") if key in cfg)
     for path in ("progress", "plots.video") + optional:
         if not isinstance(_get(cfg, path), bool):
             raise ConfigError(f"`{path}` must be true or false, got {_get(cfg, path)!r}.")

@@ -137,6 +137,11 @@ def start_run(
         _check_offscreen_rendering()
     print(set_threads(cfg["threads"]))
     print(describe_precisions(cfg, device))
+    if cfg.get("compile_policy", False):
+        print(
+            "Acting: the policy compiled in the collector (torch.compile), its planner capturable (every env "
+            "planned at every step; the same plans)."
+        )
     if notes:
         print(f"Resuming {resume} with: {'; '.join(notes)}.")
     run_dir.mkdir(parents=True, exist_ok=True)
