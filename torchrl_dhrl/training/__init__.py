@@ -100,6 +100,7 @@ from .run import (
     start_run,
     write_metrics_csv,
 )
+from .subgoal_landscape import SubgoalLandscape, subgoal_landscape, subgoal_values
 from .threads import available_cpus, resolve_threads, set_threads
 from .updates import LossUpdater, NonFiniteLossError
 
@@ -190,7 +191,10 @@ __all__ = [
     "spearman_correlation",
     "start_run",
     "start_subgoal",
+    "subgoal_landscape",
     "subgoal_segments",
+    "subgoal_values",
+    "SubgoalLandscape",
     "summarize_reach",
     "validate_config",
     "with_implied_keys",

@@ -1,0 +1,174 @@
+"""Where does a DHRL run's high level want its subgoal? Its critic's Q over the subgoal box at a test start.
+
+    python recipes/diagnose_high_level.py outputs/<date>/<time>                  # the run directory
+    python recipes/diagnose_high_level.py run/checkpoint --resolution 0.25 --plot landscape.png
+
+Prints, at the first test episode's start state and goal: the actor's subgoal and its Q, the grid subgoal of
+highest Q (over the whole box and over the free space of a maze), the goal itself as a subgoal, the share of the
+best-valued subgoals that lie inside walls, and how many of the test starts get an actor subgoal inside a wall.
+A critic whose best subgoals lie in walls misleads the actor; an actor far below its critic's best free subgoal
+does not follow its critic. 2-D goal spaces only (the mazes).
+"""
+
+from __future__ import annotations
+
+import argparse
+
+import torch
+from dhrl_utils import agent_from_checkpoint, build_environment
+from tensordict import TensorDict
+
+from torchrl_dhrl.training import MazeGeometry, load_checkpoint, subgoal_landscape, subgoal_values
+
+
+def _fmt(point) -> str:
+    return "(" + ", ".join(f"{float(v):6.2f}" for v in point) + ")"
+
+
+def main(argv: list[str] | None = None) -> dict:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("checkpoint", help="a checkpoint or the run directory holding it")
+    parser.add_argument(
+        "--resolution", type=float, default=0.5, help="grid spacing of the subgoals (goal units)"
+    )
+    parser.add_argument(
+        "--top", type=float, default=0.05, help="share of the best-valued grid subgoals examined"
+    )
+    parser.add_argument(
+        "--plot", default=None, help="write the Q map with the walls and the subgoals here (PNG)"
+    )
+    parser.add_argument("--device", default="cpu")
+    args = parser.parse_args(argv)
+    if not 0 < args.top <= 1:
+        parser.error(f"--top must be in (0, 1], got {args.top}")
+    device = torch.device(args.device)
+    cfg, agent = agent_from_checkpoint(args.checkpoint, device)
+    steps = load_checkpoint(args.checkpoint, components=("counters",))["counters"]["env_steps"]
+    env = build_environment(cfg, device, eval=True, agent=agent)
+    start = env.reset()
+    observations, goals = (
+        start["observation"].reshape(-1, start["observation"].shape[-1]),
+        start["desired_goal"],
+    )
+    goals = goals.reshape(-1, goals.shape[-1])
+    high = cfg["high"]
+    land = subgoal_landscape(
+        agent.high_loss,
+        agent.high_policy.actor,
+        observations[0],
+        goals[0],
+        high["subgoal_low"],
+        high["subgoal_high"],
+        args.resolution,
+    )
+    points = land.points()
+    try:
+        geometry = MazeGeometry.from_maze(cfg["env_name"])
+    except (KeyError, ValueError):
+        geometry = None  # not a maze: no walls
+    walls = (
+        geometry.in_walls(points) if geometry is not None else torch.zeros(points.shape[:2], dtype=torch.bool)
+    )
+    goal_q = float(subgoal_values(agent.high_loss, observations[0], goals[0], goals[0].reshape(1, -1))[0, 0])
+    best, best_q = land.best()
+    best_free, best_free_q = land.best(~walls) if bool((~walls).any()) else (best, best_q)
+    count = max(1, int(round(args.top * land.q.numel())))
+    top = land.q.reshape(-1).topk(count).indices
+    actor = agent.high_policy.actor  # the deterministic subgoal of every test start
+    with torch.no_grad():
+        batch = TensorDict(
+            {actor.in_keys[0]: observations, actor.in_keys[1]: goals}, batch_size=[goals.shape[0]]
+        )
+        actor_all = actor(batch)[actor.out_keys[0]].float().cpu()
+    in_wall = (
+        (lambda p: bool(geometry.in_walls(p.reshape(1, 2))[0])) if geometry is not None else (lambda p: False)
+    )
+    report = {
+        "env_steps": steps,
+        "start": observations[0][:2].cpu(),
+        "goal": goals[0].cpu(),
+        "actor_subgoal": land.actor_subgoal,
+        "actor_q": float(land.actor_q),
+        "actor_in_wall": in_wall(land.actor_subgoal),
+        "best_subgoal": best,
+        "best_q": float(best_q),
+        "best_in_wall": bool(walls.reshape(-1)[land.q.reshape(-1).argmax()]),
+        "best_free_subgoal": best_free,
+        "best_free_q": float(best_free_q),
+        "goal_q": goal_q,
+        "top_in_walls": float(walls.reshape(-1)[top].float().mean()),
+        "walls_share": float(walls.float().mean()),
+        "actor_in_walls_over_starts": float(
+            geometry.in_walls(actor_all).float().mean() if geometry is not None else 0.0
+        ),
+        "starts": observations.shape[0],
+    }
+    print(
+        f"{cfg['env_name']} at {steps} env steps: the high level at the test start {_fmt(report['start'])} for "
+        f"the goal {_fmt(report['goal'])}; Q of the critic's first member over a {args.resolution:g} grid"
+    )
+    wall = {True: "in a wall", False: "free"}
+    print(
+        f"  actor's subgoal      {_fmt(land.actor_subgoal)}  Q {report['actor_q']:8.3f}  {wall[report['actor_in_wall']]}"
+    )
+    print(f"  best grid subgoal    {_fmt(best)}  Q {report['best_q']:8.3f}  {wall[report['best_in_wall']]}")
+    print(f"  best free subgoal    {_fmt(best_free)}  Q {report['best_free_q']:8.3f}")
+    print(f"  the goal as subgoal  {_fmt(report['goal'])}  Q {report['goal_q']:8.3f}")
+    print(
+        f"  the best {args.top:.0%} of the grid: {report['top_in_walls']:.0%} in walls "
+        f"(walls: {report['walls_share']:.0%} of the box)"
+    )
+    print(
+        f"  actor's subgoals at the {report['starts']} test starts: {report['actor_in_walls_over_starts']:.0%} in walls"
+    )
+    if args.plot:
+        _plot(args.plot, land, geometry, report, cfg["env_name"])
+        print(f"  picture: {args.plot}")
+    return report
+
+
+def _plot(path, land, geometry, report, env_name) -> None:
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+    from matplotlib.patches import Rectangle
+
+    fig, ax = plt.subplots(figsize=(6.4, 5.6))
+    extent = [float(land.xs[0]), float(land.xs[-1]), float(land.ys[0]), float(land.ys[-1])]
+    image = ax.imshow(land.q.numpy(), origin="lower", extent=extent, cmap="viridis", aspect="equal")
+    fig.colorbar(image, ax=ax, label="Q (critic's first member)")
+    if geometry is not None:
+        for box in geometry.boxes:
+            (x0, y0), (x1, y1) = box.tolist()
+            ax.add_patch(
+                Rectangle((x0, y0), x1 - x0, y1 - y0, fill=False, hatch="//", edgecolor="white", lw=0.8)
+            )
+    markers = (
+        ("start", report["start"], "o", "white"),
+        ("goal", report["goal"], "*", "gold"),
+        ("actor's subgoal", report["actor_subgoal"], "X", "red"),
+        ("best subgoal", report["best_subgoal"], "^", "orange"),
+        ("best free subgoal", report["best_free_subgoal"], "s", "cyan"),
+    )
+    for label, point, marker, color in markers:
+        ax.scatter(
+            [float(point[0])],
+            [float(point[1])],
+            marker=marker,
+            s=90,
+            c=color,
+            edgecolors="black",
+            label=label,
+        )
+    ax.set_xlim(extent[0], extent[1])
+    ax.set_ylim(extent[2], extent[3])
+    ax.legend(loc="upper right", fontsize=7, framealpha=0.8)
+    ax.set_title(f"{env_name} at {report['env_steps']} env steps: high-level Q over subgoals")
+    fig.tight_layout()
+    fig.savefig(path, dpi=110)
+    plt.close(fig)
+
+
+if __name__ == "__main__":
+    main()
