@@ -5,7 +5,8 @@
 
 Prints, at the first test episode's start state and goal: the actor's subgoal and its Q, the grid subgoal of
 highest Q (over the whole box and over the free space of a maze), the goal itself as a subgoal, the share of the
-best-valued subgoals that lie inside walls, and how many of the test starts get an actor subgoal inside a wall.
+best-valued subgoals that lie inside walls, and how many of the test starts get an actor subgoal inside a wall;
+with ``--along``, the same at every new subgoal of a failed and of a successful test episode.
 A critic whose best subgoals lie in walls misleads the actor; an actor far below its critic's best free subgoal
 does not follow its critic. 2-D goal spaces only (the mazes).
 """
@@ -17,8 +18,17 @@ import argparse
 import torch
 from dhrl_utils import agent_from_checkpoint, build_environment
 from tensordict import TensorDict
+from torchrl_dhrl.envs import MAZE_NAMES
 
-from torchrl_dhrl.training import MazeGeometry, load_checkpoint, subgoal_landscape, subgoal_values
+from torchrl_dhrl.training import (
+    MazeGeometry,
+    evaluate,
+    landscape_summary,
+    load_checkpoint,
+    subgoal_box,
+    subgoal_landscape,
+    subgoal_values,
+)
 
 
 def _fmt(point) -> str:
@@ -37,6 +47,11 @@ def main(argv: list[str] | None = None) -> dict:
     parser.add_argument(
         "--plot", default=None, help="write the Q map with the walls and the subgoals here (PNG)"
     )
+    parser.add_argument(
+        "--along",
+        action="store_true",
+        help="also at every new subgoal of a failed and of a successful test episode (deterministic rollout)",
+    )
     parser.add_argument("--device", default="cpu")
     args = parser.parse_args(argv)
     if not 0 < args.top <= 1:
@@ -51,29 +66,19 @@ def main(argv: list[str] | None = None) -> dict:
         start["desired_goal"],
     )
     goals = goals.reshape(-1, goals.shape[-1])
-    high = cfg["high"]
+    low, high = subgoal_box(agent.high_loss)
     land = subgoal_landscape(
-        agent.high_loss,
-        agent.high_policy.actor,
-        observations[0],
-        goals[0],
-        high["subgoal_low"],
-        high["subgoal_high"],
-        args.resolution,
+        agent.high_loss, agent.high_policy.actor, observations[0], goals[0], low, high, args.resolution
     )
+    geometry = MazeGeometry.from_maze(cfg["env_name"]) if cfg["env_name"] in MAZE_NAMES else None
     points = land.points()
-    try:
-        geometry = MazeGeometry.from_maze(cfg["env_name"])
-    except (KeyError, ValueError):
-        geometry = None  # not a maze: no walls
     walls = (
         geometry.in_walls(points) if geometry is not None else torch.zeros(points.shape[:2], dtype=torch.bool)
     )
+    summary = landscape_summary(land, walls, args.top)
     goal_q = float(subgoal_values(agent.high_loss, observations[0], goals[0], goals[0].reshape(1, -1))[0, 0])
     best, best_q = land.best()
     best_free, best_free_q = land.best(~walls) if bool((~walls).any()) else (best, best_q)
-    count = max(1, int(round(args.top * land.q.numel())))
-    top = land.q.reshape(-1).topk(count).indices
     actor = agent.high_policy.actor  # the deterministic subgoal of every test start
     with torch.no_grad():
         batch = TensorDict(
@@ -84,6 +89,7 @@ def main(argv: list[str] | None = None) -> dict:
         (lambda p: bool(geometry.in_walls(p.reshape(1, 2))[0])) if geometry is not None else (lambda p: False)
     )
     report = {
+        **summary,
         "env_steps": steps,
         "start": observations[0][:2].cpu(),
         "goal": goals[0].cpu(),
@@ -92,12 +98,9 @@ def main(argv: list[str] | None = None) -> dict:
         "actor_in_wall": in_wall(land.actor_subgoal),
         "best_subgoal": best,
         "best_q": float(best_q),
-        "best_in_wall": bool(walls.reshape(-1)[land.q.reshape(-1).argmax()]),
         "best_free_subgoal": best_free,
         "best_free_q": float(best_free_q),
         "goal_q": goal_q,
-        "top_in_walls": float(walls.reshape(-1)[top].float().mean()),
-        "walls_share": float(walls.float().mean()),
         "actor_in_walls_over_starts": float(
             geometry.in_walls(actor_all).float().mean() if geometry is not None else 0.0
         ),
@@ -111,12 +114,15 @@ def main(argv: list[str] | None = None) -> dict:
     print(
         f"  actor's subgoal      {_fmt(land.actor_subgoal)}  Q {report['actor_q']:8.3f}  {wall[report['actor_in_wall']]}"
     )
-    print(f"  best grid subgoal    {_fmt(best)}  Q {report['best_q']:8.3f}  {wall[report['best_in_wall']]}")
+    print(
+        f"  best grid subgoal    {_fmt(best)}  Q {report['best_q']:8.3f}  {wall[bool(report['best_in_wall'])]}"
+    )
     print(f"  best free subgoal    {_fmt(best_free)}  Q {report['best_free_q']:8.3f}")
     print(f"  the goal as subgoal  {_fmt(report['goal'])}  Q {report['goal_q']:8.3f}")
     print(
         f"  the best {args.top:.0%} of the grid: {report['top_in_walls']:.0%} in walls "
-        f"(walls: {report['walls_share']:.0%} of the box)"
+        f"(walls: {report['walls_share']:.0%} of the box); Q ranges over {report['q_range']:.3f}, the actor "
+        f"{report['actor_q_gap']:.3f} below the best free subgoal"
     )
     print(
         f"  actor's subgoals at the {report['starts']} test starts: {report['actor_in_walls_over_starts']:.0%} in walls"
@@ -124,7 +130,51 @@ def main(argv: list[str] | None = None) -> dict:
     if args.plot:
         _plot(args.plot, land, geometry, report, cfg["env_name"])
         print(f"  picture: {args.plot}")
+    if args.along:
+        report["along"] = _along(agent, env, geometry, low, high, args)
     return report
+
+
+def _along(agent, env, geometry, low, high, args) -> list[dict]:
+    """The landscape at every new subgoal of a failed and of a successful test episode (if any)."""
+    result = evaluate(env, agent.policy, env.base_env.max_episode_steps)
+    rollout = result.rollout.reshape(-1, result.rollout.shape[-1])
+    success = rollout["next", "is_success"].reshape(*rollout.shape, -1).any(-1)[:, -1]
+    picked = [(int(i), "failed") for i in (~success).nonzero()[:1, 0]]
+    picked += [(int(i), "succeeded") for i in success.nonzero()[:1, 0]]
+    rows = []
+    for episode, outcome in picked:
+        print(f"  along test episode {episode} ({outcome}); at each new subgoal:")
+        print(
+            f"  {'step':>5} {'position':>16} {'actor subgoal':>16} {'wall':>5} {'Q gap':>7} "
+            f"{'best free subgoal':>18} {'top in walls':>12}"
+        )
+        steps = rollout[episode]["new_subgoal"].reshape(-1).nonzero()[:, 0].tolist()
+        for step in steps:
+            td = rollout[episode, step]
+            land = subgoal_landscape(
+                agent.high_loss,
+                agent.high_policy.actor,
+                td["observation"],
+                td["desired_goal"],
+                low,
+                high,
+                args.resolution,
+            )
+            walls = (
+                geometry.in_walls(land.points())
+                if geometry is not None
+                else torch.zeros(land.q.shape, dtype=torch.bool)
+            )
+            summary = landscape_summary(land, walls, args.top)
+            best_free, _ = land.best(~walls) if bool((~walls).any()) else land.best()
+            in_wall = bool(walls.any()) and bool(geometry.in_walls(land.actor_subgoal[None])[0])
+            rows.append({"episode": episode, "step": step, "in_wall": in_wall, **summary})
+            print(
+                f"  {step:>5} {_fmt(td['achieved_goal'])} {_fmt(land.actor_subgoal)} {'yes' if in_wall else 'no':>5} "
+                f"{summary['actor_q_gap']:7.3f} {_fmt(best_free):>18} {summary['top_in_walls']:12.0%}"
+            )
+    return rows
 
 
 def _plot(path, land, geometry, report, env_name) -> None:

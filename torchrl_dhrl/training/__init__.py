@@ -100,7 +100,13 @@ from .run import (
     start_run,
     write_metrics_csv,
 )
-from .subgoal_landscape import SubgoalLandscape, subgoal_landscape, subgoal_values
+from .subgoal_landscape import (
+    SubgoalLandscape,
+    landscape_summary,
+    subgoal_box,
+    subgoal_landscape,
+    subgoal_values,
+)
 from .threads import available_cpus, resolve_threads, set_threads
 from .updates import LossUpdater, NonFiniteLossError
 
@@ -191,6 +197,8 @@ __all__ = [
     "spearman_correlation",
     "start_run",
     "start_subgoal",
+    "landscape_summary",
+    "subgoal_box",
     "subgoal_landscape",
     "subgoal_segments",
     "subgoal_values",

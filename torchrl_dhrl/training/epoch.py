@@ -117,7 +117,8 @@ def evaluate_epoch(
     * ``graph/mean_path_landmarks`` (planned path length) and ``graph/learned_distance_start_goal`` (the
       planner's distance from the first episode's start to its goal);
     * on the mazes, the subgoals and the graph against the true geometry
-      (:func:`~torchrl_dhrl.training.maze_epoch_diagnostics`, with ``oracle_margin`` as the agent's radius);
+      (:func:`~torchrl_dhrl.training.maze_epoch_diagnostics`, with ``oracle_margin`` as the agent's radius,
+      and the high level's critic over the subgoal box at the first test start);
     * on every env, ``diag/...`` of :func:`~torchrl_dhrl.training.hierarchy_diagnostics` (with
       ``reward_threshold`` as the reach radius and ``far_from_graph_threshold`` for the gradual penalty's
       "far from the graph");
@@ -167,7 +168,14 @@ def evaluate_epoch(
     metrics["graph/learned_distance_start_goal"] = planner.distance(start_state, goal).item()
     # subgoals and graph against the maze's true geometry (diag/...; nothing for the arms)
     metrics.update(
-        maze_epoch_diagnostics(env_name, planner, rollout, agent.high_policy.actor, margin=oracle_margin)
+        maze_epoch_diagnostics(
+            env_name,
+            planner,
+            rollout,
+            agent.high_policy.actor,
+            margin=oracle_margin,
+            high_loss=agent.high_loss,
+        )
     )
     # the high level's subgoals vs the goal, and the low level's delivery of them (every env)
     hierarchy = hierarchy_diagnostics(

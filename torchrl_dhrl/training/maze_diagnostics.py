@@ -62,6 +62,14 @@ DIAG_KEYS = (
     "diag/start_subgoal_y",
     "diag/start_subgoal_feasible",
 )
+#: The keys :func:`maze_epoch_diagnostics` adds with ``high_loss`` (the high level's critic at the first test
+#: start, :func:`~torchrl_dhrl.training.landscape_summary` over a grid of the subgoal box).
+LANDSCAPE_DIAG_KEYS = (
+    "diag/start_q_range",
+    "diag/start_best_subgoal_in_wall",
+    "diag/start_top_subgoals_in_walls",
+    "diag/start_actor_q_gap",
+)
 
 
 def grid_moves(connectivity: int = 16) -> list[tuple[tuple[int, int], list[tuple[int, int]]]]:
@@ -787,6 +795,7 @@ def maze_epoch_diagnostics(
     coverage_radius: float | None = None,
     max_sources: int | None = 64,
     resolution: float | None = None,
+    high_loss=None,
 ) -> dict:
     """The ``diag/...`` metrics of an evaluation: subgoals and graph against the maze's true geometry.
 
@@ -821,6 +830,10 @@ def maze_epoch_diagnostics(
             so that the number compares across runs and configurations.
         max_sources (int, optional): see :func:`graph_quality`. Defaults to ``64``.
         resolution (float, optional): the grid cell size. Defaults to :meth:`MazeGeometry.from_maze`'s.
+        high_loss (HighLevelLoss, optional): with it, the high level's critic at the first episode's start
+            (:data:`LANDSCAPE_DIAG_KEYS`: :func:`~torchrl_dhrl.training.landscape_summary` of its Q over a
+            49 x 49 grid of the subgoal box): ``diag/start_q_range``, ``diag/start_best_subgoal_in_wall``,
+            ``diag/start_top_subgoals_in_walls`` (the best 5%) and ``diag/start_actor_q_gap``.
 
     Examples:
         >>> import torch
@@ -853,6 +866,19 @@ def maze_epoch_diagnostics(
     subgoal = start_subgoal(high_actor, first["observation"], first["desired_goal"])
     metrics["diag/start_subgoal_x"], metrics["diag/start_subgoal_y"] = subgoal[:2].tolist()
     metrics["diag/start_subgoal_feasible"] = float(geometry.feasible(subgoal[:2]).item())
+    if high_loss is not None:
+        from .subgoal_landscape import landscape_summary, subgoal_box, subgoal_landscape
+
+        low, high = subgoal_box(high_loss)
+        step = max(h - lo for lo, h in zip(low, high, strict=True)) / 48
+        land = subgoal_landscape(
+            high_loss, high_actor, first["observation"], first["desired_goal"], low, high, step
+        )
+        summary = landscape_summary(land, geometry.in_walls(land.points()))
+        metrics["diag/start_q_range"] = summary["q_range"]
+        metrics["diag/start_best_subgoal_in_wall"] = summary["best_in_wall"]
+        metrics["diag/start_top_subgoals_in_walls"] = summary["top_in_walls"]
+        metrics["diag/start_actor_q_gap"] = summary["actor_q_gap"]
     metrics["time/diag_s"] = time.perf_counter() - start
     return metrics
 

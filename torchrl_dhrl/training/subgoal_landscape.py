@@ -16,7 +16,7 @@ from tensordict import TensorDict
 from tensordict.nn import TensorDictModuleBase
 from torch import Tensor
 
-__all__ = ["SubgoalLandscape", "subgoal_landscape", "subgoal_values"]
+__all__ = ["SubgoalLandscape", "landscape_summary", "subgoal_box", "subgoal_landscape", "subgoal_values"]
 
 
 @torch.no_grad()
@@ -157,3 +157,47 @@ def subgoal_landscape(
     return SubgoalLandscape(
         xs, ys, values[0].reshape(shape), values.min(0).values.reshape(shape), actor_subgoal.cpu(), actor_q
     )
+
+
+def subgoal_box(high_loss) -> tuple[list[float], list[float]]:
+    """The high level's subgoal box ``(low, high)``, read from its loss's action scaling."""
+    loc, scale = high_loss.action_loc.float().cpu(), high_loss.action_scale.float().cpu()
+    return (loc - scale).reshape(-1).tolist(), (loc + scale).reshape(-1).tolist()
+
+
+def landscape_summary(land: SubgoalLandscape, in_walls: Tensor, top: float = 0.05) -> dict:
+    """What a landscape says about the high level, given which grid subgoals lie in walls (``[H, W]`` bool).
+
+    Returns a dict of floats: ``q_range`` (max - min of Q over the grid: how much the critic tells subgoals
+    apart), ``best_in_wall`` (``1.0`` when the grid subgoal of highest Q is inside a wall), ``top_in_walls``
+    (the share of the ``top`` best-valued grid subgoals inside walls), ``walls_share`` (the share of the grid
+    inside walls, its chance level) and ``actor_q_gap`` (Q of the best free grid subgoal minus Q of the actor's
+    subgoal: above zero, the actor does not reach its critic's best; NaN when no grid subgoal is free).
+
+    Examples:
+        >>> import torch
+        >>> xs, ys = torch.arange(3.0), torch.arange(2.0)
+        >>> q = torch.tensor([[0.0, 1.0, 2.0], [3.0, 4.0, 5.0]])
+        >>> land = SubgoalLandscape(xs, ys, q, q, torch.zeros(2), torch.tensor(1.0))
+        >>> walls = torch.tensor([[False, False, False], [False, False, True]])
+        >>> summary = landscape_summary(land, walls, top=0.5)
+        >>> summary["q_range"], summary["best_in_wall"], round(summary["top_in_walls"], 3), summary["actor_q_gap"]
+        (5.0, 1.0, 0.333, 3.0)
+    """
+    if in_walls.shape != land.q.shape:
+        raise ValueError(
+            f"`in_walls` must have the grid's shape {tuple(land.q.shape)}, got {tuple(in_walls.shape)}."
+        )
+    if not 0 < top <= 1:
+        raise ValueError(f"`top` must be in (0, 1], got {top!r}.")
+    q, walls = land.q.reshape(-1), in_walls.reshape(-1).bool()
+    count = max(1, int(round(top * q.numel())))
+    free = ~walls
+    best_free = q[free].max() if bool(free.any()) else torch.tensor(float("nan"))
+    return {
+        "q_range": float(q.max() - q.min()),
+        "best_in_wall": float(walls[q.argmax()]),
+        "top_in_walls": float(walls[q.topk(count).indices].float().mean()),
+        "walls_share": float(walls.float().mean()),
+        "actor_q_gap": float(best_free - land.actor_q),
+    }
