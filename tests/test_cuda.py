@@ -99,6 +99,38 @@ def test_graph_planner_transform_on_cuda_matches_cpu():
     torch.testing.assert_close(outs[1]["waypoint"].cpu(), outs[0]["waypoint"], rtol=1e-5, atol=1e-5)
 
 
+def test_capturable_planner_replayed_as_a_cuda_graph_tracks_like_the_planner():
+    """``GraphPlanner(capturable=True)`` captured in a CUDA graph (inputs copied into static tensors before
+    each replay): the waypoints and tracking state of the host-branching planner, step by step."""
+    from test_planner_capturable import _assert_same_tracking, _planner_pair, _step_td, _walk
+
+    gen = torch.Generator().manual_seed(5)
+    graph, planner, capturable = _planner_pair(asymmetric_distance)
+    points = torch.rand(40, 2, generator=gen) * 12 - 2
+    graph.set_landmarks(torch.cat([points, torch.zeros(40, 2)], -1), points, asymmetric_distance)
+    graph.to(CUDA)
+    walk = list(_walk(gen, (8,), 30))
+    theirs = planner(_step_td(TensorDict(batch_size=[8]), *walk[0]).to(CUDA))
+    static = theirs.clone()
+    stream = torch.cuda.Stream()
+    stream.wait_stream(torch.cuda.current_stream())
+    with torch.cuda.stream(stream):
+        for _ in range(3):  # warm-up before the capture
+            capturable(static.clone())
+    torch.cuda.current_stream().wait_stream(stream)
+    # the captured input tensors, in a structure of their own (the call replaces static's entries by its outputs)
+    inputs = static.apply(lambda tensor: tensor)
+    cuda_graph = torch.cuda.CUDAGraph()
+    with torch.cuda.graph(cuda_graph):
+        out = capturable(static)
+    for obs, new, subgoal in walk[1:]:
+        step = _step_td(theirs, obs.to(CUDA), new.to(CUDA), subgoal.to(CUDA))
+        inputs.update_(step.select(*inputs.keys(True, True)))
+        cuda_graph.replay()
+        theirs = planner(step)
+        _assert_same_tracking(out.clone(), theirs, planner, exact=False)
+
+
 def _low_nets():
     torch.manual_seed(0)
     actor = LowLevelActor(6, 2, action_max=2.0, action_dim=3, num_cells=(64, 64))
