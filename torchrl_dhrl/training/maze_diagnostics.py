@@ -29,6 +29,8 @@ from torch import Tensor
 
 from torchrl_dhrl.planner import LineOfSightDistance
 
+from .subgoal_landscape import landscape_summary, subgoal_box, subgoal_landscape
+
 __all__ = [
     "GraphDiagnosis",
     "MazeGeometry",
@@ -867,8 +869,6 @@ def maze_epoch_diagnostics(
     metrics["diag/start_subgoal_x"], metrics["diag/start_subgoal_y"] = subgoal[:2].tolist()
     metrics["diag/start_subgoal_feasible"] = float(geometry.feasible(subgoal[:2]).item())
     if high_loss is not None:
-        from .subgoal_landscape import landscape_summary, subgoal_box, subgoal_landscape
-
         low, high = subgoal_box(high_loss)
         step = max(h - lo for lo, h in zip(low, high, strict=True)) / 48
         land = subgoal_landscape(
