@@ -31,6 +31,13 @@ from torchrl_dhrl.training import (
 )
 
 
+def _in_walls(geometry, points):
+    """``geometry.in_walls(points)`` (``[..., 2]`` -> ``[...]``); nothing is in a wall without a maze."""
+    if geometry is None:
+        return torch.zeros(points.shape[:-1], dtype=torch.bool)
+    return geometry.in_walls(points)
+
+
 def _fmt(point) -> str:
     return "(" + ", ".join(f"{float(v):6.2f}" for v in point) + ")"
 
@@ -72,9 +79,7 @@ def main(argv: list[str] | None = None) -> dict:
     )
     geometry = MazeGeometry.from_maze(cfg["env_name"]) if cfg["env_name"] in MAZE_NAMES else None
     points = land.points()
-    walls = (
-        geometry.in_walls(points) if geometry is not None else torch.zeros(points.shape[:2], dtype=torch.bool)
-    )
+    walls = _in_walls(geometry, points)
     summary = landscape_summary(land, walls, args.top)
     goal_q = float(subgoal_values(agent.high_loss, observations[0], goals[0], goals[0].reshape(1, -1))[0, 0])
     best, best_q = land.best()
@@ -85,9 +90,6 @@ def main(argv: list[str] | None = None) -> dict:
             {actor.in_keys[0]: observations, actor.in_keys[1]: goals}, batch_size=[goals.shape[0]]
         )
         actor_all = actor(batch)[actor.out_keys[0]].float().cpu()
-    in_wall = (
-        (lambda p: bool(geometry.in_walls(p.reshape(1, 2))[0])) if geometry is not None else (lambda p: False)
-    )
     report = {
         **summary,
         "env_steps": steps,
@@ -95,15 +97,13 @@ def main(argv: list[str] | None = None) -> dict:
         "goal": goals[0].cpu(),
         "actor_subgoal": land.actor_subgoal,
         "actor_q": float(land.actor_q),
-        "actor_in_wall": in_wall(land.actor_subgoal),
+        "actor_in_wall": bool(_in_walls(geometry, land.actor_subgoal)),
         "best_subgoal": best,
         "best_q": float(best_q),
         "best_free_subgoal": best_free,
         "best_free_q": float(best_free_q),
         "goal_q": goal_q,
-        "actor_in_walls_over_starts": float(
-            geometry.in_walls(actor_all).float().mean() if geometry is not None else 0.0
-        ),
+        "actor_in_walls_over_starts": float(_in_walls(geometry, actor_all).float().mean()),
         "starts": observations.shape[0],
     }
     print(
@@ -161,14 +161,10 @@ def _along(agent, env, geometry, low, high, args) -> list[dict]:
                 high,
                 args.resolution,
             )
-            walls = (
-                geometry.in_walls(land.points())
-                if geometry is not None
-                else torch.zeros(land.q.shape, dtype=torch.bool)
-            )
+            walls = _in_walls(geometry, land.points())
             summary = landscape_summary(land, walls, args.top)
             best_free, _ = land.best(~walls) if bool((~walls).any()) else land.best()
-            in_wall = bool(walls.any()) and bool(geometry.in_walls(land.actor_subgoal[None])[0])
+            in_wall = bool(_in_walls(geometry, land.actor_subgoal))
             rows.append({"episode": episode, "step": step, "in_wall": in_wall, **summary})
             print(
                 f"  {step:>5} {_fmt(td['achieved_goal'])} {_fmt(land.actor_subgoal)} {'yes' if in_wall else 'no':>5} "

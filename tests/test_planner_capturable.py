@@ -15,11 +15,11 @@ import math
 import pytest
 import torch
 from tensordict import TensorDict
+from test_planner import line_of_sight_distance as walled  # U-wall: unreachable subgoals
 
 from torchrl_dhrl.planner import GraphPlanner, LandmarkGraph, floyd_warshall, reconstruct_paths
 
 INF = math.inf
-WALL_LOW, WALL_HIGH = torch.tensor([-2.0, 2.0]), torch.tensor([6.0, 6.0])
 
 
 def euclidean(states, goals):
@@ -33,16 +33,6 @@ def rounded(states, goals):  # integer distances: ties everywhere
 def asymmetric(states, goals):
     delta = goals - states[..., :2]
     return delta.norm(dim=-1) + 0.5 * delta[..., 1].clamp_min(0)
-
-
-def walled(states, goals):
-    """Euclidean when the straight segment avoids the U-maze's wall block, ``inf`` across it."""
-    start = states[..., :2]
-    delta = goals - start
-    t = torch.linspace(0, 1, 21).unsqueeze(-1)
-    points = start.unsqueeze(-2) + t * delta.unsqueeze(-2)
-    blocked = ((points > WALL_LOW) & (points < WALL_HIGH)).all(-1).any(-1)
-    return torch.where(blocked, torch.full_like(delta[..., 0], INF), delta.norm(dim=-1))
 
 
 DISTANCES = {"euclidean": euclidean, "rounded": rounded, "asymmetric": asymmetric, "walled": walled}
