@@ -5,6 +5,8 @@ Usage::
     python recipes/dhrl_antmaze.py env=PointMaze preset=quick       # ~20-30 min on a 2-core CPU
     python recipes/dhrl_antmaze.py env=AntMaze seed=3 total_steps=1000000
     python recipes/dhrl_antmaze.py env=AntMaze resume=outputs/<date>/<time>   # continue exactly
+    python recipes/dhrl_antmaze.py env=AntMaze fork=<run dir> run_dir=<new dir> high.far_from_graph_factor=1.0
+                                                  # branch a run from its checkpoint (an A/B from one state)
     python recipes/dhrl_antmaze.py env=AntMaze low.sqgc=false                 # ablations, see README
 
 The loop follows Appendix A, "Overview of DHRL": random-walk warm-up episodes (uniform actions),
@@ -26,7 +28,6 @@ from __future__ import annotations
 import gc
 import math
 import os
-import random
 import sys
 import time
 from pathlib import Path
@@ -34,8 +35,6 @@ from pathlib import Path
 import cloudpickle
 import dhrl_utils
 import hydra
-import numpy as np
-import torch
 import tqdm
 from dhrl_utils import (
     PAPER_SUCCESS,
@@ -44,6 +43,7 @@ from dhrl_utils import (
     build_run,
     evaluation_kwargs,
     remove_unused_output_dir,
+    seed_everything,
     start_up,
     sweep_defaults,
 )
@@ -83,10 +83,9 @@ def train(cfg: DictConfig | dict, run_dir: str | Path | None = None) -> dict:
     checkpoint to resume and the run directory, and raises :class:`~torchrl_dhrl.training.ConfigError` on any
     problem.
     """
-    cfg, device, run_dir, resume, _ = start_up(cfg, run_dir)
-    torch.manual_seed(cfg["seed"])
-    np.random.seed(cfg["seed"])
-    random.seed(cfg["seed"])
+    start = start_up(cfg, run_dir)
+    cfg, device, run_dir, resume, state = start
+    seed_everything(cfg["seed"])
     schedule = cfg["schedule"]
 
     # ---- build: env specs -> agent -> envs with the agent's primers -> buffers, updaters, collector
@@ -113,7 +112,19 @@ def train(cfg: DictConfig | dict, run_dir: str | Path | None = None) -> dict:
             restore_checkpoint(checkpoint, resume, map_location=device)
         except CheckpointError as err:
             raise ConfigError(f"`resume={cfg['resume']}`: {err}") from err
-        print(f"Resumed from {resume} at {counters['env_steps']} env steps.")
+        if start.forking:  # a new run from another's state: its own seed's training streams
+            counters.setdefault("forks", []).append(
+                {"checkpoint": str(resume), "env_steps": counters["env_steps"], "seed": cfg["seed"]}
+            )
+            reseeded = cfg["seed"] != state["config"]["seed"]
+            if reseeded:  # the test episodes keep their stream: both arms of an A/B see the same ones
+                seed_everything(cfg["seed"], train_env)
+            print(
+                f"Forked from {resume} at {counters['env_steps']} env steps"
+                + (f", re-seeded with seed {cfg['seed']}." if reseeded else ", its random streams continued.")
+            )
+        else:
+            print(f"Resumed from {resume} at {counters['env_steps']} env steps.")
     checkpoint_path = run_dir / CHECKPOINT_NAME
     if (
         resume is not None and counters["env_steps"] >= cfg["total_steps"]
@@ -230,7 +241,7 @@ def train(cfg: DictConfig | dict, run_dir: str | Path | None = None) -> dict:
         stop.restore()
         bar.close()
         save_checkpoint(checkpoint, checkpoint_path)
-        _plot_curve(cfg, history, run_dir)
+        _plot_curve(cfg, history, run_dir, counters)
         print(f"\nInterrupted: checkpoint written to {checkpoint_path}; continue with resume={run_dir}")
         collector.shutdown()
         raise
@@ -245,7 +256,7 @@ def train(cfg: DictConfig | dict, run_dir: str | Path | None = None) -> dict:
     bar.close()
     path = save_checkpoint(checkpoint, checkpoint_path)
     collector.shutdown()
-    _plot_curve(cfg, history, run_dir)
+    _plot_curve(cfg, history, run_dir, counters)
     if cfg["plots"]["video"]:
         video = record_video(eval_env, agent.policy, episode_length, run_dir / "test_episode.gif")
         print(f"Video of a test episode: {video}")
@@ -270,14 +281,15 @@ def _set_phase(cfg: dict, agent, episodes: int) -> None:
     agent.high_policy.exploration.uniform_prob = 1.0 if uniform_subgoals else 0.0
 
 
-def _plot_curve(cfg: dict, history: list[dict], run_dir: Path) -> None:
-    """``success_curve.png`` with the paper's points (at the end, and on Ctrl-C)."""
+def _plot_curve(cfg: dict, history: list[dict], run_dir: Path, counters: dict) -> None:
+    """``success_curve.png`` with the paper's points and where the run was forked (at the end, and on Ctrl-C)."""
     if history:
         plot_success_curve(
             history,
             run_dir / "success_curve.png",
             title=f"DHRL {cfg['env_name']} (seed {cfg['seed']})",
             reference=PAPER_SUCCESS.get(cfg["env_name"]),
+            forks=[fork["env_steps"] for fork in counters.get("forks", ())],
         )
 
 

@@ -8,9 +8,11 @@ the key.
 
 from __future__ import annotations
 
+import random
 from pathlib import Path
 from typing import Any, NamedTuple
 
+import numpy as np
 import torch
 from omegaconf import DictConfig, OmegaConf
 from omegaconf.errors import OmegaConfBaseException
@@ -86,6 +88,16 @@ def start_up(cfg: DictConfig | dict, run_dir: str | Path | None = None) -> RunSt
     return start_run(
         to_dict(cfg), run_dir, schema=config_schema(), schema_source="recipes/config/config.yaml"
     )
+
+
+def seed_everything(seed: int, *envs) -> None:
+    """Seeds the global random streams (torch on every device, NumPy, Python's ``random``) and ``envs``' own
+    (their simulations' per-env streams, through ``set_seed``)."""
+    torch.manual_seed(seed)
+    np.random.seed(seed)
+    random.seed(seed)
+    for env in envs:
+        env.set_seed(seed)
 
 
 def remove_unused_output_dir(output_dir: Path) -> None:

@@ -185,16 +185,23 @@ def test_a_checkpoint_older_than_a_key_is_compared_with_the_value_it_was_trained
         "high": {"gamma": 0.99, "distance_output": "softplus"},
     }
     assert check_resume_config(saved, softplus) == []
-    assert set(IMPLIED_WHEN_ABSENT) == {"low.distance_output", "high.distance_output", "right_flipped_after"}
+    assert set(IMPLIED_WHEN_ABSENT) == {
+        "low.distance_output",
+        "high.distance_output",
+        "right_flipped_after",
+        "fork",
+    }
     filled = with_implied_keys(saved)
     assert filled["low"]["distance_output"] == filled["high"]["distance_output"] == "softplus"
     assert "distance_output" not in saved["low"]  # a copy
     # no section, nothing implied below it; top-level keys are implied
-    assert with_implied_keys({"seed": 0}) == {"seed": 0, "right_flipped_after": None}
+    assert with_implied_keys({"seed": 0}) == {"seed": 0, "right_flipped_after": None, "fork": None}
     # runs from before `right_flipped_after`: a flipped ant stayed flipped; righting it on resume is refused
     assert check_resume_config(saved, {**softplus, "right_flipped_after": None}) == []
     with pytest.raises(ConfigError, match=r"right_flipped_after None -> 10"):
         check_resume_config(saved, {**softplus, "right_flipped_after": 10})
+    # runs from before `fork` were not forked: no note when a run of this version resumes them
+    assert check_resume_config(saved, {**softplus, "fork": None}) == []
 
 
 def test_an_older_checkpoint_rebuilds_with_its_own_distance_output(run, monkeypatch):

@@ -29,6 +29,7 @@ from .checkpoint import (
 )
 from .config import (
     DISTANCES,
+    FORK_MUTABLE_KEYS,
     IMPLIED_WHEN_ABSENT,
     LOGGER_BACKENDS,
     RESUME_MUTABLE_KEYS,
@@ -120,6 +121,7 @@ __all__ = [
     "ConfigError",
     "DHRLAgent",
     "DISTANCES",
+    "FORK_MUTABLE_KEYS",
     "IMPLIED_WHEN_ABSENT",
     "EpisodeProgress",
     "TrainingEpisodeLog",

@@ -25,6 +25,7 @@ __all__ = [
     "DISTANCES",
     "IMPLIED_WHEN_ABSENT",
     "LOGGER_BACKENDS",
+    "FORK_MUTABLE_KEYS",
     "RESUME_MUTABLE_KEYS",
     "SEED_MAX",
     "SWITCHES",
@@ -72,6 +73,24 @@ RESUME_MUTABLE_KEYS = (
     "plots.*",
     "checkpoint.*",
 )
+#: Keys that may also differ between a checkpoint's configuration and a run *forked* from it (``fork=<run>``: a new
+#: run that starts from the checkpoint's state, see :func:`~torchrl_dhrl.training.start_run`): besides
+#: :data:`RESUME_MUTABLE_KEYS`, the seed (the fork re-seeds its random streams, the test episodes' apart) and
+#: the hyperparameters that no checkpointed state holds, read from the configuration by the objects built for
+#: the fork: the high level's subgoal testing and gradual penalty (its relabelling) and when and how the
+#: test episodes run. Not the learning rates, noise scales or network shapes, which the restored optimiser,
+#: module and buffer states would silently overwrite.
+FORK_MUTABLE_KEYS = RESUME_MUTABLE_KEYS + (
+    "fork",
+    "seed",
+    "high.subgoal_test_ratio",
+    "high.subgoal_test_threshold",
+    "high.subgoal_miss_penalty",
+    "high.gradual_penalty",
+    "high.far_from_graph_factor",
+    "schedule.eval_every_epochs",
+    "schedule.eval_flat",
+)
 #: Keys added after runs were checkpointed without them, with the value those runs were trained with: a
 #: saved configuration without the key means that value (:func:`with_implied_keys`), so a checkpoint of an
 #: older version resumes (and rebuilds, e.g. in the diagnosis scripts) with its own behaviour, and resuming it
@@ -80,6 +99,7 @@ IMPLIED_WHEN_ABSENT = {
     "low.distance_output": "softplus",  # 0.3.x and before: softplus distances
     "high.distance_output": "softplus",
     "right_flipped_after": None,  # runs from before the switch: a flipped ant stayed flipped
+    "fork": None,  # runs from before the key: started afresh
 }
 #: Keys with a fixed set of values (the first is the default; see docs/faithfulness.md).
 CHOICES = {
@@ -153,7 +173,7 @@ def _check_run_keys(cfg: Mapping) -> None:
             raise ConfigError(
                 f"`threads` must be null (from the available cores) or an integer >= 1, got {threads!r}."
             )
-    for path in ("run_dir", "resume"):
+    for path in ("run_dir", "resume") + (("fork",) if "fork" in cfg else ()):
         value = _get(cfg, path)
         if value is not None and (not isinstance(value, str) or not value):
             raise ConfigError(f"`{path}` must be null or a path, got {value!r}.")
@@ -460,6 +480,7 @@ def check_resume_config(
     *,
     mutable: tuple[str, ...] = RESUME_MUTABLE_KEYS,
     what: str = "the checkpoint",
+    action: str = "resume",
 ) -> list[str]:
     """Compares a checkpoint's configuration with the one resuming it.
 
@@ -479,6 +500,8 @@ def check_resume_config(
         mutable (tuple of str): patterns of the keys that may differ. Defaults to
             :data:`RESUME_MUTABLE_KEYS`.
         what (str): how the error message names the checkpoint. Defaults to ``"the checkpoint"``.
+        action (str): the configuration key that continues the checkpoint, for the error message: ``"resume"``
+            (the default) or ``"fork"`` (with ``mutable=FORK_MUTABLE_KEYS``).
 
     Returns:
         one ``"key: old -> new"`` note per allowed difference (empty when nothing differs).
@@ -512,8 +535,8 @@ def check_resume_config(
         listed = "; ".join(forbidden[:6]) + (f"; and {len(forbidden) - 6} more" if len(forbidden) > 6 else "")
         raise ConfigError(
             f"{what[:1].upper()}{what[1:]} was trained with another configuration: {listed} "
-            f"(saved -> now). On resume only {', '.join(mutable)} may change; set the others back, or start "
-            "a new run without `resume`."
+            f"(saved -> now). On {action} only {', '.join(mutable)} may change; set the others back, or start "
+            f"a new run without `{action}`."
         )
     allowed += [
         f"{key}: not in the checkpoint, {_short(new[key])} now" for key in sorted(new.keys() - old.keys())

@@ -118,10 +118,12 @@ def plot_success_curve(
     *,
     title: str | None = None,
     reference: Mapping[float, float] | None = None,
+    forks: Sequence[float] = (),
 ) -> Path:
     """Saves success rate (final state and any time) against env steps, with the training episodes' success and
     the landmark coverage where logged (:func:`success_curve_series`); ``reference`` maps steps to the paper's
-    success rates, drawn as crosses."""
+    success rates, drawn as crosses; ``forks``, the env steps where the run was forked from another's
+    checkpoint (``fork=``), as dotted vertical lines."""
     fig = Figure(figsize=(6, 4))
     ax = fig.subplots()
     styles = {label: style for _, label, style in SUCCESS_CURVE_SERIES}
@@ -137,6 +139,8 @@ def plot_success_curve(
         )
     if reference:
         ax.scatter(list(reference), list(reference.values()), marker="x", color="k", zorder=3, label="paper")
+    for i, step in enumerate(forks):
+        ax.axvline(step, color="0.4", ls=":", lw=1.2, label="forked" if i == 0 else None)
     ax.set_xlabel("env steps (warm-up included)")
     ax.set_ylabel("success rate / fraction")
     ax.set_ylim(-0.02, 1.02)

@@ -22,6 +22,7 @@ import yaml
 
 from .checkpoint import CHECKPOINT_COMPONENTS, CheckpointError, checkpoint_file, load_checkpoint
 from .config import (
+    FORK_MUTABLE_KEYS,
     ConfigError,
     check_known_keys,
     check_resume_config,
@@ -53,10 +54,11 @@ class RunStart(NamedTuple):
     """What :func:`start_run` prepared.
 
     Attributes:
-        config (dict): the validated configuration.
+        config (dict): the validated configuration (``fork``, when set, as the resolved checkpoint path).
         device (torch.device): where the networks, the planner and the buffers live.
         run_dir (Path): the run directory (created).
-        resume (Path or None): the checkpoint to resume, checked.
+        resume (Path or None): the checkpoint to restore, checked: the run's own (``resume``) or the one it
+            is forked from (``fork``, see :attr:`forking`).
         state (dict or None): its ``config`` and ``counters`` (:func:`~torchrl_dhrl.training.load_checkpoint`).
     """
 
@@ -65,6 +67,13 @@ class RunStart(NamedTuple):
     run_dir: Path
     resume: Path | None
     state: dict | None
+
+    @property
+    def forking(self) -> bool:
+        """Whether the run starts as a fork: from another run's checkpoint (``fork``), into its own directory.
+        A forked run resumed later restores its own checkpoint and is not forking."""
+        fork = self.config.get("fork")
+        return self.resume is not None and fork is not None and self.resume == Path(fork)
 
 
 def start_run(
@@ -88,6 +97,15 @@ def start_run(
     ``resume="auto"`` (:data:`RESUME_AUTO`) resumes the run directory's own checkpoint when it holds one and
     starts afresh otherwise, so re-launching a sweep continues its interrupted runs (the returned
     configuration holds the path, or ``None``).
+
+    ``fork=<run directory or checkpoint>`` starts a *new* run in ``run_dir`` from another run's checkpoint
+    (every state: networks, optimisers, buffers, graph, envs, counters, metrics so far) with a configuration
+    that may differ from that run's in :data:`~torchrl_dhrl.training.FORK_MUTABLE_KEYS` as well (the seed and
+    the hyperparameters no state holds), e.g. an A/B of the gradual penalty from one state of a long run. The
+    forked run's directory must not hold a checkpoint, and ``total_steps`` must go past the checkpoint's. A
+    forked run is continued like any other, with ``resume=<its run_dir>`` (``fork`` may then be left out; if
+    given it must name the same checkpoint). What happens to the states is the training loop's business (see
+    :attr:`RunStart.forking`).
 
     Args:
         cfg (Mapping): the configuration, a plain nested dict (e.g. the recipe's composed Hydra config).
@@ -115,24 +133,43 @@ def start_run(
         cfg["resume"] = str(run_dir) if checkpoint_file(run_dir).exists() else None
     resume = state = None
     notes: list[str] = []
+    fork = cfg.get("fork")
+    if fork is not None:
+        cfg["fork"] = fork = str(checkpoint_file(Path(fork).expanduser()).resolve())
     if cfg["resume"]:
         resume = checkpoint_file(Path(cfg["resume"]).expanduser()).resolve()
         what = f"`resume={cfg['resume']}`"
-        try:
-            state = load_checkpoint(
-                resume, required_keys=CHECKPOINT_COMPONENTS, components=("config", "counters")
-            )
-        except FileNotFoundError as err:
+        state = _read_checkpoint(resume, what)
+        forked_from = state["config"].get("fork")
+        if fork is not None and fork != forked_from:
             raise ConfigError(
-                f"{what}: no checkpoint at {str(resume)!r} (a checkpoint or its run directory)."
-            ) from err
-        except CheckpointError as err:
-            raise ConfigError(f"{what}: {err}") from err
-        if not isinstance(state["config"], dict):
-            raise ConfigError(f"{what}: {str(resume)!r} holds no configuration under 'config'.")
+                f"{what} with `fork={fork}`: that run "
+                + (f"was forked from {forked_from}" if forked_from else "was not forked")
+                + "; leave `fork` out to continue it, or start the fork in another run_dir."
+            )
+        if "fork" in cfg:
+            cfg["fork"] = forked_from  # where a resumed run came from stays in its configuration
         notes = check_resume_config(state["config"], cfg, what=f"{what} ({resume})")
         notes = [note for note in notes if not note.startswith("resume:")]  # resume itself always changes
-    _check_run_dir(run_dir, resume)
+    elif fork is not None:
+        resume = Path(fork)
+        what = f"`fork={fork}`"
+        state = _read_checkpoint(resume, what)
+        if resume == checkpoint_file(run_dir).resolve():
+            raise ConfigError(
+                f"{what}: a fork is a new run; choose a run_dir other than the forked run's ({run_dir})."
+            )
+        steps = state["counters"]["env_steps"]
+        if cfg["total_steps"] <= steps:
+            raise ConfigError(
+                f"`total_steps` {cfg['total_steps']} with {what}: the checkpoint is at {steps} env steps, so the "
+                "fork would not train; set total_steps above it."
+            )
+        notes = check_resume_config(
+            state["config"], cfg, mutable=FORK_MUTABLE_KEYS, what=f"{what} ({resume})", action="fork"
+        )
+        notes = [note for note in notes if not note.startswith(("resume:", "fork:", "run_dir:"))]
+    _check_run_dir(run_dir, None if fork is not None and resume == Path(fork) else resume)
     if cfg["plots"]["video"]:
         _check_offscreen_rendering()
     print(set_threads(cfg["threads"]))
@@ -142,11 +179,31 @@ def start_run(
             "Acting: the policy compiled in the collector (torch.compile), its planner capturable (every env "
             "planned at every step; the same plans)."
         )
-    if notes:
+    if fork is not None and resume == Path(fork):
+        print(
+            f"Forking {resume} at {state['counters']['env_steps']} env steps into {run_dir}"
+            + (f" with: {'; '.join(notes)}." if notes else " (nothing changed: a copy that goes on).")
+        )
+    elif notes:
         print(f"Resuming {resume} with: {'; '.join(notes)}.")
     run_dir.mkdir(parents=True, exist_ok=True)
     _write_config(cfg, run_dir / CONFIG_NAME)
     return RunStart(cfg, device, run_dir, resume, state)
+
+
+def _read_checkpoint(path: Path, what: str) -> dict:
+    """The ``config`` and ``counters`` of the checkpoint at ``path``, checked complete, or a ConfigError."""
+    try:
+        state = load_checkpoint(path, required_keys=CHECKPOINT_COMPONENTS, components=("config", "counters"))
+    except FileNotFoundError as err:
+        raise ConfigError(
+            f"{what}: no checkpoint at {str(path)!r} (a checkpoint or its run directory)."
+        ) from err
+    except CheckpointError as err:
+        raise ConfigError(f"{what}: {err}") from err
+    if not isinstance(state["config"], dict):
+        raise ConfigError(f"{what}: {str(path)!r} holds no configuration under 'config'.")
+    return state
 
 
 def _write_config(cfg: Mapping[str, Any], path: Path) -> None:
