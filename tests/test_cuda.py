@@ -99,16 +99,23 @@ def test_graph_planner_transform_on_cuda_matches_cpu():
     torch.testing.assert_close(outs[1]["waypoint"].cpu(), outs[0]["waypoint"], rtol=1e-5, atol=1e-5)
 
 
-def test_capturable_planner_replayed_as_a_cuda_graph_tracks_like_the_planner():
+@pytest.mark.parametrize("fixed_size", [False, True])
+def test_capturable_planner_replayed_as_a_cuda_graph_tracks_like_the_planner(fixed_size):
     """``GraphPlanner(capturable=True)`` captured in a CUDA graph (inputs copied into static tensors before
-    each replay): the waypoints and tracking state of the host-branching planner, step by step."""
+    each replay): the waypoints and tracking state of the host-branching planner, step by step; on a
+    ``fixed_size`` graph also across rebuilds to other landmark counts and a clear after the capture."""
     from test_planner_capturable import _assert_same_tracking, _planner_pair, _step_td, _walk
 
     gen = torch.Generator().manual_seed(5)
-    graph, planner, capturable = _planner_pair(asymmetric_distance)
-    points = torch.rand(40, 2, generator=gen) * 12 - 2
-    graph.set_landmarks(torch.cat([points, torch.zeros(40, 2)], -1), points, asymmetric_distance)
+    graph, planner, capturable = _planner_pair(asymmetric_distance, fixed_size=fixed_size)
     graph.to(CUDA)
+
+    def rebuild(num):
+        points = (torch.rand(num, 2, generator=gen) * 12 - 2).to(CUDA)
+        states = torch.cat([points, torch.zeros_like(points)], -1)
+        graph.set_landmarks(states, points, asymmetric_distance) if num else graph.clear()
+
+    rebuild(40)
     walk = list(_walk(gen, (8,), 30))
     theirs = planner(_step_td(TensorDict(batch_size=[8]), *walk[0]).to(CUDA))
     static = theirs.clone()
@@ -123,7 +130,9 @@ def test_capturable_planner_replayed_as_a_cuda_graph_tracks_like_the_planner():
     cuda_graph = torch.cuda.CUDAGraph()
     with torch.cuda.graph(cuda_graph):
         out = capturable(static)
-    for obs, new, subgoal in walk[1:]:
+    for t, (obs, new, subgoal) in enumerate(walk[1:]):
+        if fixed_size and t in (8, 16, 22):  # the captured graph reads the rebuilt graph
+            rebuild({8: 25, 16: 0, 22: 57}[t])
         step = _step_td(theirs, obs.to(CUDA), new.to(CUDA), subgoal.to(CUDA))
         inputs.update_(step.select(*inputs.keys(True, True)))
         cuda_graph.replay()

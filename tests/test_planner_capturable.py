@@ -38,7 +38,7 @@ def asymmetric(states, goals):
 DISTANCES = {"euclidean": euclidean, "rounded": rounded, "asymmetric": asymmetric, "walled": walled}
 
 
-def random_graph(distance, gen, lattice=False):
+def random_graph(distance, gen, lattice=False, fixed_size=False):
     """A graph of 1-40 landmarks in [-2, 10]^2 (lattice points: many equal routes) with a random cutoff."""
     if lattice:
         side = int(torch.randint(2, 7, (), generator=gen))
@@ -52,7 +52,7 @@ def random_graph(distance, gen, lattice=False):
         num = int(torch.randint(1, 41, (), generator=gen))
         points = torch.rand(num, 2, generator=gen) * 12 - 2
     cutoff = float(torch.empty(()).uniform_(1.5, 6.0, generator=gen))
-    graph = LandmarkGraph(cutoff=cutoff, max_landmarks=64)
+    graph = LandmarkGraph(cutoff=cutoff, max_landmarks=64, fixed_size=fixed_size)
     states = torch.cat([points, torch.zeros(points.shape[0], 2)], -1)  # obs_dim 4, goal = obs[:2]
     graph.set_landmarks(states, points.clone(), distance)
     return graph
@@ -88,6 +88,76 @@ def test_capturable_plans_equal_the_plans_on_random_graphs(name):
             kinds["fallback"] += int((~plan.reachable & (plan.length > 0)).sum())
             kinds["truncated"] += int(plan.truncated.sum())
     assert all(count > 0 for count in kinds.values()), kinds  # every branch was exercised
+
+
+@pytest.mark.parametrize("name", sorted(DISTANCES))
+def test_fixed_size_capturable_plans_equal_the_plans_on_random_graphs(name):
+    """A ``fixed_size`` graph plans on its padded copies (64 rows, 1-40 landmarks; also exactly full, and
+    cleared): the same plans as the graph's own buffers planned on by the host-branching path."""
+    distance = DISTANCES[name]
+    gen = torch.Generator().manual_seed(100 + len(name))
+    for trial in range(40):
+        graph = random_graph(distance, gen, lattice=trial % 2 == 1, fixed_size=True)
+        if trial % 10 == 9:  # exactly max_landmarks landmarks: no padding row
+            graph.max_landmarks = graph.num_landmarks
+            graph.set_landmarks(graph.landmark_states, graph.landmark_goals, distance)
+        states, subgoals = random_queries(int(torch.randint(1, 24, (), generator=gen)), gen)
+        assert graph.planning_tensors(capturable=True).valid.shape == (graph.max_landmarks,)
+        for max_path_length in (1, 3, 32):
+            assert_same_plan(
+                graph.plan(states, subgoals, distance, max_path_length, capturable=True),
+                graph.plan(states, subgoals, distance, max_path_length),
+            )
+        if trial % 4 == 0:  # cleared: every row padding, the plans of no graph
+            graph.clear()
+            assert graph.planning_tensors(capturable=True) is not None and graph.planning_tensors() is None
+            assert_same_plan(
+                graph.plan(states, subgoals, distance, 3, capturable=True),
+                graph.plan(states, subgoals, distance, 3),
+            )
+
+
+def test_fixed_size_storage_is_updated_in_place_and_not_checkpointed():
+    """Rebuilds with other landmark counts and ``clear()`` write into the same tensors (what a CUDA graph
+    captured after the first build reads); the padding is inert; ``state_dict`` is that of a plain graph and
+    a load refreshes the copies; too many landmarks and a non-bool flag are refused."""
+    gen = torch.Generator().manual_seed(0)
+    graph = LandmarkGraph(cutoff=3.0, max_landmarks=30, fixed_size=True)
+    assert graph.planning_tensors(capturable=True) is None  # nothing to copy before the first build
+    _set_random_landmarks(graph, euclidean, gen, 10)
+    first = graph.planning_tensors(capturable=True)
+    pointers = [t.data_ptr() for t in first]
+    for num in (30, 4, 0, 17):
+        if num:
+            _set_random_landmarks(graph, euclidean, gen, num)
+        else:
+            graph.clear()
+        tensors = graph.planning_tensors(capturable=True)
+        assert [t.data_ptr() for t in tensors] == pointers
+        assert int(tensors.version) == int(graph.version)
+        assert tensors.valid.tolist() == [True] * num + [False] * (30 - num)
+        if num:
+            own = graph.planning_tensors()
+            for field in ("states", "goals"):
+                assert torch.equal(getattr(tensors, field)[:num], getattr(own, field)), field
+            for field in ("distances", "shortest", "next_hop", "hop_counts"):
+                assert torch.equal(getattr(tensors, field)[:num, :num], getattr(own, field)), field
+            pad = tensors.shortest[num:]
+            assert torch.isinf(pad[:, :num]).all() and (tensors.next_hop[num:, :num] == -1).all()
+    state = graph.state_dict()
+    assert not any("fixed" in key for key in state)
+    assert state.keys() == LandmarkGraph().state_dict().keys()
+    fresh = LandmarkGraph(cutoff=3.0, max_landmarks=30, fixed_size=True)
+    fresh.load_state_dict(state)
+    states, subgoals = random_queries(12, gen)
+    assert_same_plan(
+        fresh.plan(states, subgoals, euclidean, 4, capturable=True),
+        graph.plan(states, subgoals, euclidean, 4),
+    )
+    with pytest.raises(ValueError, match="at most max_landmarks=30 landmarks, got 31"):
+        _set_random_landmarks(graph, euclidean, gen, 31)
+    with pytest.raises(TypeError, match="`fixed_size` must be a bool, got 1"):
+        LandmarkGraph(fixed_size=1)
 
 
 def test_capturable_plans_without_a_graph_and_for_no_query():
@@ -136,8 +206,8 @@ def test_capturable_needs_a_max_path_length():
 
 
 # ----------------------------------------------------------------------------- tracking
-def _planner_pair(distance, max_path_length=4, reach_radius=0.5):
-    graph = LandmarkGraph(cutoff=3.0, max_landmarks=64)
+def _planner_pair(distance, max_path_length=4, reach_radius=0.5, fixed_size=False):
+    graph = LandmarkGraph(cutoff=3.0, max_landmarks=64, fixed_size=fixed_size)
     make = lambda capturable: GraphPlanner(  # noqa: E731
         graph, distance, 2, reach_radius=reach_radius, max_path_length=max_path_length, capturable=capturable
     )
@@ -175,13 +245,15 @@ def _assert_same_tracking(got, expected, planner, exact=True):
             torch.testing.assert_close(got[key], expected[key], rtol=1e-5, atol=1e-5, msg=str(key))
 
 
+@pytest.mark.parametrize("fixed_size", [False, True])
 @pytest.mark.parametrize("name", ["walled", "rounded"])
-def test_capturable_tracking_equals_tracking_over_random_walks(name):
+def test_capturable_tracking_equals_tracking_over_random_walks(name, fixed_size):
     """Waypoints and every tracking entry, step by step, ``[3, 2]`` envs: new subgoals, timeouts and radius
-    advances, truncated paths used up, two rebuilds (other landmark counts) and a partial reset."""
+    advances, truncated paths used up, two rebuilds (other landmark counts) and a partial reset; on the
+    graph's own buffers and on a fixed-size graph's padded copies."""
     distance = DISTANCES[name]
     gen = torch.Generator().manual_seed(7)
-    graph, planner, capturable = _planner_pair(distance, reach_radius=1.0)
+    graph, planner, capturable = _planner_pair(distance, reach_radius=1.0, fixed_size=fixed_size)
     batch = (3, 2)
     td = TensorDict(batch_size=batch)
     mine = theirs = None
@@ -219,6 +291,34 @@ def test_capturable_planner_compiles_whole_and_agrees():
         compiled_td = compiled(_step_td(compiled_td, obs, new, subgoal))
         _assert_same_tracking(compiled_td, eager_td, capturable, exact=False)
         compiled_td = eager_td.clone()  # keeps a budget's round-off from flipping a later timeout
+
+
+@pytest.mark.slow
+def test_fixed_size_planner_is_not_recompiled_by_rebuilds():
+    """On a ``fixed_size`` graph the compiled planner survives rebuilds to other landmark counts and a clear
+    without recompiling (``fail_on_recompile``) and agrees with eager; on a plain graph a rebuild recompiles."""
+    for fixed_size in (True, False):
+        torch._dynamo.reset()
+        gen = torch.Generator().manual_seed(13)
+        graph, _, capturable = _planner_pair(euclidean, fixed_size=fixed_size)
+        compiled = torch.compile(capturable, fullgraph=True)
+        eager_td = compiled_td = TensorDict(batch_size=(4,))
+        recompiled = False
+        for step, (obs, new, subgoal) in enumerate(_walk(gen, (4,), 16)):
+            if step in (0, 5, 9, 13):  # 20 landmarks, then 33, none, 8
+                _set_random_landmarks(graph, euclidean, gen, 20 + step) if step != 9 else graph.clear()
+            stance = "fail_on_recompile" if step >= 2 else "default"  # two calls: without, then with state
+            with torch.compiler.set_stance(stance):
+                eager_td = capturable(_step_td(eager_td, obs, new, subgoal))
+                try:
+                    compiled_td = compiled(_step_td(compiled_td, obs, new, subgoal))
+                except RuntimeError as err:
+                    assert not fixed_size and "recompil" in str(err).lower(), err
+                    recompiled = True
+                    break
+            _assert_same_tracking(compiled_td, eager_td, capturable, exact=False)
+            compiled_td = eager_td.clone()
+        assert recompiled is not fixed_size
 
 
 # ----------------------------------------------------------------------------- acting policy and collector

@@ -14,7 +14,7 @@ from .distances import AutocastDistance, GoalDistance, LineOfSightDistance, Temp
 from .edges import CutoffEdgeRule, EdgeRule
 from .fgs import FrontierGoalShifting, GoalShiftOnReset
 from .fps import FarthestPointSamplingResult, farthest_point_sampling
-from .graph import GraphPlan, LandmarkGraph
+from .graph import GraphPlan, GraphTensors, LandmarkGraph
 from .graph_planner import GraphPlanner
 from .shortest_paths import ShortestPaths, count_hops, floyd_warshall, reconstruct_paths
 
@@ -27,6 +27,7 @@ __all__ = [
     "GoalDistance",
     "GoalShiftOnReset",
     "GraphPlan",
+    "GraphTensors",
     "GraphPlanner",
     "LandmarkGraph",
     "LineOfSightDistance",

@@ -35,6 +35,17 @@ _GRAPH_BUFFERS = (
     "hop_counts",
 )
 
+#: The fixed-size copies of a ``fixed_size`` graph (non-persistent buffers, ``max_landmarks`` rows, updated in place).
+_FIXED_BUFFERS = (
+    "fixed_states",
+    "fixed_goals",
+    "fixed_distances",
+    "fixed_shortest",
+    "fixed_next_hop",
+    "fixed_hop_counts",
+    "fixed_valid",
+)
+
 
 class GraphPlan(NamedTuple):
     """A batch of planned waypoint sequences, as returned by :meth:`LandmarkGraph.plan`.
@@ -62,6 +73,34 @@ class GraphPlan(NamedTuple):
     truncated: Tensor
     cost: Tensor
     reachable: Tensor
+
+
+class GraphTensors(NamedTuple):
+    """The tensors a plan reads (:meth:`LandmarkGraph.planning_tensors`).
+
+    Either the graph's own buffers (``K`` landmarks, ``valid`` is ``None``) or a ``fixed_size`` graph's copies of
+    them at ``max_landmarks`` rows: the landmarks first, then padding rows that ``valid`` marks invalid (no edge
+    to or from them, never an entry or an exit of a plan).
+
+    Attributes:
+        states (Tensor): ``[K, obs_dim]`` landmark states.
+        goals (Tensor): ``[K, goal_dim]`` landmark goals.
+        distances (Tensor): ``[K, K]`` landmark distance matrix.
+        shortest (Tensor): ``[K, K]`` all-pairs shortest distances.
+        next_hop (Tensor): ``[K, K]`` int64 next-hop table.
+        hop_counts (Tensor): ``[K, K]`` int64 hop counts.
+        valid (Tensor or None): ``[K]`` bool, which rows are landmarks.
+        version (Tensor): the graph's build counter (int64 scalar).
+    """
+
+    states: Tensor
+    goals: Tensor
+    distances: Tensor
+    shortest: Tensor
+    next_hop: Tensor
+    hop_counts: Tensor
+    valid: Tensor | None
+    version: Tensor
 
 
 def _check_positive(name: str, value: float, allow_zero: bool = False) -> float:
@@ -134,6 +173,15 @@ class LandmarkGraph(UnregisteredAttributes, nn.Module):
             coverage radius within about 1%), and an edge whose length sits at the cutoff may
             flip. Queries (:meth:`plan`, :meth:`distance_from_graph`) always use the distance as
             given. Defaults to ``None`` (full precision).
+        fixed_size (bool): also keep the planning tensors at a fixed size, ``max_landmarks`` rows (the
+            landmarks, then invalid padding rows), updated in place at every build and :meth:`clear`, and
+            plan on them with ``capturable=True``: their shapes and storage stay the same across rebuilds,
+            so a compiled planner is not recompiled when the number of landmarks changes, and a planner
+            captured in a CUDA graph after the first build reads every later graph (capture after
+            ``.to(device)``; moving reallocates). The same plans (every padding row is masked; a learned
+            distance evaluated on ``max_landmarks`` rows instead of ``K`` may round differently). The
+            copies are derived, not in ``state_dict()`` (a checkpoint is the same either way). A graph
+            then holds at most ``max_landmarks`` landmarks. Defaults to ``False``.
 
     Examples:
         >>> import torch
@@ -166,6 +214,7 @@ class LandmarkGraph(UnregisteredAttributes, nn.Module):
         fps_proxy: str | ProxyFn | None = "goal",
         fps_lazy_batch: int = DEFAULT_LAZY_BATCH,
         build_autocast_dtype: torch.dtype | None = None,
+        fixed_size: bool = False,
     ) -> None:
         super().__init__()
         self.cutoff = _check_positive("cutoff", cutoff)
@@ -199,6 +248,13 @@ class LandmarkGraph(UnregisteredAttributes, nn.Module):
         self.register_buffer("hop_counts", torch.zeros(0, 0, dtype=torch.int64))
         self.register_buffer("version", torch.zeros((), dtype=torch.int64))
         self.register_buffer("coverage_radius", torch.full((), math.nan))
+        if not isinstance(fixed_size, bool):
+            raise TypeError(f"`fixed_size` must be a bool, got {fixed_size!r}.")
+        self.fixed_size = fixed_size
+        for name in _FIXED_BUFFERS:  # allocated at the first build (the feature sizes are not known before)
+            dtype = torch.int64 if "hop" in name else torch.bool if name == "fixed_valid" else None
+            self.register_buffer(name, torch.zeros(0, 0, dtype=dtype), persistent=False)
+        self.register_buffer("fixed_version", torch.zeros((), dtype=torch.int64), persistent=False)
 
     # ------------------------------------------------------------------ properties
     @property
@@ -236,6 +292,7 @@ class LandmarkGraph(UnregisteredAttributes, nn.Module):
             old = getattr(self, name)
             setattr(self, name, torch.zeros(0, 0, dtype=old.dtype, device=device))
         self.version += 1
+        self._sync_fixed()
         return self
 
     @torch.no_grad()
@@ -336,6 +393,10 @@ class LandmarkGraph(UnregisteredAttributes, nn.Module):
         matrix.fill_diagonal_(0.0)
         if num == 0:
             return self.clear()
+        if self.fixed_size and num > self.max_landmarks:
+            raise ValueError(
+                f"A fixed_size graph holds at most max_landmarks={self.max_landmarks} landmarks, got {num}."
+            )
         off_diag = matrix.clone()
         off_diag.fill_diagonal_(math.inf)
         keep = self._edges(off_diag)
@@ -351,7 +412,92 @@ class LandmarkGraph(UnregisteredAttributes, nn.Module):
         self.hop_counts = paths.hop_counts
         self.version = self.version.to(states.device) + 1
         self.coverage_radius = torch.full((), math.nan, dtype=states.dtype, device=states.device)
+        self._sync_fixed()
         return self
+
+    @torch.no_grad()
+    def _sync_fixed(self) -> None:
+        """Copies the graph into the fixed-size planning tensors, in place (allocated at the first build, or
+        again when the feature sizes, dtype or device change); padding rows: no edge, invalid."""
+        if not self.fixed_size:
+            return
+        num, size = self.num_landmarks, self.max_landmarks
+        if num:
+            states, goals = self.landmark_states, self.landmark_goals
+            device = states.device
+            layout = {
+                "fixed_states": ((size, states.shape[1]), states.dtype),
+                "fixed_goals": ((size, goals.shape[1]), goals.dtype),
+                "fixed_distances": ((size, size), self.landmark_distances.dtype),
+                "fixed_shortest": ((size, size), self.shortest_distances.dtype),
+                "fixed_next_hop": ((size, size), torch.int64),
+                "fixed_hop_counts": ((size, size), torch.int64),
+                "fixed_valid": ((size,), torch.bool),
+            }
+            for name, (shape, dtype) in layout.items():
+                old = getattr(self, name)
+                if old.shape != shape or old.dtype != dtype or old.device != device:
+                    setattr(self, name, torch.empty(shape, dtype=dtype, device=device))
+            pad = slice(num, None)
+            for name, source, fill, square in (
+                ("fixed_states", states, 0.0, False),
+                ("fixed_goals", goals, 0.0, False),
+                ("fixed_distances", self.landmark_distances, math.inf, True),
+                ("fixed_shortest", self.shortest_distances, math.inf, True),
+                ("fixed_next_hop", self.next_hop, -1, True),
+                ("fixed_hop_counts", self.hop_counts, 0, True),
+            ):
+                target = getattr(self, name)
+                if square:  # the [K, K] block, the rest padding
+                    target.fill_(fill)
+                    target[:num, :num].copy_(source)
+                else:
+                    target[:num].copy_(source)
+                    target[pad].fill_(fill)
+            rows = torch.arange(
+                num, size, device=device
+            )  # padding rows: themselves at no cost, like FW's diagonal
+            self.fixed_shortest[rows, rows] = 0.0
+            self.fixed_distances[rows, rows] = 0.0
+            self.fixed_next_hop[rows, rows] = rows
+            self.fixed_valid[:num] = True
+            self.fixed_valid[pad] = False
+        elif self.fixed_valid.numel():
+            self.fixed_valid.fill_(False)
+        if self.fixed_version.device != self.version.device:
+            self.fixed_version = torch.zeros((), dtype=torch.int64, device=self.version.device)
+        self.fixed_version.copy_(self.version)
+
+    def planning_tensors(self, capturable: bool = False) -> GraphTensors | None:
+        """The tensors :meth:`plan` reads, ``None`` without a graph.
+
+        With ``capturable`` on a ``fixed_size`` graph built once: its fixed-size copies (``max_landmarks``
+        rows, ``valid`` marking the landmarks; the same storage after every rebuild and :meth:`clear`);
+        otherwise the graph's own buffers (``K`` rows, ``valid`` is ``None``).
+        """
+        if capturable and self.fixed_size and self.fixed_valid.numel():
+            return GraphTensors(
+                self.fixed_states,
+                self.fixed_goals,
+                self.fixed_distances,
+                self.fixed_shortest,
+                self.fixed_next_hop,
+                self.fixed_hop_counts,
+                self.fixed_valid,
+                self.fixed_version,
+            )
+        if not self.has_graph:
+            return None
+        return GraphTensors(
+            self.landmark_states,
+            self.landmark_goals,
+            self.landmark_distances,
+            self.shortest_distances,
+            self.next_hop,
+            self.hop_counts,
+            None,
+            self.version,
+        )
 
     edge_rule = callable_attribute(
         "edge_rule",
@@ -381,24 +527,29 @@ class LandmarkGraph(UnregisteredAttributes, nn.Module):
             raise TypeError("Landmark `states` and `goals` must be floating tensors.")
 
     # ------------------------------------------------------------------ queries
-    def _check_query(self, states: Tensor, goals: Tensor | None = None) -> None:
+    def _check_query(
+        self, states: Tensor, goals: Tensor | None = None, tensors: GraphTensors | None = None
+    ) -> None:
+        """Feature sizes and device of a query against the landmarks (``tensors``: those planned on)."""
         if states.ndim < 1:
             raise ValueError(f"`states` must have a feature dim, got shape {tuple(states.shape)}.")
-        if self.has_graph:
-            if states.shape[-1] != self.landmark_states.shape[-1]:
+        if tensors is None:
+            tensors = self.planning_tensors()
+        if tensors is not None:
+            if states.shape[-1] != tensors.states.shape[-1]:
                 raise ValueError(
                     f"`states` have {states.shape[-1]} features but the landmarks have "
-                    f"{self.landmark_states.shape[-1]}."
+                    f"{tensors.states.shape[-1]}."
                 )
-            if states.device != self.landmark_states.device:
+            if states.device != tensors.states.device:
                 raise ValueError(
-                    f"Query on {states.device} but the graph lives on {self.landmark_states.device}; "
+                    f"Query on {states.device} but the graph lives on {tensors.states.device}; "
                     "move the planner with `.to(device)`."
                 )
-            if goals is not None and goals.shape[-1] != self.landmark_goals.shape[-1]:
+            if goals is not None and goals.shape[-1] != tensors.goals.shape[-1]:
                 raise ValueError(
                     f"`goals` have {goals.shape[-1]} features but the landmark goals have "
-                    f"{self.landmark_goals.shape[-1]}."
+                    f"{tensors.goals.shape[-1]}."
                 )
 
     @torch.no_grad()
@@ -449,12 +600,15 @@ class LandmarkGraph(UnregisteredAttributes, nn.Module):
         index = torch.arange(costs.shape[-1], device=costs.device).expand(costs.shape)
         return index, costs
 
-    def _reach(self, start_cost: Tensor, capturable: bool = False) -> tuple[Tensor, Tensor]:
+    def _reach(
+        self, start_cost: Tensor, capturable: bool = False, shortest: Tensor | None = None
+    ) -> tuple[Tensor, Tensor]:
         """Graph distance start -> every landmark and the entry landmark achieving it: ``[B, K]`` each."""
+        shortest = self.shortest_distances if shortest is None else shortest
         entries, entry_cost = (self._dense if capturable else self._padded)(start_cost)  # [B, E]
         if entries.shape[1] == 0:
             return torch.full_like(start_cost, math.inf), torch.zeros_like(start_cost, dtype=torch.int64)
-        through = entry_cost.unsqueeze(-1) + self.shortest_distances[entries]  # [B, E, K]
+        through = entry_cost.unsqueeze(-1) + shortest[entries]  # [B, E, K]
         cost, arg = through.min(dim=1)
         return cost, entries.gather(1, arg)
 
@@ -568,10 +722,11 @@ class LandmarkGraph(UnregisteredAttributes, nn.Module):
                 "`capturable=True` needs `max_path_length` (an int: the static width of the paths), got "
                 f"{max_path_length!r}."
             )
-        self._check_query(states, subgoals)
+        graph = self.planning_tensors(capturable)
+        self._check_query(states, subgoals, graph)
         num_rows, device = states.shape[0], states.device
         width = 0 if max_path_length is None else max_path_length
-        if not self.has_graph or num_rows == 0:
+        if graph is None or num_rows == 0:
             cost = (
                 paired_distances(distance, states, subgoals, self.chunk_size)
                 if num_rows
@@ -587,13 +742,14 @@ class LandmarkGraph(UnregisteredAttributes, nn.Module):
                 cost=torch.where(cost < self.cutoff, cost, torch.full_like(cost, math.inf)),
                 reachable=cost < self.cutoff,
             )
-        to_landmarks = pairwise_distances(distance, states, self.landmark_goals, self.chunk_size)  # [B, K]
+        to_landmarks = pairwise_distances(distance, states, graph.goals, self.chunk_size)  # [B, K]
         # [K, B] -> [B, K]: d(landmark_state_k -> subgoal_b)
-        from_landmarks = pairwise_distances(
-            distance, self.landmark_states, subgoals, self.chunk_size
-        ).transpose(0, 1)
+        from_landmarks = pairwise_distances(distance, graph.states, subgoals, self.chunk_size).transpose(0, 1)
         straight = paired_distances(distance, states, subgoals, self.chunk_size)  # [B]
         inf = torch.full((), math.inf, dtype=to_landmarks.dtype, device=device)
+        if graph.valid is not None:  # a fixed-size graph's padding rows: not landmarks
+            to_landmarks = torch.where(graph.valid, to_landmarks, inf)
+            from_landmarks = torch.where(graph.valid, from_landmarks, inf)
 
         start_cost = self._connect_start(to_landmarks)
         exit_cost = torch.where(from_landmarks < self.cutoff, from_landmarks, inf)
@@ -607,7 +763,7 @@ class LandmarkGraph(UnregisteredAttributes, nn.Module):
         via_entry = torch.zeros(num_rows, dtype=torch.int64, device=device)
         via_exit = torch.zeros(num_rows, dtype=torch.int64, device=device)
         if entry_ids.shape[1] and exit_ids.shape[1]:
-            block = self.shortest_distances[entry_ids.unsqueeze(2), exit_ids.unsqueeze(1)]  # [B, E, X]
+            block = graph.shortest[entry_ids.unsqueeze(2), exit_ids.unsqueeze(1)]  # [B, E, X]
             total = entry_cost.unsqueeze(2) + block + exit_padded.unsqueeze(1)
             via_cost, flat = total.flatten(1).min(dim=1)
             via_entry = entry_ids[rows, flat // exit_ids.shape[1]]
@@ -621,22 +777,26 @@ class LandmarkGraph(UnregisteredAttributes, nn.Module):
         use_fallback = torch.zeros_like(stuck)
         exits, entries = via_exit.clone(), via_entry.clone()
         if capturable:  # the fallback of every row, kept where the row is stuck
-            near_cost, near_exit, near_entry = self._fallback(start_cost, from_landmarks, True)
+            near_cost, near_exit, near_entry = self._fallback(
+                start_cost, from_landmarks, True, graph.shortest
+            )
             use_fallback = stuck & torch.isfinite(near_cost)
             exits = torch.where(stuck, near_exit, exits)
             entries = torch.where(stuck, near_entry, entries)
         elif bool(stuck.any()):
             idx = stuck.nonzero().squeeze(-1)
-            near_cost, near_exit, near_entry = self._fallback(start_cost[idx], from_landmarks[idx], False)
+            near_cost, near_exit, near_entry = self._fallback(
+                start_cost[idx], from_landmarks[idx], False, graph.shortest
+            )
             use_fallback[idx] = torch.isfinite(near_cost)
             exits[idx] = near_exit
             entries[idx] = near_entry
         has_path = use_graph | use_fallback
         sources = torch.where(has_path, entries, exits)
         paths, lengths = reconstruct_paths(
-            self.next_hop, self.hop_counts, sources, exits, max_path_length, capturable=capturable
+            graph.next_hop, graph.hop_counts, sources, exits, max_path_length, capturable=capturable
         )
-        full_lengths = torch.where(has_path, self.hop_counts[sources, exits] + 1, 0)
+        full_lengths = torch.where(has_path, graph.hop_counts[sources, exits] + 1, 0)
         lengths = torch.where(has_path, lengths, 0)
         paths = paths.masked_fill(~has_path.unsqueeze(-1), -1)
         if max_path_length is not None and paths.shape[1] < max_path_length:
@@ -653,7 +813,7 @@ class LandmarkGraph(UnregisteredAttributes, nn.Module):
             budgets[:, 0] = torch.where(has_path, to_landmarks[rows, first], inf)
             if num_cols > 1:
                 prev, nxt = paths[:, :-1].clamp_min(0), paths[:, 1:].clamp_min(0)
-                hop = self.landmark_distances[prev, nxt]
+                hop = graph.distances[prev, nxt]
                 valid = torch.arange(1, num_cols, device=device).unsqueeze(0) < lengths.unsqueeze(1)
                 budgets[:, 1:num_cols] = torch.where(valid, hop, inf)
         last = paths.gather(1, (lengths - 1).clamp_min(0).unsqueeze(1)).squeeze(1).clamp_min(0)
@@ -671,10 +831,10 @@ class LandmarkGraph(UnregisteredAttributes, nn.Module):
         )
 
     def _fallback(
-        self, start_cost: Tensor, from_landmarks: Tensor, capturable: bool
+        self, start_cost: Tensor, from_landmarks: Tensor, capturable: bool, shortest: Tensor
     ) -> tuple[Tensor, Tensor, Tensor]:
         """The reachable landmark nearest to the subgoal: its distance to it, its index and the entry landmark."""
-        reach, entry = self._reach(start_cost, capturable)
+        reach, entry = self._reach(start_cost, capturable, shortest)
         inf = torch.full((), math.inf, dtype=from_landmarks.dtype, device=from_landmarks.device)
         near = torch.where(torch.isfinite(reach), from_landmarks, inf)
         near_cost, near_exit = near.min(dim=-1)
@@ -701,10 +861,12 @@ class LandmarkGraph(UnregisteredAttributes, nn.Module):
                 self.hop_counts = count_hops(self.next_hop)
             except ValueError as err:
                 error_msgs.append(f"{prefix}next_hop: {err}")
+        if not error_msgs:
+            self._sync_fixed()
 
     def extra_repr(self) -> str:
         return (
             f"num_landmarks={self.num_landmarks}, cutoff={self.cutoff}, max_landmarks={self.max_landmarks}, "
             f"early_stop={self.early_stop}, edge_rule={self.edge_rule!r}, "
-            f"start_fallback_factor={self.start_fallback_factor}"
+            f"start_fallback_factor={self.start_fallback_factor}, fixed_size={self.fixed_size}"
         )

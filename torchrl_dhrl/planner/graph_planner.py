@@ -16,7 +16,7 @@ from torchrl_dhrl._unregistered import UnregisteredAttributes, callable_attribut
 
 from ._distance import check_supports_autocast
 from .distances import TemporalDistance
-from .graph import GraphPlan, LandmarkGraph
+from .graph import GraphPlan, GraphTensors, LandmarkGraph
 
 #: Per-env tracking entries stored under ``state_key`` (all with a trailing feature dim).
 STATE_ENTRIES = ("path", "path_length", "budgets", "index", "steps", "truncated", "has_plan", "graph_version")
@@ -100,7 +100,11 @@ class GraphPlanner(UnregisteredAttributes, Transform):
             compiles whole (``torch.compile(fullgraph=True)``, e.g. the collector's
             ``compile_policy``), at the cost of one planning query per env and call (``O(K^2)`` per
             env on top of ``2 K`` distance evaluations, ``K`` landmarks): meant for GPUs; on a CPU it
-            costs more than compiling saves (``benchmarks/bench_acting.py``). Defaults to ``False``.
+            costs more than compiling saves (``benchmarks/bench_acting.py``). With a ``fixed_size`` graph
+            (``LandmarkGraph(fixed_size=True)``) it plans and reads waypoints from the graph's fixed-size
+            copies: the same shapes and storage after every rebuild, so the compiled policy is not
+            recompiled when the number of landmarks changes and a CUDA graph captured after the first
+            build stays valid. Defaults to ``False``.
         observation_key (NestedKey): Defaults to ``"observation"``.
         achieved_goal_key (NestedKey): Defaults to ``"achieved_goal"``.
         subgoal_key (NestedKey): Defaults to ``"subgoal"``.
@@ -408,7 +412,8 @@ class GraphPlanner(UnregisteredAttributes, Transform):
         new_subgoal = inputs.get(self.new_subgoal_key, None)
         st = self._flat_state(state_source, batch, device)
 
-        version = self.graph.version.to(device)
+        graph = self.graph.planning_tensors(self.capturable)  # a fixed-size graph's copies: static storage
+        version = (self.graph.version if graph is None else graph.version).to(device)
         replan = ~st["has_plan"] | (st["graph_version"] != version)
         if new_subgoal is not None:
             replan = replan | new_subgoal.reshape(num, -1).any(-1)
@@ -416,7 +421,7 @@ class GraphPlanner(UnregisteredAttributes, Transform):
         # one more step spent on the current waypoint, then Algorithm 3's advance test
         st["steps"] = st["steps"] + keep.to(torch.int64)
         on_path = keep & (st["index"] < st["path_length"])
-        target = self._waypoints(st, subgoal, on_path)
+        target = self._waypoints(st, subgoal, on_path, graph)
         reached = (achieved - target).norm(dim=-1) <= self.reach_radius
         budget = st["budgets"].gather(1, st["index"].clamp(0, self.max_path_length).unsqueeze(1)).squeeze(1)
         timeout = st["steps"].to(budget.dtype) > budget
@@ -442,7 +447,7 @@ class GraphPlanner(UnregisteredAttributes, Transform):
             st["has_plan"][rows] = True
             st["graph_version"][rows] = version
         on_path = st["index"] < st["path_length"]
-        waypoint = self._waypoints(st, subgoal, on_path)
+        waypoint = self._waypoints(st, subgoal, on_path, graph)
         out.set(self.waypoint_key, waypoint.reshape(*batch, self.goal_dim).to(subgoal.dtype))
         for name, key in self._state_keys.items():
             value = st[name]
@@ -467,12 +472,14 @@ class GraphPlanner(UnregisteredAttributes, Transform):
             mask = replan.reshape(-1, *([1] * (st[name].ndim - 1)))
             st[name] = torch.where(mask, value, st[name])
 
-    def _waypoints(self, st: dict[str, Tensor], subgoal: Tensor, on_path: Tensor) -> Tensor:
-        if not self.has_graph:
+    def _waypoints(
+        self, st: dict[str, Tensor], subgoal: Tensor, on_path: Tensor, graph: GraphTensors | None
+    ) -> Tensor:
+        if graph is None:
             return subgoal.clone()
         index = st["index"].clamp(0, self.max_path_length - 1).unsqueeze(1)
-        landmark = st["path"].gather(1, index).squeeze(1).clamp(0, self.num_landmarks - 1)
-        coords = self.landmark_goals[landmark].to(subgoal.dtype)
+        landmark = st["path"].gather(1, index).squeeze(1).clamp(0, graph.goals.shape[0] - 1)
+        coords = graph.goals[landmark].to(subgoal.dtype)
         return torch.where(on_path.unsqueeze(-1), coords, subgoal)
 
     # ------------------------------------------------------------------ TorchRL entry points

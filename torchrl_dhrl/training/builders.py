@@ -190,8 +190,8 @@ def make_agent(
         reach_radius (float): a waypoint counts as reached within this distance (goal units).
         capturable_planner (bool): the :class:`~torchrl_dhrl.planner.GraphPlanner`'s ``capturable``: plans
             with static shapes and no host synchronisation, every env at every step, so that the acting
-            policy compiles whole (:func:`make_collector`'s ``compile_policy``). Same plans. Defaults to
-            ``False``.
+            policy compiles whole (:func:`make_collector`'s ``compile_policy``), on a ``fixed_size`` graph (the
+            same storage after every rebuild: no recompilation). Same plans. Defaults to ``False``.
 
     Raises:
         ValueError: when the subgoal box does not match the goal space, or ``relative_goal`` lacks
@@ -266,6 +266,7 @@ def make_agent(
         max_landmarks=max_landmarks,
         early_stop=early_stop,
         build_autocast_dtype=build_autocast_dtype,
+        fixed_size=capturable_planner,  # static storage across rebuilds: no recompilation, CUDA-graph safe
     )
     if distance is None:
         distance = GoalDistance.from_loss(sqgc_loss, twin=twin)
