@@ -79,12 +79,17 @@ def _sqgc_setup(seed=0, cells=(64, 64)):
     return loss, rb
 
 
-def _train(autocast_dtype, steps=6, seed=0, watch=None):
+def _train(autocast_dtype, steps=6, seed=0, watch=None, cudagraphs=False):
     """``steps`` updates on fixed samples; ``watch(loss)`` names modules whose output dtypes are logged."""
     loss, rb = _sqgc_setup(seed)
     log, handles = _record_dtypes(watch(loss) if watch else {})
     updater = LossUpdater(
-        loss, rb, make_optimizers(loss), target_update_interval=3, autocast_dtype=autocast_dtype
+        loss,
+        rb,
+        make_optimizers(loss),
+        target_update_interval=3,
+        autocast_dtype=autocast_dtype,
+        cudagraphs=cudagraphs,
     )
     torch.manual_seed(7)  # same samples for every run
     outs = [updater.step() for _ in range(steps)]
@@ -147,5 +152,27 @@ def test_autocast_dtype_is_validated(bad):
     loss, rb = _sqgc_setup()
     with pytest.raises(ValueError, match="autocast_dtype"):
         LossUpdater(loss, rb, make_optimizers(loss), autocast_dtype=bad)
-    with pytest.raises(ValueError, match="not supported together with `cudagraphs"):
-        LossUpdater(loss, rb, make_optimizers(loss), autocast_dtype=torch.bfloat16, cudagraphs=True)
+
+
+def test_bfloat16_updates_on_the_captured_path_equal_the_eager_ones(monkeypatch):
+    """``cudagraphs=True`` with bfloat16: the captured update (run here through CudaGraphModule's CPU
+    pass-through) multiplies its hidden layers in bfloat16 under autocast without the weight cache, and takes
+    the eager bf16 updater's steps (capturable Adam apart: float round-off)."""
+    import warnings
+
+    monkeypatch.setattr(LossUpdater, "_check_cuda", lambda self: None)
+    watch = lambda loss: {"critic_hidden": loss.policy_critic.module.ensemble.layers[0]}  # noqa: E731
+    eager, eager_outs, _, _ = _train(torch.bfloat16, steps=8)
+    with warnings.catch_warnings():
+        warnings.filterwarnings("ignore", message="This module is instantiated on a machine without CUDA")
+        graphed, graphed_outs, updater, log = _train(torch.bfloat16, steps=8, watch=watch, cudagraphs=True)
+    assert updater.cudagraphs and updater._graphs  # the captured path ran
+    assert log == {"critic_hidden": {torch.bfloat16}}
+    for key, value in eager.state_dict().items():
+        torch.testing.assert_close(graphed.state_dict()[key], value, rtol=1e-5, atol=1e-6, msg=key)
+    float32 = _train(None, steps=8)[0]
+    assert not all(torch.equal(v, float32.state_dict()[k]) for k, v in graphed.state_dict().items())
+    for got, expected in zip(graphed_outs, eager_outs, strict=True):
+        torch.testing.assert_close(
+            got["loss_policy_qvalue"], expected["loss_policy_qvalue"], rtol=1e-5, atol=1e-6
+        )

@@ -335,20 +335,14 @@ def run_precisions(cfg: Mapping, device: str | torch.device) -> tuple[torch.dtyp
     """The autocast dtypes of a configuration's updates and graph builds on ``device`` (``None``: float32).
 
     Resolves ``update_dtype`` and ``planner.build_dtype`` (``auto``: bfloat16 where ``device`` has it natively,
-    else float32; :func:`~torchrl_dhrl.training.resolve_precision`). Updates replayed as CUDA graphs
-    (``cudagraphs=true``) support float32 only, so ``auto`` means float32 there.
+    else float32; :func:`~torchrl_dhrl.training.resolve_precision`), CUDA-graph updates included.
 
     Examples:
         >>> import torch
         >>> run_precisions({"update_dtype": "bfloat16", "planner": {"build_dtype": "float32"}}, "cpu")
         (torch.bfloat16, None)
     """
-    update = resolve_precision(
-        cfg.get("update_dtype", "float32"),
-        device,
-        choices=UPDATE_DTYPES,
-        allow_reduced=not cfg.get("cudagraphs", False),
-    )
+    update = resolve_precision(cfg.get("update_dtype", "float32"), device, choices=UPDATE_DTYPES)
     build = resolve_precision(_get(cfg, "planner.build_dtype"), device, choices=BUILD_DTYPES)
     return update, build
 
@@ -582,8 +576,6 @@ def validate_config(cfg: Mapping, env_names: tuple[str, ...] | None = None) -> N
     update_dtype = cfg.get("update_dtype", "float32")
     if update_dtype not in UPDATE_DTYPES:
         raise ConfigError(f"`update_dtype` must be one of {tuple(UPDATE_DTYPES)}, got {update_dtype!r}.")
-    if update_dtype == "bfloat16" and cfg.get("cudagraphs", False):  # `auto` resolves to float32 there
-        raise ConfigError(f"`update_dtype={update_dtype}` cannot be combined with `cudagraphs=true` (yet).")
     if cfg.get("capture_sampling") not in (None, True, False):
         raise ConfigError(
             f"`capture_sampling` must be null (auto), true or false, got {cfg.get('capture_sampling')!r}."

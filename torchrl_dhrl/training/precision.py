@@ -50,7 +50,6 @@ def resolve_precision(
     device: str | torch.device,
     *,
     choices: tuple[str, ...] | None = None,
-    allow_reduced: bool = True,
 ) -> torch.dtype | None:
     """The autocast dtype of a precision name on ``device`` (``None``: float32, no autocast).
 
@@ -61,8 +60,6 @@ def resolve_precision(
     Keyword Args:
         choices (tuple of str, optional): the names this caller accepts (default: those of :data:`PRECISIONS`
             and ``"auto"``).
-        allow_reduced (bool): ``False`` makes ``auto`` resolve to float32 (for paths that support float32
-            only, e.g. CUDA-graph updates). Defaults to ``True``.
 
     Raises:
         ValueError: ``name`` is not one of ``choices``.
@@ -72,12 +69,10 @@ def resolve_precision(
         torch.bfloat16
         >>> resolve_precision("auto", "meta") is None  # no native bfloat16 there: float32
         True
-        >>> resolve_precision("auto", "cpu", allow_reduced=False) is None
-        True
     """
     choices = (*PRECISIONS, "auto") if choices is None else choices
     if name not in choices:
         raise ValueError(f"precision must be one of {choices}, got {name!r}.")
     if name == "auto":
-        return torch.bfloat16 if allow_reduced and native_bfloat16(device) else None
+        return torch.bfloat16 if native_bfloat16(device) else None
     return PRECISIONS[name]

@@ -128,7 +128,8 @@ class LossUpdater:
             update. Defaults to ``2`` (the reference's).
         cudagraphs (bool): replay the update as CUDA graphs (see above). Defaults to ``False``.
         autocast_dtype (torch.dtype, optional): ``torch.bfloat16`` for mixed-precision updates
-            (see above); ``None`` (default) for full precision. Not combined with ``cudagraphs``.
+            (see above); ``None`` (default) for full precision. With ``cudagraphs`` the captured forward
+            runs autocast without its weight cache (``cache_enabled=False``): the same values.
         actor_after_critic_step (bool): evaluate and step the actor loss after the critic step
             (see above; needs a loss with ``loss_terms`` and ``actor_loss``). Defaults to ``False``.
         compile (bool): run the loss's forward terms (and so their backward) through
@@ -201,8 +202,6 @@ class LossUpdater:
                 f"`autocast_dtype` must be None or torch.bfloat16, got {autocast_dtype!r} (float16 would "
                 "need loss scaling)."
             )
-        if autocast_dtype is not None and cudagraphs:
-            raise ValueError("`autocast_dtype` is not supported together with `cudagraphs=True`.")
         if actor_after_critic_step and not (hasattr(loss, "loss_terms") and hasattr(loss, "actor_loss")):
             raise TypeError(
                 f"`actor_after_critic_step=True` needs a loss with `loss_terms` and `actor_loss`, got "
@@ -301,15 +300,16 @@ class LossUpdater:
     def _sequential_update(self, sample: TensorDictBase, update_actor: bool, check: bool) -> TensorDictBase:
         """Critic step, then (when due) the actor loss on the updated critic and the actor step.
 
-        ``check``: raise :class:`NonFiniteLossError` before each optimiser step (eager path only).
+        ``check``: raise :class:`NonFiniteLossError` before each optimiser step (eager path only; the captured
+        path, ``check=False``, also runs autocast without its weight cache).
         """
-        with self._autocast():
+        with self._autocast(cache_enabled=check):
             out = self._loss_terms(sample, False)
         if check:
             self._check_finite([out], first_update=self.num_updates + 1)
         self._optimise(out, update_actor=False)
         if update_actor:
-            with self._autocast():
+            with self._autocast(cache_enabled=check):
                 loss_actor = self._actor_fn(sample)[0]
             out.set("loss_actor", loss_actor)
             out.set("actor_updated", torch.ones_like(out.get("actor_updated")))
@@ -320,12 +320,15 @@ class LossUpdater:
             self.optimizers["actor"].step()
         return out
 
-    def _autocast(self):
-        """``torch.autocast`` on the loss's device when ``autocast_dtype`` is set, else a no-op."""
+    def _autocast(self, cache_enabled: bool = True):
+        """``torch.autocast`` on the loss's device when ``autocast_dtype`` is set, else a no-op.
+
+        ``cache_enabled=False`` inside a captured graph: autocast's cache of cast weights would be filled during
+        the capture and replayed stale (PyTorch's CUDA-graph notes); the same values, the casts run every time."""
         if self.autocast_dtype is None:
             return contextlib.nullcontext()
         device = next(self.loss.parameters()).device
-        return torch.autocast(device.type, dtype=self.autocast_dtype)
+        return torch.autocast(device.type, dtype=self.autocast_dtype, cache_enabled=cache_enabled)
 
     def _optimise(self, out: TensorDictBase, update_actor: bool) -> None:
         """Back-propagates the sum of the ``loss_*`` entries and steps the optimisers."""
@@ -350,7 +353,8 @@ class LossUpdater:
                 sample = self._captured_sample()
             if self.actor_after_critic_step:
                 return self._sequential_update(sample, update_actor, check=False).detach()
-            out = self._loss_terms(sample, update_actor)
+            with self._autocast(cache_enabled=False):
+                out = self._loss_terms(sample, update_actor)
             self._optimise(out, update_actor)
             return out.detach()
 
