@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import csv
 import importlib.util
 import sys
 from pathlib import Path
@@ -28,3 +29,13 @@ def load_recipe(name: str = "dhrl_antmaze"):
     module = importlib.util.module_from_spec(spec)
     spec.loader.exec_module(module)
     return module
+
+
+#: metrics columns that measure wall-clock time (they differ between otherwise identical runs)
+TIMING_COLUMNS = ("time/", "env_steps_per_s", "graph/build_s")
+
+
+def metrics_rows(run_dir: Path, drop: tuple[str, ...] = ()) -> list[dict]:
+    """The rows of a run's ``metrics.csv`` without the columns starting with ``drop`` (e.g. TIMING_COLUMNS)."""
+    with (Path(run_dir) / "metrics.csv").open() as file:
+        return [{k: v for k, v in row.items() if not k.startswith(drop)} for row in csv.DictReader(file)]

@@ -3,11 +3,9 @@ changed (``FORK_MUTABLE_KEYS``). A fork without changes goes on exactly like a r
 exactly; every forkable hyperparameter is in effect in the objects the fork trains with; a new seed re-seeds the
 training streams and leaves the test episodes' alone; bad forks fail before anything is written."""
 
-import csv
-
 import pytest
 import torch
-from _recipe import load_recipe, recipe_config
+from _recipe import TIMING_COLUMNS, load_recipe, metrics_rows, recipe_config
 
 from torchrl_dhrl.training import (
     FORK_MUTABLE_KEYS,
@@ -20,12 +18,10 @@ from torchrl_dhrl.training import (
 recipe = load_recipe()
 
 BASE = ("env=PointMaze", "preset=smoke", "logger.backend=csv", "plots.every_epochs=0", "device=cpu")
-TIMING = ("time/", "env_steps_per_s", "graph/build_s")
 
 
 def _rows(run_dir):
-    with (run_dir / "metrics.csv").open() as file:
-        return [{k: v for k, v in row.items() if not k.startswith(TIMING)} for row in csv.DictReader(file)]
+    return metrics_rows(run_dir, drop=TIMING_COLUMNS)
 
 
 def _params(run_dir):

@@ -1,7 +1,6 @@
 """Smoke tests of ``recipes/dhrl_antmaze.py``: every phase on every maze with a tiny config, exact resume,
 ablation switches and the command line."""
 
-import csv
 import os
 import shutil
 import signal
@@ -11,7 +10,7 @@ import sys
 import numpy as np
 import pytest
 import torch
-from _recipe import RECIPES, load_recipe, recipe_config
+from _recipe import RECIPES, TIMING_COLUMNS, load_recipe, metrics_rows, recipe_config
 from tensordict import TensorDict
 from torchrl_dhrl.envs import ENV_NAMES
 
@@ -22,18 +21,13 @@ recipe = load_recipe()
 SMOKE = ("preset=smoke", "logger.backend=csv")
 
 
-def _metrics(run_dir):
-    with (run_dir / "metrics.csv").open() as file:
-        return list(csv.DictReader(file))
-
-
 @pytest.mark.parametrize("env", ENV_NAMES)
 def test_smoke_every_phase(env, tmp_path):
     """Warm-up (2 episodes), vanilla HRL (1 epoch), graph rebuilds, evaluations, checkpoints and pictures."""
     torch.manual_seed(0)
     cfg = recipe_config(f"env={env}", *SMOKE)
     summary = recipe.train(cfg, run_dir=tmp_path)
-    rows = _metrics(tmp_path)
+    rows = metrics_rows(tmp_path)
     # 480 steps of 2 envs x 40-step episodes = 6 batches, 2 episodes per epoch -> 6 epochs
     assert [int(r["env_steps"]) for r in rows] == [80 * k for k in range(1, 7)]
     landmarks = [int(r["graph/landmarks"]) for r in rows]
@@ -82,10 +76,11 @@ def test_resume_continues_exactly(tmp_path):
     assert flat_a.keys() == flat_b.keys()
     for key in flat_a:
         torch.testing.assert_close(flat_a[key], flat_b[key], rtol=0, atol=0, msg=key)
-    timing = ("time/", "env_steps_per_s", "graph/build_s")
-    untimed = lambda rows: [{k: v for k, v in r.items() if not k.startswith(timing)} for r in rows]  # noqa: E731
-    assert untimed(_metrics(straight)) == untimed(_metrics(halves))  # losses, success, graph: all identical
-    for row in _metrics(halves)[3:]:  # after the resume the rate counts this process's steps and time only
+    untimed = metrics_rows(straight, drop=TIMING_COLUMNS)
+    assert untimed == metrics_rows(halves, drop=TIMING_COLUMNS)  # losses, success, graph: all identical
+    for row in metrics_rows(halves)[
+        3:
+    ]:  # after the resume the rate counts this process's steps and time only
         busy = float(row["time/collect_s"]) + float(row["time/update_s"])
         rate = (int(row["env_steps"]) - 240) / busy
         assert float(row["env_steps_per_s"]) == pytest.approx(rate, rel=1e-4)
@@ -137,7 +132,7 @@ def test_a_0_2_0_checkpoint_resumes_exactly(tmp_path):
 def test_ablation_switches_run(env, override, tmp_path):
     cfg = recipe_config(f"env={env}", *SMOKE, "total_steps=240", "plots.every_epochs=0", override)
     recipe.train(cfg, run_dir=tmp_path)
-    rows = _metrics(tmp_path)
+    rows = metrics_rows(tmp_path)
     landmarks = [int(r["graph/landmarks"]) for r in rows]
     fgs = override == "fgs.enabled=true"  # the share of training goals it moved is logged with it only
     assert ("train/goal_shifted" in rows[-1]) == fgs
@@ -172,7 +167,7 @@ def test_bfloat16_updates_reach_both_updaters(tmp_path, monkeypatch):
     }
     assert not any(enabled for *_, enabled in seen)  # autocast covers the loss only, not sampling
     recipe.train(recipe_config(*overrides, "total_steps=240"), run_dir=tmp_path / "fp32")
-    bf, fp = _metrics(tmp_path / "bf16"), _metrics(tmp_path / "fp32")
+    bf, fp = metrics_rows(tmp_path / "bf16"), metrics_rows(tmp_path / "fp32")
     for key in ("low/loss_policy_qvalue", "low/loss_graph_qvalue", "high/loss_qvalue"):
         assert all(
             torch.isfinite(torch.tensor(float(r[key]))) for r in bf[1:]
@@ -343,10 +338,9 @@ def test_flat_evaluation_uses_the_same_goals_and_changes_nothing_else(tmp_path, 
         torch.testing.assert_close(main, flat, rtol=0, atol=0)  # paired: the same test goals
         torch.testing.assert_close(main, plain, rtol=0, atol=0)  # the next evaluations' goals unchanged
     assert not torch.equal(goals[0], goals[1])  # the test goals are random per episode in Reacher3D
-    timing = ("time/", "env_steps_per_s", "graph/build_s", "eval/flat_")
-    rows_flat, rows_plain = _metrics(tmp_path / "flat"), _metrics(tmp_path / "plain")
-    untimed = lambda rows: [{k: v for k, v in r.items() if not k.startswith(timing)} for r in rows]  # noqa: E731
-    assert untimed(rows_flat) == untimed(rows_plain)
+    drop = (*TIMING_COLUMNS, "eval/flat_")
+    assert metrics_rows(tmp_path / "flat", drop) == metrics_rows(tmp_path / "plain", drop)
+    rows_flat = metrics_rows(tmp_path / "flat")
     for row in rows_flat:
         assert 0.0 <= float(row["eval/flat_success"]) <= float(row["eval/flat_any_success"]) <= 1.0
         assert float(row["eval/flat_final_distance"]) > 0
@@ -358,4 +352,4 @@ def test_flat_evaluation_uses_the_same_goals_and_changes_nothing_else(tmp_path, 
         assert float(row["diag/subgoal_graph_distance"]) >= 0
         assert 0.0 <= float(row["diag/subgoals_far_from_graph"]) <= 1.0
         assert float(row["diag/subgoal_learned_distance"]) >= 0
-    assert "eval/flat_success" not in rows_plain[0]
+    assert "eval/flat_success" not in metrics_rows(tmp_path / "plain")[0]

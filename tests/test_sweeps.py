@@ -20,7 +20,7 @@ from types import SimpleNamespace
 import numpy as np
 import pytest
 import yaml
-from _recipe import RECIPES, load_recipe, recipe_config
+from _recipe import RECIPES, load_recipe, metrics_rows, recipe_config
 from omegaconf import OmegaConf
 
 from torchrl_dhrl.training import CONFIG_NAME, load_checkpoint
@@ -31,17 +31,12 @@ RAY = "hydra_plugins.hydra_ray_launcher.ray_launcher.RayLauncher"
 SMOKE = ("env=PointMaze", "preset=smoke", "plots.every_epochs=0", "device=cpu", "logger.backend=none")
 
 
-def _rows(run_dir):
-    with open(run_dir / "metrics.csv") as file:
-        return list(csv.DictReader(file))
-
-
 def test_resume_auto_starts_continues_and_skips_a_finished_run(tmp_path, capsys):
     run = tmp_path / "job"
     recipe.train(recipe_config(*SMOKE, "total_steps=160", "resume=auto"), run_dir=run)  # nothing there: fresh
     assert gc.get_freeze_count() == 0  # the loop's frozen objects are handed back to the collector
     first = (run / "metrics.csv").read_bytes()
-    assert [int(r["env_steps"]) for r in _rows(run)] == [80, 160]
+    assert [int(r["env_steps"]) for r in metrics_rows(run)] == [80, 160]
     saved = yaml.safe_load((run / CONFIG_NAME).read_text())
     assert saved["total_steps"] == 160 and saved["resume"] is None  # auto resolved to "no checkpoint"
     capsys.readouterr()
@@ -51,7 +46,7 @@ def test_resume_auto_starts_continues_and_skips_a_finished_run(tmp_path, capsys)
     assert (run / "metrics.csv").read_bytes() == first and summary["env_steps"] == 160
     # a longer budget continues the run's own checkpoint
     recipe.train(recipe_config(*SMOKE, "total_steps=320", "resume=auto"), run_dir=run)
-    assert [int(r["env_steps"]) for r in _rows(run)] == [80, 160, 240, 320]
+    assert [int(r["env_steps"]) for r in metrics_rows(run)] == [80, 160, 240, 320]
     assert load_checkpoint(run, components=("counters",))["counters"]["env_steps"] == 320
 
 
@@ -198,7 +193,7 @@ def test_sweep_runs_two_seeds_and_aggregates(launcher, request, tmp_path):
     assert [c["seed"] for c in configs] == [0, 1]
     assert all(c["threads"] == threads for c in configs)
     assert all(c["logger"]["group"] == "sweep_pm" for c in configs)
-    rows = [_rows(p) for p in runs]
+    rows = [metrics_rows(p) for p in runs]
     assert [int(r["env_steps"]) for r in rows[0]] == [80, 160, 240] == [int(r["env_steps"]) for r in rows[1]]
     losses = [
         [float(r["low/loss_graph_qvalue"]) for r in run if r.get("low/loss_graph_qvalue")] for run in rows
