@@ -111,7 +111,8 @@ def train(cfg: DictConfig | dict, run_dir: str | Path | None = None) -> dict:
         try:
             restore_checkpoint(checkpoint, resume, map_location=device)
         except CheckpointError as err:
-            raise ConfigError(f"`resume={cfg['resume']}`: {err}") from err
+            key = "fork" if start.forking else "resume"
+            raise ConfigError(f"`{key}={cfg[key]}`: {err}") from err
         if start.forking:  # a new run from another's state: its own seed's training streams
             counters.setdefault("forks", []).append(
                 {"checkpoint": str(resume), "env_steps": counters["env_steps"], "seed": cfg["seed"]}

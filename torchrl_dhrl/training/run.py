@@ -133,6 +133,7 @@ def start_run(
         cfg["resume"] = str(run_dir) if checkpoint_file(run_dir).exists() else None
     resume = state = None
     notes: list[str] = []
+    forking = False  # starting from another run's checkpoint (`fork` without `resume`)
     fork = cfg.get("fork")
     if fork is not None:
         cfg["fork"] = fork = str(checkpoint_file(Path(fork).expanduser()).resolve())
@@ -152,7 +153,7 @@ def start_run(
         notes = check_resume_config(state["config"], cfg, what=f"{what} ({resume})")
         notes = [note for note in notes if not note.startswith("resume:")]  # resume itself always changes
     elif fork is not None:
-        resume = Path(fork)
+        forking, resume = True, Path(fork)
         what = f"`fork={fork}`"
         state = _read_checkpoint(resume, what)
         if resume == checkpoint_file(run_dir).resolve():
@@ -169,7 +170,7 @@ def start_run(
             state["config"], cfg, mutable=FORK_MUTABLE_KEYS, what=f"{what} ({resume})", action="fork"
         )
         notes = [note for note in notes if not note.startswith(("resume:", "fork:", "run_dir:"))]
-    _check_run_dir(run_dir, None if fork is not None and resume == Path(fork) else resume)
+    _check_run_dir(run_dir, None if forking else resume)
     if cfg["plots"]["video"]:
         _check_offscreen_rendering()
     print(set_threads(cfg["threads"]))
@@ -179,7 +180,7 @@ def start_run(
             "Acting: the policy compiled in the collector (torch.compile), its planner capturable (every env "
             "planned at every step; the same plans)."
         )
-    if fork is not None and resume == Path(fork):
+    if forking:
         print(
             f"Forking {resume} at {state['counters']['env_steps']} env steps into {run_dir}"
             + (f" with: {'; '.join(notes)}." if notes else " (nothing changed: a copy that goes on).")
