@@ -5,10 +5,14 @@ Times one call of the acting policy ``TensorDictSequential(high_policy, planner,
 
 - ``eager``: the default planner, which plans only the envs that need a new plan, behind a host-side branch
   (``nonzero`` / ``.item()``; a host synchronisation per call on a GPU);
-- ``eager capturable``: ``GraphPlanner(capturable=True)``: every env planned at every call with static shapes,
-  the new plans kept where a replan is due (the same plans);
-- ``compiled capturable``: the same policy under ``torch.compile(fullgraph=True)`` (one graph, no break), what
-  the recipe's ``compile_policy=true`` runs in the collector; its compile time is printed apart.
+- ``eager capturable``: ``GraphPlanner(capturable=True)``: every env planned with static shapes in the calls
+  where some env is due for a replan (``plan_on_demand``, a Python branch eagerly), the new plans kept where a
+  replan is due (the same plans);
+- ``compiled capturable``: the same policy under ``torch.compile(fullgraph=True)`` (one graph, no break; the
+  planning inside a ``torch.cond``), what the recipe's ``compile_policy=true`` runs in the collector; its compile
+  time is printed apart;
+- ``... every call``: the capturable planner with ``plan_on_demand=False``: every env planned at every call
+  (static control flow, the variant for a policy captured whole in a CUDA graph).
 
 The graph is built once from random states of the maze's box with the agent's (untrained) learned distance,
 so its landmarks and the distance network have the recipe's sizes (``--landmarks``, ``--hidden``).
@@ -29,7 +33,7 @@ from torchrl.envs.utils import step_mdp
 from torchrl_dhrl.training import make_agent, make_environment
 
 
-def build(args, num_envs, capturable):
+def build(args, num_envs, capturable, plan_on_demand=True):
     torch.manual_seed(0)
     device = torch.device(args.device)
     spec_env = make_environment(args.env, num_envs=num_envs, seed=0, max_episode_steps=args.steps)
@@ -50,6 +54,7 @@ def build(args, num_envs, capturable):
     gen = torch.Generator().manual_seed(1)
     states = (torch.rand(args.candidates, obs_dim, generator=gen) * 12 - 2).to(device)
     agent.planner.build(states, states[:, :2].clone())
+    agent.planner.plan_on_demand = plan_on_demand
     env = make_environment(
         args.env, device, num_envs=num_envs, seed=0, max_episode_steps=args.steps, agent=agent
     )
@@ -97,17 +102,19 @@ def main():
         f"<= {args.landmarks} landmarks, c_h {args.c_h}, {args.steps} calls per variant (means)"
     )
     header = (
-        f"{'envs':>5} {'variant':<22} {'ms/call':>9} {'ms/env step':>12} {'x eager':>8} {'compile s':>10}"
+        f"{'envs':>5} {'variant':<34} {'ms/call':>9} {'ms/env step':>12} {'x eager':>8} {'compile s':>10}"
     )
     print(header)
     for num_envs in args.envs:
         base = None
-        for name, capturable, compiled in (
-            ("eager", False, False),
-            ("eager capturable", True, False),
-            ("compiled capturable", True, True),
+        for name, capturable, compiled, on_demand in (
+            ("eager", False, False, True),
+            ("eager capturable", True, False, True),
+            ("compiled capturable", True, True, True),
+            ("eager capturable, every call", True, False, False),
+            ("compiled capturable, every call", True, True, False),
         ):
-            agent, env = build(args, num_envs, capturable)
+            agent, env = build(args, num_envs, capturable, on_demand)
             policy, compile_s = agent.policy, float("nan")
             if compiled:
                 torch._dynamo.reset()
@@ -118,7 +125,7 @@ def main():
             seconds = time_policy(policy, env, args.steps, synchronize)
             base = seconds if base is None else base
             row = (
-                f"{num_envs:>5} {name:<22} {seconds * 1e3:>9.3f} {seconds * 1e3 / num_envs:>12.3f} "
+                f"{num_envs:>5} {name:<34} {seconds * 1e3:>9.3f} {seconds * 1e3 / num_envs:>12.3f} "
                 f"{base / seconds:>7.2f}x {compile_s:>10.1f}"
             )
             print(row, f"({agent.planner.num_landmarks} landmarks)" if name == "eager" else "", flush=True)

@@ -203,13 +203,21 @@ def test_capturable_needs_a_max_path_length():
         reconstruct_paths(graph.next_hop, graph.hop_counts, sources, sources, capturable=True)
     with pytest.raises(TypeError, match="`capturable` must be a bool, got 1"):
         GraphPlanner(graph, euclidean, 2, capturable=1)
+    with pytest.raises(TypeError, match="`plan_on_demand` must be a bool, got 'yes'"):
+        GraphPlanner(graph, euclidean, 2, capturable=True, plan_on_demand="yes")
 
 
 # ----------------------------------------------------------------------------- tracking
-def _planner_pair(distance, max_path_length=4, reach_radius=0.5, fixed_size=False):
+def _planner_pair(distance, max_path_length=4, reach_radius=0.5, fixed_size=False, plan_on_demand=True):
     graph = LandmarkGraph(cutoff=3.0, max_landmarks=64, fixed_size=fixed_size)
     make = lambda capturable: GraphPlanner(  # noqa: E731
-        graph, distance, 2, reach_radius=reach_radius, max_path_length=max_path_length, capturable=capturable
+        graph,
+        distance,
+        2,
+        reach_radius=reach_radius,
+        max_path_length=max_path_length,
+        capturable=capturable,
+        plan_on_demand=plan_on_demand,
     )
     return graph, make(False), make(True)
 
@@ -245,15 +253,19 @@ def _assert_same_tracking(got, expected, planner, exact=True):
             torch.testing.assert_close(got[key], expected[key], rtol=1e-5, atol=1e-5, msg=str(key))
 
 
+@pytest.mark.parametrize("plan_on_demand", [True, False])
 @pytest.mark.parametrize("fixed_size", [False, True])
 @pytest.mark.parametrize("name", ["walled", "rounded"])
-def test_capturable_tracking_equals_tracking_over_random_walks(name, fixed_size):
+def test_capturable_tracking_equals_tracking_over_random_walks(name, fixed_size, plan_on_demand):
     """Waypoints and every tracking entry, step by step, ``[3, 2]`` envs: new subgoals, timeouts and radius
     advances, truncated paths used up, two rebuilds (other landmark counts) and a partial reset; on the
-    graph's own buffers and on a fixed-size graph's padded copies."""
+    graph's own buffers and on a fixed-size graph's padded copies; planning only in the calls where a replan
+    is due, or at every call."""
     distance = DISTANCES[name]
     gen = torch.Generator().manual_seed(7)
-    graph, planner, capturable = _planner_pair(distance, reach_radius=1.0, fixed_size=fixed_size)
+    graph, planner, capturable = _planner_pair(
+        distance, reach_radius=1.0, fixed_size=fixed_size, plan_on_demand=plan_on_demand
+    )
     batch = (3, 2)
     td = TensorDict(batch_size=batch)
     mine = theirs = None
@@ -275,10 +287,82 @@ def test_capturable_tracking_equals_tracking_over_random_walks(name, fixed_size)
     assert replans > 0 and bool(theirs["planner", "has_plan"].all())
 
 
+@pytest.mark.parametrize("plan_on_demand", [True, False])
+def test_capturable_planner_queries_the_distance_only_when_a_replan_is_due(plan_on_demand):
+    """``plan_on_demand``: the distance is evaluated in exactly the calls where the host-branching planner plans
+    (some env due for a replan); without it, at every call. The tracking agrees either way (test above)."""
+    calls = {"host": 0, "capturable": 0}
+
+    def counting(who):
+        def distance(states, goals):
+            calls[who] += 1
+            return euclidean(states, goals)
+
+        return distance
+
+    gen = torch.Generator().manual_seed(5)
+    graph, planner, capturable = _planner_pair(euclidean, reach_radius=1.0, plan_on_demand=plan_on_demand)
+    _set_random_landmarks(graph, euclidean, gen, num=30)
+    planner.distance, capturable.distance = counting("host"), counting("capturable")
+    mine = theirs = TensorDict(batch_size=(3,))
+    planned_calls = idle_calls = 0
+    for obs, new, subgoal in _walk(gen, (3,), 40):
+        before = dict(calls)
+        theirs = planner(_step_td(theirs, obs, new, subgoal))
+        mine = capturable(_step_td(mine, obs, new, subgoal))
+        host_planned = calls["host"] > before["host"]
+        capturable_planned = calls["capturable"] > before["capturable"]
+        assert capturable_planned == (host_planned or not plan_on_demand)
+        planned_calls += host_planned
+        idle_calls += not host_planned
+    assert planned_calls > 0 and idle_calls > 0  # both kinds of call happened
+
+
+@pytest.mark.parametrize("plan_on_demand", [True, False])
+def test_compiled_planner_with_the_learned_distance_plans_inside_torch_cond(plan_on_demand):
+    """Under ``torch.compile(fullgraph=True)`` with the recipe's learned distance (``GoalDistance.from_loss``:
+    the networks evaluated with the loss's parameters): one graph with the planning in a ``torch.cond``
+    (``plan_on_demand``) or without any (every call); the same waypoints and tracking state as eager over a
+    walk with new subgoals and a rebuild; the distance's networks left as they were. Dynamo's graph is run
+    as traced (no inductor: its kernels are covered by the slow tests)."""
+    agent, _ = _agent(True)
+    planner = agent.planner
+    planner.plan_on_demand = plan_on_demand
+    networks = [planner.distance.actor, planner.distance.critic]
+    before = [dict(net.named_parameters()) for net in networks]
+    graphs = []
+
+    def traced_as_is(gm, example_inputs):
+        graphs.append(gm)
+        return gm.forward
+
+    torch._dynamo.reset()
+    compiled = torch.compile(planner, backend=traced_as_is, fullgraph=True)
+    obs_dim = planner.distance.observation_dim
+    gen = torch.Generator().manual_seed(3)
+    eager_td = compiled_td = TensorDict(batch_size=(4,))
+    idle = 0
+    for step, (obs, new, subgoal) in enumerate(_walk(gen, (4,), 16)):
+        if step == 8:
+            points = torch.rand(50, obs_dim, generator=gen) * 12 - 2
+            planner.build(points, points[:, :2].clone())
+        obs = torch.cat([obs, torch.zeros(4, obs_dim - 4)], -1)
+        idle += not bool(new.any())
+        eager_td = planner(_step_td(eager_td, obs, new, subgoal))
+        compiled_td = compiled(_step_td(compiled_td, obs, new, subgoal))
+        _assert_same_tracking(compiled_td, eager_td, planner)
+    torch._dynamo.reset()  # the frames traced for this backend stay out of later tests' compilations
+    assert idle > 0
+    conds = [node for gm in graphs for node in gm.graph.nodes if node.target is torch.ops.higher_order.cond]
+    assert bool(conds) is plan_on_demand
+    assert [dict(net.named_parameters()) for net in networks] == before
+
+
 @pytest.mark.slow
 def test_capturable_planner_compiles_whole_and_agrees():
     """``torch.compile(fullgraph=True)``: no graph break in the planner's call (would raise), the same
     waypoints and state as eager over a walk with a rebuild to another landmark count."""
+    torch._dynamo.reset()  # nothing cached from another test's backend
     gen = torch.Generator().manual_seed(11)
     graph, _, capturable = _planner_pair(euclidean)
     compiled = torch.compile(capturable, fullgraph=True)

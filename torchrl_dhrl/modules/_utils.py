@@ -5,7 +5,7 @@ from __future__ import annotations
 from collections.abc import Sequence
 
 import torch
-from tensordict import TensorDict
+from tensordict import TensorDict, TensorDictBase
 from tensordict.nn import TensorDictModule, TensorDictModuleBase
 from tensordict.utils import NestedKey
 from torch import nn
@@ -198,8 +198,27 @@ def routes_tensors_only(module: TensorDictModuleBase) -> bool:
     )
 
 
-def run_positional(module: TensorDictModuleBase, *inputs: torch.Tensor) -> torch.Tensor:
-    """Runs a TensorDictModule on tensors given in the order of its in_keys; returns its first output."""
+def call_with_params(module: nn.Module, params: TensorDictBase | None, *args):
+    """``module(*args)`` with the parameters and buffers of ``params`` in place of the module's own.
+
+    ``params`` is laid out as ``TensorDict.from_module(module)`` (e.g. a loss's ``actor_network_params``);
+    ``None`` calls the module with its own. Evaluated with :func:`torch.func.functional_call`, which leaves the
+    module as it was on return (also on an exception). Unlike ``with params.to_module(module):`` around the call,
+    which ``torch.cond``'s branches refuse under ``torch.compile`` (a mutation from outside their scope), it also
+    runs inside a compiled ``torch.cond``.
+    """
+    if params is None:
+        return module(*args)
+    return torch.func.functional_call(module, dict(params.flatten_keys(".").items()), args)
+
+
+def run_positional(
+    module: TensorDictModuleBase, *inputs: torch.Tensor, params: TensorDictBase | None = None
+) -> torch.Tensor:
+    """Runs a TensorDictModule on tensors given in the order of its in_keys; returns its first output.
+
+    ``params`` (optional) replaces the module's parameters for the call (:func:`call_with_params`).
+    """
     batch = inputs[0].shape[:-1]
     td = TensorDict(dict(zip(module.in_keys, inputs, strict=True)), batch_size=batch)
-    return module(td).get(module.out_keys[0])
+    return call_with_params(module, params, td).get(module.out_keys[0])

@@ -15,6 +15,7 @@ from torchrl.data import TensorSpec
 
 from ._utils import (
     box_loc_scale,
+    call_with_params,
     check_last_dim,
     goal_input,
     register_goal_indices,
@@ -395,17 +396,25 @@ def critic_values(
     goal: torch.Tensor,
     action: torch.Tensor,
     value_key: NestedKey = "state_action_value",
+    *,
+    params: TensorDictBase | None = None,
 ) -> torch.Tensor:
-    """The values of every member of ``critic`` (with its current parameters), members first: ``[E, *batch]``.
+    """The values of every member of ``critic``, members first: ``[E, *batch]``.
 
     ``observation``, ``goal`` and ``action`` share the leading ``batch`` dims. A
     :class:`GoalConditionedCritic` holds its members (output ``[*batch, num_nets]``); any other
     critic is one member (``E = 1``) writing ``[*batch, 1]`` or ``[*batch]`` at ``value_key``.
+    With ``params`` (laid out as ``TensorDict.from_module(critic)``) in place of the critic's own parameters,
+    through :func:`torch.func.functional_call` (:func:`~torchrl_dhrl.modules._utils.call_with_params`);
+    ``None``: its current parameters.
     """
     if runs_on_tensors(critic):
         net = critic.module
-        return net.q_from_features(net.features(observation, goal, action))
-    value = _read_value(critic(_critic_input(critic, observation, goal, action)), value_key, critic)
+        if params is None:
+            return net.q_from_features(net.features(observation, goal, action))
+        return call_with_params(net, params["module"], observation, goal, action).movedim(-1, 0)
+    td = call_with_params(critic, params, _critic_input(critic, observation, goal, action))
+    value = _read_value(td, value_key, critic)
     if isinstance(critic, GoalConditionedCritic):
         return value.movedim(-1, 0)
     return _one_value(value, observation.shape[:-1]).unsqueeze(0)
@@ -429,8 +438,7 @@ def stacked_critic_values(
     batch = observation.shape[:-1]
 
     def member(observation, goal, action, member_params):
-        with member_params.to_module(critic):
-            td = critic(_critic_input(critic, observation, goal, action))
+        td = call_with_params(critic, member_params, _critic_input(critic, observation, goal, action))
         return _one_value(_read_value(td, value_key, critic), batch)
 
     return torch.vmap(member, (None, None, None, 0), randomness=randomness)(observation, goal, action, params)

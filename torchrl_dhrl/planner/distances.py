@@ -28,6 +28,7 @@ from torch import Tensor
 from torchrl.envs.utils import ExplorationType, set_exploration_type
 
 from torchrl_dhrl.modules._utils import (
+    call_with_params,
     check_last_dim,
     check_positional_keys,
     routes_tensors_only,
@@ -142,16 +143,21 @@ AUTOCAST_DTYPES = (torch.bfloat16, torch.float16)
 TWIN_CHOICES = ("optimistic", "pessimistic")
 
 
-def _run_actor(actor: TensorDictModuleBase, states: torch.Tensor, goals: torch.Tensor) -> torch.Tensor:
-    """The actor's action for aligned ``states`` and ``goals``.
+def _run_actor(
+    actor: TensorDictModuleBase,
+    states: torch.Tensor,
+    goals: torch.Tensor,
+    params: TensorDictBase | None = None,
+) -> torch.Tensor:
+    """The actor's action for aligned ``states`` and ``goals`` (with ``params`` in place of its own, if given).
 
     The library's actors (a plain ``TensorDictModule`` around a :class:`~torchrl_dhrl.modules.GoalConditionedActorNet`,
     without safety projection or hooks) are called on the tensors directly: the same
     computation without building a TensorDict per call. Other actors go through their in_keys.
     """
     if isinstance(getattr(actor, "module", None), GoalConditionedActorNet) and routes_tensors_only(actor):
-        return actor.module(states, goals)
-    return run_positional(actor, states, goals)
+        return call_with_params(actor.module, None if params is None else params["module"], states, goals)
+    return run_positional(actor, states, goals, params=params)
 
 
 def _autocast(device: torch.device, dtype: torch.dtype | None):
@@ -222,9 +228,10 @@ class GoalDistance:
         chunk_size (int, optional): pairs per forward pass. Defaults to ``4096`` on a CPU and
             ``65536`` on other devices (chosen per call from the parameters' device).
         max_distance (float, optional): an upper clamp on the distance.
-        actor_params (TensorDictBase, optional): parameters to swap into ``actor``
-            (``TensorDict.to_module``); used by :meth:`from_loss`.
-        critic_params (TensorDictBase, optional): parameters to swap into ``critic``; with a
+        actor_params (TensorDictBase, optional): parameters to evaluate ``actor`` with, laid out as
+            ``TensorDict.from_module(actor)`` (passed with :func:`torch.func.functional_call`; the module is
+            never modified); used by :meth:`from_loss`.
+        critic_params (TensorDictBase, optional): parameters to evaluate ``critic`` with; with a
             leading batch dim, the stacked parameters of the members (vmap).
         autocast_dtype (torch.dtype, optional): ``torch.bfloat16`` or ``torch.float16`` to run
             the networks under ``torch.autocast`` (see above). Defaults to ``None`` (full
@@ -350,14 +357,16 @@ class GoalDistance:
 
     def _evaluate(self, states: torch.Tensor, goals: torch.Tensor) -> torch.Tensor:
         """Distances of aligned pairs ``[n, obs_dim]``, ``[n, goal_dim]`` -> ``[n]``."""
-        action = _run_actor(self.actor, states, goals)
+        # the parameters are passed to the networks (torch.func.functional_call), never swapped into them around
+        # the call: the evaluation then also runs inside a compiled torch.cond (the capturable planner's)
+        action = _run_actor(self.actor, states, goals, self.actor_params)
         if self._stacked:
             q = stacked_critic_values(self.critic, self.critic_params, states, goals, action, self.value_key)
         else:
             # A GoalConditionedCritic without hooks runs on the tensors; under autocast its output layer
             # runs in full precision (EnsembleMLP), so the raw output -- the distance itself with the
             # distance parameterisation -- is not rounded.
-            q = critic_values(self.critic, states, goals, action, self.value_key)
+            q = critic_values(self.critic, states, goals, action, self.value_key, params=self.critic_params)
         member = q.max(0) if self.twin == "optimistic" else q.min(0)  # over the members, [E, n]
         return q_to_distance(member.values, self.gamma, self.max_distance)
 
@@ -377,20 +386,10 @@ class GoalDistance:
         states_b = states.to(device=device, dtype=dtype).expand(*shape, states.shape[-1])
         goals_b = goals.to(device=device, dtype=dtype).expand(*shape, goals.shape[-1])
         n_pairs = math.prod(shape)
-        swap_actor = (
-            contextlib.nullcontext() if self.actor_params is None else self.actor_params.to_module(self.actor)
-        )
-        swap_critic = (
-            contextlib.nullcontext()
-            if self.critic_params is None or self._stacked  # stacked members are swapped in per member
-            else self.critic_params.to_module(self.critic)
-        )
         chunk_size = self.chunk_size
         if chunk_size is None:
             chunk_size = DEFAULT_CPU_CHUNK_SIZE if device.type == "cpu" else DEFAULT_CHUNK_SIZE
         with (
-            swap_actor,
-            swap_critic,
             torch.no_grad(),
             set_exploration_type(ExplorationType.DETERMINISTIC),
             _autocast(device, self.autocast_dtype),

@@ -18,6 +18,12 @@ from ._distance import check_supports_autocast
 from .distances import TemporalDistance
 from .graph import GraphPlan, GraphTensors, LandmarkGraph
 
+
+def _capturing_cuda_graph(device: torch.device) -> bool:
+    """Whether the current CUDA stream is being captured into a CUDA graph (no host read allowed)."""
+    return device.type == "cuda" and torch.cuda.is_current_stream_capturing()
+
+
 #: Per-env tracking entries stored under ``state_key`` (all with a trailing feature dim).
 STATE_ENTRIES = ("path", "path_length", "budgets", "index", "steps", "truncated", "has_plan", "graph_version")
 
@@ -94,17 +100,25 @@ class GraphPlanner(UnregisteredAttributes, Transform):
         max_path_length (int): landmarks stored per plan; a longer path is cut and replanned
             (from the state reached) once its stored part is used up. Defaults to ``32``.
         capturable (bool): track and plan with tensor operations of static shapes only: every env
-            is planned on every call (:meth:`LandmarkGraph.plan` with ``capturable=True``) and the new
-            plans are kept where a replan is due, instead of planning only those rows behind a
-            host-side branch. The waypoints and tracking state are the same; the acting policy then
-            compiles whole (``torch.compile(fullgraph=True)``, e.g. the collector's
-            ``compile_policy``), at the cost of one planning query per env and call (``O(K^2)`` per
-            env on top of ``2 K`` distance evaluations, ``K`` landmarks): meant for GPUs; on a CPU it
-            costs more than compiling saves (``benchmarks/bench_acting.py``). With a ``fixed_size`` graph
+            is planned (:meth:`LandmarkGraph.plan` with ``capturable=True``) and the new plans are kept
+            where a replan is due, instead of planning only those rows behind a host-side branch (``nonzero``).
+            The waypoints and tracking state are the same; the acting policy then compiles whole
+            (``torch.compile(fullgraph=True)``, e.g. the collector's ``compile_policy``). A planning query
+            costs ``O(K^2)`` per env on top of ``2 K`` distance evaluations (``K`` landmarks); with
+            ``plan_on_demand`` (the default) it runs only in the calls where some env is due for a replan, and
+            the compiled policy is then faster than the eager one on a CPU too (``benchmarks/bench_acting.py``).
+            With a ``fixed_size`` graph
             (``LandmarkGraph(fixed_size=True)``) it plans and reads waypoints from the graph's fixed-size
             copies: the same shapes and storage after every rebuild, so the compiled policy is not
             recompiled when the number of landmarks changes and a CUDA graph captured after the first
             build stays valid. Defaults to ``False``.
+        plan_on_demand (bool): with ``capturable=True``, plan (every env) only in the calls where some env is
+            due for a replan: under ``torch.compile`` through :func:`torch.cond` (one graph; its predicate is
+            read on the host when the branch runs), eagerly through a Python branch. Most calls then only track
+            (a replan is due once per subgoal, every ``c_h`` steps), which makes the compiled policy cheaper than
+            the eager one on a CPU. ``False`` plans at every call: static control flow, no host read, e.g. for a
+            policy captured whole in a CUDA graph (an eager ``torch.cuda.graph`` capture always plans at every
+            call). The waypoints and tracking state are the same either way. Defaults to ``True``.
         observation_key (NestedKey): Defaults to ``"observation"``.
         achieved_goal_key (NestedKey): Defaults to ``"achieved_goal"``.
         subgoal_key (NestedKey): Defaults to ``"subgoal"``.
@@ -148,6 +162,7 @@ class GraphPlanner(UnregisteredAttributes, Transform):
         reach_radius: float = 0.5,
         max_path_length: int = 32,
         capturable: bool = False,
+        plan_on_demand: bool = True,
         observation_key: NestedKey = "observation",
         achieved_goal_key: NestedKey = "achieved_goal",
         subgoal_key: NestedKey = "subgoal",
@@ -195,6 +210,9 @@ class GraphPlanner(UnregisteredAttributes, Transform):
         self.reach_radius = float(reach_radius)
         if not isinstance(capturable, bool):
             raise TypeError(f"`capturable` must be a bool, got {capturable!r}.")
+        if not isinstance(plan_on_demand, bool):
+            raise TypeError(f"`plan_on_demand` must be a bool, got {plan_on_demand!r}.")
+        self.plan_on_demand = plan_on_demand
         self.max_path_length = max_path_length
         self.capturable = capturable
         self.graph = graph
@@ -434,7 +452,7 @@ class GraphPlanner(UnregisteredAttributes, Transform):
             replan = replan & active.reshape(num)
         if self.capturable:
             if num:  # every row planned, the new plans kept where a replan is due
-                self._merge_plan(st, replan, self.plan(obs, subgoal), version)
+                self._merge_plan(st, replan, self._capturable_plan(obs, subgoal, replan, st), version)
         elif num and bool(replan.any()):
             rows = replan.nonzero().squeeze(-1)
             plan = self.plan(obs[rows], subgoal[rows])
@@ -455,14 +473,44 @@ class GraphPlanner(UnregisteredAttributes, Transform):
             out.set(key, value.reshape(shape))
         return out
 
+    def _capturable_plan(
+        self, obs: Tensor, subgoal: Tensor, replan: Tensor, st: dict[str, Tensor]
+    ) -> tuple[Tensor, Tensor, Tensor, Tensor]:
+        """``(path, length, budgets, truncated)`` of every row, planned when some row is due (``plan_on_demand``).
+
+        When no row is due the fields are placeholders of the same shapes (``_merge_plan`` keeps none of them).
+        """
+        budgets_dtype = st["budgets"].dtype
+
+        def planned(obs: Tensor, subgoal: Tensor) -> tuple[Tensor, Tensor, Tensor, Tensor]:
+            plan = self.plan(obs, subgoal)
+            return plan.path, plan.length, plan.budgets.to(budgets_dtype), plan.truncated
+
+        def unplanned(obs: Tensor, subgoal: Tensor) -> tuple[Tensor, Tensor, Tensor, Tensor]:
+            return (
+                torch.zeros_like(st["path"]),
+                torch.zeros_like(st["path_length"]),
+                torch.zeros_like(st["budgets"]),
+                torch.zeros_like(st["truncated"]),
+            )
+
+        if not self.plan_on_demand or _capturing_cuda_graph(obs.device):
+            return planned(obs, subgoal)
+        if torch.compiler.is_compiling():
+            return torch.cond(replan.any(), planned, unplanned, (obs, subgoal))
+        return planned(obs, subgoal) if bool(replan.any()) else unplanned(obs, subgoal)
+
     @staticmethod
-    def _merge_plan(st: dict[str, Tensor], replan: Tensor, plan: GraphPlan, version: Tensor) -> None:
+    def _merge_plan(
+        st: dict[str, Tensor], replan: Tensor, plan: tuple[Tensor, Tensor, Tensor, Tensor], version: Tensor
+    ) -> None:
         """``st`` takes ``plan``'s rows where ``replan`` (``[n]`` bool) is set: tensor operations only."""
+        path, length, budgets, truncated = plan
         fresh = {
-            "path": plan.path,
-            "path_length": plan.length,
-            "budgets": plan.budgets.to(st["budgets"].dtype),
-            "truncated": plan.truncated,
+            "path": path,
+            "path_length": length,
+            "budgets": budgets,
+            "truncated": truncated,
             "index": torch.zeros_like(st["index"]),
             "steps": torch.zeros_like(st["steps"]),
             "has_plan": torch.ones_like(st["has_plan"]),
@@ -541,5 +589,6 @@ class GraphPlanner(UnregisteredAttributes, Transform):
         return (
             f"goal_dim={self.goal_dim}, reach_radius={self.reach_radius}, "
             f"max_path_length={self.max_path_length}, capturable={self.capturable}, "
+            f"plan_on_demand={self.plan_on_demand}, "
             f"waypoint_key={self.waypoint_key!r}"
         )

@@ -189,9 +189,10 @@ def make_agent(
             :class:`~torchrl_dhrl.planner.LandmarkGraph`'s.
         reach_radius (float): a waypoint counts as reached within this distance (goal units).
         capturable_planner (bool): the :class:`~torchrl_dhrl.planner.GraphPlanner`'s ``capturable``: plans
-            with static shapes and no host synchronisation, every env at every step, so that the acting
-            policy compiles whole (:func:`make_collector`'s ``compile_policy``), on a ``fixed_size`` graph (the
-            same storage after every rebuild: no recompilation). Same plans. Defaults to ``False``.
+            with static shapes, every env in the steps where some env is due for a replan (``torch.cond`` when
+            compiled; ``plan_on_demand``), so that the acting policy compiles whole (:func:`make_collector`'s
+            ``compile_policy``), on a ``fixed_size`` graph (the same storage after every rebuild: no
+            recompilation). Same plans. Defaults to ``False``.
 
     Raises:
         ValueError: when the subgoal box does not match the goal space, or ``relative_goal`` lacks
