@@ -150,7 +150,11 @@ def train(cfg: DictConfig | dict, run_dir: str | Path | None = None) -> dict:
         total=cfg["total_steps"], initial=counters["env_steps"], unit="step", disable=not cfg["progress"]
     )
     # timers cover this process only (a resumed run starts them again), hence the steps at the start
-    timer = LoopTimer(agent.planner, env_steps=counters["env_steps"])
+    # (the planner's share of acting is timed with forward hooks: not in a compiled policy, whose graph they would
+    # break at the planner; time/planner_ms_per_call is then left out)
+    timer = LoopTimer(
+        None if cfg.get("compile_policy", False) else agent.planner, env_steps=counters["env_steps"]
+    )
     wall_start, wall_before = time.perf_counter(), counters["wall_s"]
     stop = GracefulStop()
     capture_reported: set[str] = set()

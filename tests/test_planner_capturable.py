@@ -496,13 +496,18 @@ def test_compile_policy_key_is_validated_and_reaches_the_planner_and_collector()
 
 @pytest.mark.slow
 def test_recipe_runs_with_a_compiled_policy_and_resumes_without_it(tmp_path, capsys):
-    from _recipe import load_recipe, recipe_config
+    from _recipe import load_recipe, metrics_rows, recipe_config
 
     recipe = load_recipe()
     overrides = ("env=PointMaze", "preset=smoke", "logger.backend=csv", "plots.every_epochs=0", "device=cpu")
     torch.manual_seed(0)
+    torch._dynamo.reset()
+    torch._dynamo.utils.counters.clear()
     recipe.train(recipe_config(*overrides, "total_steps=240", "compile_policy=true"), run_dir=tmp_path)
     assert "Acting: the policy compiled in the collector" in capsys.readouterr().out
+    # one graph: nothing of the recipe's (e.g. a timing hook on the planner) breaks the compiled policy
+    assert not torch._dynamo.utils.counters["graph_break"], dict(torch._dynamo.utils.counters["graph_break"])
+    assert all("time/planner_ms_per_call" not in row for row in metrics_rows(tmp_path))
     summary = recipe.train(
         recipe_config(*overrides, "total_steps=480", f"resume={tmp_path}", "compile_policy=false"),
         run_dir=tmp_path,
@@ -510,3 +515,5 @@ def test_recipe_runs_with_a_compiled_policy_and_resumes_without_it(tmp_path, cap
     printed = capsys.readouterr().out
     assert "Acting: the policy compiled" not in printed and "compile_policy" in printed  # the resume note
     assert summary["env_steps"] == 480 and 0.0 <= summary["eval/success"] <= 1.0
+    timed = [row["time/planner_ms_per_call"] != "" for row in metrics_rows(tmp_path)]
+    assert timed and timed[-1]  # the eager segment times the planner again

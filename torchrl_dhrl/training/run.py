@@ -178,7 +178,8 @@ def start_run(
     if cfg.get("compile_policy", False):
         print(
             "Acting: the policy compiled in the collector (torch.compile), its planner capturable (every env "
-            "planned at every step; the same plans)."
+            "planned inside a torch.cond in the steps where a replan is due; the same plans; the planner's time "
+            "per call is not logged)."
         )
     if forking:
         print(
