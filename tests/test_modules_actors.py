@@ -228,3 +228,29 @@ def test_exploration_in_sequential_with_nested_key():
     )
     out = policy(_td((3, 2)))
     assert out["agent", "action"].shape == (3, 2, 2)
+
+
+def test_exploration_uniform_prob_changes_without_recompiling():
+    """``uniform_prob`` is read from a buffer by a compiled module: the recipe's phase change (1.0 in the
+    warm-up, then 0.2 or 0.0) takes effect in the compiled graph and compiles nothing new."""
+    from torch._dynamo.testing import CompileCounter
+
+    noise = GaussianUniformExplorationModule(low=-1.0, high=1.0, sigma=0.0, uniform_prob=1.0)
+    counter = CompileCounter()
+    torch._dynamo.reset()
+    compiled = torch.compile(noise, backend=counter, fullgraph=True)
+    try:
+        torch.manual_seed(11)
+        for prob in (1.0, 0.2, 0.0, 0.5):
+            noise.uniform_prob = prob
+            assert noise.uniform_prob == prob and noise._uniform_prob.item() == pytest.approx(prob)
+            a = compiled(_constant_action_td(4000, 0.25, 3))["action"]
+            replaced = (a != 0.25).all(-1).float().mean().item()
+            assert abs(replaced - prob) < 0.04, (prob, replaced)
+        assert counter.frame_count == 1
+    finally:
+        torch._dynamo.reset()
+    with pytest.raises(ValueError, match="uniform_prob"):
+        noise.uniform_prob = -0.1
+    assert noise.uniform_prob == 0.5  # the bad value was not applied
+    assert "_uniform_prob" not in noise.state_dict()  # the recipe sets it per phase; checkpoints unchanged

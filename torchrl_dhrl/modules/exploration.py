@@ -75,18 +75,31 @@ class GaussianUniformExplorationModule(TensorDictModuleBase):
         sigma_t = torch.as_tensor(sigma, dtype=torch.float32)
         if (sigma_t < 0).any():
             raise ValueError(f"`sigma` must be >= 0, got {sigma}.")
-        if not 0.0 <= uniform_prob <= 1.0:
-            raise ValueError(f"`uniform_prob` must be in [0, 1], got {uniform_prob}.")
+        _check_probability(uniform_prob)
         _, half_width = box_loc_scale(low_t, high_t)
         self.register_buffer("low", low_t)
         self.register_buffer("high", high_t)
         self.register_buffer(
             "sigma", (sigma_t * half_width) if relative_sigma else sigma_t.expand_as(low_t).clone()
         )
-        self.uniform_prob = float(uniform_prob)
+        # the probability lives in a buffer (what the computation reads: changing it, e.g. at the end of the
+        # warm-up, recompiles no compiled policy) mirrored by a Python float (read back without a sync)
+        self.register_buffer("_uniform_prob", torch.tensor(float(uniform_prob)), persistent=False)
+        self._uniform_prob_value = float(uniform_prob)
         self.action_key = action_key
         self.in_keys = [action_key]
         self.out_keys = [action_key]
+
+    @property
+    def uniform_prob(self) -> float:
+        """The probability of a uniform action; settable (in place: a compiled policy picks it up as it is)."""
+        return self._uniform_prob_value
+
+    @uniform_prob.setter
+    def uniform_prob(self, value: float) -> None:
+        _check_probability(value)
+        self._uniform_prob_value = float(value)
+        self._uniform_prob.fill_(float(value))
 
     @staticmethod
     def _active() -> bool:
@@ -104,10 +117,12 @@ class GaussianUniformExplorationModule(TensorDictModuleBase):
         high = self.high.to(device=device, dtype=dtype)
         sigma = self.sigma.to(device=device, dtype=dtype)
         noisy = action + sigma * torch.randn_like(action)
-        if self.uniform_prob > 0:
-            replace = torch.rand(*action.shape[:-1], 1, device=device, dtype=dtype) < self.uniform_prob
-            uniform = low + (high - low) * torch.rand_like(action)
-            noisy = torch.where(replace, uniform, noisy)
+        # drawn whatever the probability (0 replaces nothing): no branch on its value, so a compiled module
+        # has no guard on it, and eager and compiled calls draw the same random numbers
+        prob = self._uniform_prob.to(device=device, dtype=dtype)
+        replace = torch.rand(*action.shape[:-1], 1, device=device, dtype=dtype) < prob
+        uniform = low + (high - low) * torch.rand_like(action)
+        noisy = torch.where(replace, uniform, noisy)
         return torch.maximum(torch.minimum(noisy, high), low)
 
     def forward(self, tensordict: TensorDictBase) -> TensorDictBase:
@@ -119,3 +134,8 @@ class GaussianUniformExplorationModule(TensorDictModuleBase):
         return (
             f"action_key={self.action_key!r}, uniform_prob={self.uniform_prob}, sigma={self.sigma.tolist()}"
         )
+
+
+def _check_probability(value: float) -> None:
+    if not 0.0 <= float(value) <= 1.0:
+        raise ValueError(f"`uniform_prob` must be in [0, 1], got {value}.")

@@ -451,8 +451,10 @@ class GraphPlanner(UnregisteredAttributes, Transform):
         if active is not None:
             replan = replan & active.reshape(num)
         if self.capturable:
-            if num:  # every row planned, the new plans kept where a replan is due
-                self._merge_plan(st, replan, self._capturable_plan(obs, subgoal, replan, st), version)
+            # every row planned, the new plans kept where a replan is due (eagerly: nothing when none is)
+            plan = self._capturable_plan(obs, subgoal, replan, st) if num else None
+            if plan is not None:
+                self._merge_plan(st, replan, plan, version)
         elif num and bool(replan.any()):
             rows = replan.nonzero().squeeze(-1)
             plan = self.plan(obs[rows], subgoal[rows])
@@ -475,10 +477,11 @@ class GraphPlanner(UnregisteredAttributes, Transform):
 
     def _capturable_plan(
         self, obs: Tensor, subgoal: Tensor, replan: Tensor, st: dict[str, Tensor]
-    ) -> tuple[Tensor, Tensor, Tensor, Tensor]:
+    ) -> tuple[Tensor, Tensor, Tensor, Tensor] | None:
         """``(path, length, budgets, truncated)`` of every row, planned when some row is due (``plan_on_demand``).
 
-        When no row is due the fields are placeholders of the same shapes (``_merge_plan`` keeps none of them).
+        When no row is due: under ``torch.compile`` placeholders of the same shapes (``torch.cond``'s branches
+        agree on their outputs; ``_merge_plan`` keeps none of them), eagerly ``None`` (nothing to merge).
         """
         budgets_dtype = st["budgets"].dtype
 
@@ -498,7 +501,7 @@ class GraphPlanner(UnregisteredAttributes, Transform):
             return planned(obs, subgoal)
         if torch.compiler.is_compiling():
             return torch.cond(replan.any(), planned, unplanned, (obs, subgoal))
-        return planned(obs, subgoal) if bool(replan.any()) else unplanned(obs, subgoal)
+        return planned(obs, subgoal) if bool(replan.any()) else None
 
     @staticmethod
     def _merge_plan(
