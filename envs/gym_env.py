@@ -44,7 +44,8 @@ class GymGoalEnv(gym.Env):
             many consecutive env steps upside down (see :class:`~torchrl_dhrl.envs.GoalSimulation`).
             Defaults to ``None``: never, as the reference.
 
-    ``reset(options={"goal": goal})`` sets the goal explicitly (it must lie inside the goal bounds).
+    ``reset(options={"goal": goal})`` sets the goal explicitly (it must lie inside the goal bounds);
+    ``reset(options={"start": position})`` starts a maze agent at that position (clear of the walls).
 
     Examples:
         >>> import gymnasium as gym
@@ -162,15 +163,16 @@ class GymGoalEnv(gym.Env):
     def reset(self, *, seed: int | None = None, options: dict[str, Any] | None = None):
         super().reset(seed=seed)
         options = {} if options is None else dict(options)
-        unknown = set(options) - {"goal", "eval"}
+        unknown = set(options) - {"goal", "eval", "start"}
         if unknown:
-            raise ValueError(f"Unknown reset options {sorted(unknown)}; supported: 'goal', 'eval'.")
+            raise ValueError(f"Unknown reset options {sorted(unknown)}; supported: 'goal', 'eval', 'start'.")
         self._sim.rngs[0] = self.np_random
-        goal = options.get("goal")
+        goal, start = options.get("goal"), options.get("start")
         self._sim.reset(
             None,
             None if goal is None else np.asarray(goal, dtype=np.float64)[None],
             eval_goals=options.get("eval"),
+            starts=None if start is None else np.asarray(start, dtype=np.float64)[None],
         )
         _, success = self._sim.evaluate()
         return self._get_obs(), {"is_success": bool(success[0])}

@@ -150,9 +150,8 @@ class GoalSimulation:
         self.step_count = np.zeros(num_envs, dtype=np.int64)
         #: Consecutive env steps each ant has been upside down (counted with ``right_flipped_after`` only).
         self.upside_down_steps = np.zeros(num_envs, dtype=np.int64)
-        if right_flipped_after is not None:
-            self._agent_geoms = self._geoms_of_agent()
-            self._plane_geoms = model.geom_type == mujoco.mjtGeom.mjGEOM_PLANE
+        self._agent_geoms = self._geoms_of_agent()
+        self._plane_geoms = model.geom_type == mujoco.mjtGeom.mjGEOM_PLANE
         self.rngs: list[np.random.Generator] = []
         self.seed(seed)
         # A valid, noise-free state until the first reset (it consumes no randomness).
@@ -209,18 +208,20 @@ class GoalSimulation:
         children = np.random.SeedSequence(seed).spawn(self.num_envs)
         self.rngs = [np.random.default_rng(child) for child in children]
 
-    def check_goals(self, goals, count: int) -> np.ndarray:
-        """Validates explicit goals: ``[count, goal_dim]`` (or one goal for all), finite, inside the bounds."""
+    def check_goals(self, goals, count: int, *, what: str = "goal") -> np.ndarray:
+        """Validates explicit goals: ``[count, goal_dim]`` (or one goal for all), finite, inside the bounds.
+
+        ``what`` names them in the errors (``"start"`` for start positions)."""
         dim = self.goal_dim
         goals = np.asarray(goals, dtype=np.float64)
         if goals.shape == (dim,):
             goals = np.broadcast_to(goals, (count, dim))
         if goals.shape != (count, dim):
             raise ValueError(
-                f"Expected goals of shape ({count}, {dim}) or ({dim},), got {tuple(goals.shape)}."
+                f"Expected {what}s of shape ({count}, {dim}) or ({dim},), got {tuple(goals.shape)}."
             )
         if not np.isfinite(goals).all():
-            raise ValueError("Goals must be finite.")
+            raise ValueError(f"{what.capitalize()}s must be finite.")
         outside = (
             (goals < self._goal_low - _GOAL_BOUNDS_TOLERANCE)
             | (goals > self._goal_high + _GOAL_BOUNDS_TOLERANCE)
@@ -230,10 +231,19 @@ class GoalSimulation:
                 f"{_AXES[k]} in [{self._goal_low[k]}, {self._goal_high[k]}]" for k in range(dim)
             )
             raise ValueError(
-                f"Goal {goals[outside][0].tolist()} lies outside the {self.spec.name} arena: goals must be in "
-                f"{ranges}."
+                f"{what.capitalize()} {goals[outside][0].tolist()} lies outside the {self.spec.name} arena: "
+                f"{what}s must be in {ranges}."
             )
         return goals
+
+    def _check_starts(self, starts, count: int) -> np.ndarray:
+        """Validates explicit start positions like goals; only for agents whose achieved goal is ``qpos[:goal_dim]``."""
+        if self._site is not None:
+            raise ValueError(
+                f"starts is for the mazes, whose achieved goal is the agent's position; {self.spec.name}'s is an "
+                "end-effector site (set joint angles with set_state instead)."
+            )
+        return self.check_goals(starts, count, what="start")
 
     def check_actions(self, actions) -> np.ndarray:
         """Validates a batch of actions: shape ``[num_envs, action_dim]``, finite."""
@@ -329,7 +339,7 @@ class GoalSimulation:
             self._observe(i, data)
             self.rngs[i].bit_generator.state = state["rngs"][i]
 
-    def reset(self, mask=None, goals=None, *, eval_goals: bool | None = None) -> None:
+    def reset(self, mask=None, goals=None, *, eval_goals: bool | None = None, starts=None) -> None:
         """Starts new episodes in the envs selected by ``mask`` (all by default).
 
         Args:
@@ -338,6 +348,10 @@ class GoalSimulation:
                 ``[goal_dim]`` goal for all of them; they must lie inside the goal bounds. By default goals
                 are drawn from the train (or test) distribution with each env's RNG.
             eval_goals (bool, optional): overrides :attr:`eval_goals` for this reset.
+            starts (array-like, optional): where the agents start, in goal space (``[k, goal_dim]`` or one
+                ``[goal_dim]``): the reset pose and its noise moved to this position (the mazes only, whose
+                achieved goal is the agent's position; no agent geom may overlap a wall there). By default the
+                task's start. The reset draws the same random numbers either way.
         """
         if mask is None:
             indices = np.arange(self.num_envs)
@@ -348,6 +362,8 @@ class GoalSimulation:
             indices = np.flatnonzero(mask)
         if goals is not None:
             goals = self.check_goals(goals, len(indices))
+        if starts is not None:
+            starts = self._check_starts(starts, len(indices))
         use_test = self.eval_goals if eval_goals is None else bool(eval_goals)
         sampler = self.spec.test_goal_sampler if use_test else self.spec.train_goals
         agent, model = self.agent, self.model
@@ -359,7 +375,14 @@ class GoalSimulation:
             agent.normalize_qpos(qpos)
             qvel = agent.qvel_noise * rng.standard_normal(self._nv)
             self.desired_goal[i] = sampler.sample(rng, 1)[0] if goals is None else goals[k]
+            if starts is not None:
+                qpos[: self.goal_dim] += starts[k] - self._init_qpos[: self.goal_dim]
             self.set_state(i, qpos, qvel)
+            if starts is not None and self._overlaps_wall(data):
+                raise ValueError(
+                    f"Start {starts[k].tolist()} puts the {self.spec.name} agent inside a wall (env {i}): "
+                    "starts must leave room for the agent's body in free space."
+                )
             self.step_count[i] = 0
             self.upside_down_steps[i] = 0
 

@@ -44,7 +44,10 @@ class GoalEnv(EnvBase):
     inside the goal bounds); TorchRL's automatic resets (``rollout``, collectors) never pass it, so they draw
     fresh goals. A :class:`~torchrl.envs.TransformedEnv` forwards only reset and state keys to its base env,
     so it drops that entry (goals are deliberately not state keys: automatic resets would then reuse the old
-    goal); build the env with ``eval=True`` for the fixed test goals, or reset the base env. Episodes of different envs stay distinguishable in collected data through
+    goal); build the env with ``eval=True`` for the fixed test goals, or reset the base env. A ``"start"`` entry
+    (``[num_envs, goal_dim]``, the mazes only) moves the agents' reset pose to those positions, e.g. for a reach
+    test from anywhere in the maze; it must leave the agent's body clear of the walls. Episodes of different envs
+    stay distinguishable in collected data through
     ``"step_count"`` and the collectors' ``("collector", "traj_ids")``.
 
     Seeding: :meth:`set_seed` spawns one numpy RNG stream per env (reset noise and goals); the RNG state
@@ -216,28 +219,31 @@ class GoalEnv(EnvBase):
         return TensorDict(out, batch_size=self.batch_size, device=self.device)
 
     def _reset(self, tensordict: TensorDictBase | None = None, **kwargs) -> TensorDictBase:
-        mask = goals = None
+        mask = goals = starts = None
         if tensordict is not None:
             reset = tensordict.get("_reset", None)
             if reset is not None:
                 mask = reset.reshape(self.batch_size).cpu().numpy()
-            goals = tensordict.get("desired_goal", None)
-            if goals is not None:
-                expected = (*self.batch_size, self._sim.goal_dim)
-                if goals.shape != expected:
-                    raise ValueError(
-                        f"A 'desired_goal' passed to reset must have shape {expected}, "
-                        f"got {tuple(goals.shape)}."
-                    )
-                goals = goals.detach().cpu().numpy()
-                if mask is not None:
-                    goals = goals[mask]
-        self._sim.reset(mask, goals)
+            goals, starts = (self._reset_entry(tensordict, key, mask) for key in ("desired_goal", "start"))
+        self._sim.reset(mask, goals, starts=starts)
         _, success = self._sim.evaluate()
         out = self._observations(success)
         done = torch.zeros((*self.batch_size, 1), dtype=torch.bool, device=self.device)
         out.update(done=done, terminated=done.clone(), truncated=done.clone())
         return TensorDict(out, batch_size=self.batch_size, device=self.device)
+
+    def _reset_entry(self, tensordict: TensorDictBase, key: str, mask) -> np.ndarray | None:
+        """A ``[*batch, goal_dim]`` entry of a reset tensordict as numpy, the rows of the envs being reset."""
+        value = tensordict.get(key, None)
+        if value is None:
+            return None
+        expected = (*self.batch_size, self._sim.goal_dim)
+        if value.shape != expected:
+            raise ValueError(
+                f"A '{key}' passed to reset must have shape {expected}, got {tuple(value.shape)}."
+            )
+        value = value.detach().cpu().numpy()
+        return value if mask is None else value[mask]
 
     def _set_seed(self, seed: int | None) -> None:
         self._sim.seed(seed)

@@ -6,6 +6,8 @@ the start, in straight-line-reachable directions, with exploration off.
 
     python recipes/diagnose_low_level.py outputs/<date>/<time>            # the run directory
     python recipes/diagnose_low_level.py run/checkpoint --radii 1 2 4 --steps 120
+    # can it pass AntMazeBottleneck's gap? From below it, ten tries per goal, one row per goal
+    python recipes/diagnose_low_level.py run --start 16 4.5 --radii 3 6 --directions 4 --repeats 10 --per-offset
 """
 
 from __future__ import annotations
@@ -27,12 +29,16 @@ def reach_test_from_checkpoint(
     max_steps: int | None = None,
     device: str | torch.device = "cpu",
     seed: int = 0,
+    start: Sequence[float] | None = None,
+    repeats: int = 1,
+    per_offset: bool = False,
 ) -> list[dict]:
     """:func:`~torchrl_dhrl.training.reach_test` for the low-level actor of a recipe checkpoint.
 
     Defaults follow the run's config: radii ``(0.25, 0.5, 1, 1.5) x cutoff x oracle_speed`` (the goal-space
     span of a graph edge, at the env's nominal speed), ``max_steps = 3 x cutoff``, the planner's
-    ``reach_radius`` and ``oracle_margin``, the run's ``angle_features``.
+    ``reach_radius`` and ``oracle_margin``, the run's ``angle_features``. ``start``, ``repeats`` and
+    ``per_offset`` as in :func:`~torchrl_dhrl.training.reach_test`.
 
     Args:
         path (str or Path): a checkpoint or the run directory holding it.
@@ -53,6 +59,9 @@ def reach_test_from_checkpoint(
         angle_features=cfg.get("angle_features"),
         device=device,
         seed=seed,
+        start=start,
+        repeats=repeats,
+        per_offset=per_offset,
     )
 
 
@@ -62,6 +71,17 @@ def main(argv: list[str] | None = None) -> list[dict]:
     parser.add_argument("--radii", type=float, nargs="+", default=None, help="goal distances (goal units)")
     parser.add_argument("--directions", type=int, default=16, help="directions per radius")
     parser.add_argument("--steps", type=int, default=None, help="steps per goal (default 3 x cutoff)")
+    parser.add_argument(
+        "--start",
+        type=float,
+        nargs="+",
+        default=None,
+        help="start here instead of the task's start (mazes: x y)",
+    )
+    parser.add_argument(
+        "--repeats", type=int, default=1, help="tries per goal, each with its own reset noise"
+    )
+    parser.add_argument("--per-offset", action="store_true", help="one row per goal instead of per radius")
     parser.add_argument("--device", default="cpu")
     args = parser.parse_args(argv)
     rows = reach_test_from_checkpoint(
@@ -70,13 +90,18 @@ def main(argv: list[str] | None = None) -> list[dict]:
         num_directions=args.directions,
         max_steps=args.steps,
         device=args.device,
+        start=args.start,
+        repeats=args.repeats,
+        per_offset=args.per_offset,
     )
+    offset = "offset".rjust(16) + " " if args.per_offset else ""
     print(
-        f"{'radius':>8} {'goals':>6} {'reached':>8} {'median steps':>13} {'min dist':>9} {'final dist':>11}"
+        f"{offset}{'radius':>8} {'goals':>6} {'reached':>8} {'median steps':>13} {'min dist':>9} {'final dist':>11}"
     )
     for row in rows:
+        offset = f"{'(' + ', '.join(f'{v:.2f}' for v in row['offset']) + ')':>16} " if args.per_offset else ""
         print(
-            f"{row['radius']:8.2f} {row['goals']:6d} {row['reach_rate']:8.0%} {row['median_steps']:13.1f} "
+            f"{offset}{row['radius']:8.2f} {row['goals']:6d} {row['reach_rate']:8.0%} {row['median_steps']:13.1f} "
             f"{row['mean_min_distance']:9.2f} {row['mean_final_distance']:11.2f}"
         )
     return rows

@@ -13,6 +13,7 @@ from torchrl_dhrl.training import obstacle_boxes
 from torchrl_dhrl.training.diagnostics import (
     low_level_reach_test,
     reach_offsets,
+    reach_test,
     summarize_reach,
     visible_offsets,
 )
@@ -82,6 +83,38 @@ def test_scripted_point_reaches_every_visible_goal_in_analytic_time():
     assert all(row["reach_rate"] == 1.0 and row["mean_min_distance"] <= 0.5 for row in rows)
 
 
+def test_reach_test_from_another_start_per_offset_with_repeats():
+    # PointMaze's right-hand corridor (x = 8): from (8, 4) the goals up and down it are visible, those left and
+    # right are blocked (the inner wall, the outer wall)
+    rows = reach_test(
+        _point_controller(),
+        "PointMaze",
+        radii=[2.0, 4.0],
+        max_steps=60,
+        reach_radius=0.5,
+        num_directions=4,
+        start=(8.0, 4.0),
+        repeats=3,
+        per_offset=True,
+    )
+    offsets = sorted(tuple(round(v) for v in row["offset"]) for row in rows)
+    assert offsets == [(0, -4), (0, -2), (0, 2), (0, 4)]
+    assert all(row["goals"] == 3 and row["reach_rate"] == 1.0 for row in rows)
+    assert all(row["radius"] == pytest.approx(abs(sum(row["offset"]))) for row in rows)
+    # per radius, the repeats pool: 2 directions x 3 tries
+    rows = reach_test(
+        _point_controller(), "PointMaze", radii=[2.0, 4.0], max_steps=60, reach_radius=0.5,
+        num_directions=4, start=(8.0, 4.0), repeats=3,
+    )  # fmt: skip
+    assert [(row["radius"], row["goals"]) for row in rows] == [(2.0, 6), (4.0, 6)]
+    with pytest.raises(ValueError, match="inside a wall"):
+        reach_test(
+            _point_controller(), "PointMaze", radii=[2.0], max_steps=5, reach_radius=0.5, start=(4.0, 4.0)
+        )
+    with pytest.raises(ValueError, match="repeats must be >= 1"):
+        reach_test(_point_controller(), "PointMaze", radii=[2.0], max_steps=5, reach_radius=0.5, repeats=0)
+
+
 def test_a_still_actor_reaches_nothing_and_bad_batch_is_refused():
     offsets = reach_offsets(2, [1.5], 4)
     still = TensorDictModule(
@@ -116,6 +149,11 @@ def test_reach_test_from_a_recipe_checkpoint_and_cli(tmp_path, capsys):
     )
     assert [row["radius"] for row in cli_rows] == pytest.approx([1.0, 2.0])
     assert "reached" in capsys.readouterr().out
+    argv = ["--radii", "2", "--directions", "4", "--steps", "5", "--start", "8", "4", "--repeats", "2"]
+    cli_rows = cli.main([str(tmp_path / "checkpoint"), *argv, "--per-offset"])
+    assert sorted(row["offset"][1] for row in cli_rows) == [-2.0, 2.0]  # up and down the right-hand corridor
+    assert all(row["goals"] == 2 for row in cli_rows)
+    assert "(0.00, 2.00)" in capsys.readouterr().out
 
 
 @pytest.mark.parametrize("angles", ["null", "[4,6]"])

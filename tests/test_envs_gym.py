@@ -79,6 +79,11 @@ def test_reset_options_and_errors():
         env.reset(options={"goal": (60.0, 0.0)})
     with pytest.raises(ValueError, match="Unknown reset options"):
         env.reset(options={"goal_xy": (0.0, 0.0)})
+    obs, _ = env.reset(seed=0, options={"start": (40.0, 8.0), "goal": (40.0, 48.0)})
+    assert np.linalg.norm(obs["achieved_goal"] - (40.0, 8.0)) < 0.2
+    np.testing.assert_array_equal(obs["desired_goal"], [40.0, 48.0])
+    with pytest.raises(ValueError, match="inside a wall"):
+        env.reset(options={"start": (8.0, 8.0)})
     env.reset(seed=0)
     with pytest.raises(ValueError, match="action of shape"):
         env.step(np.zeros(2))

@@ -122,6 +122,65 @@ def test_explicit_goals_through_reset_tensordict():
         env.reset(TensorDict({"desired_goal": torch.zeros(3, 3)}, [3]))
 
 
+@pytest.mark.parametrize("name", ["PointMaze", "AntMazeBottleneck"])
+def test_start_positions_through_reset_tensordict(name):
+    free = torch.tensor([[0.0, 0.0], [16.0, 4.0], [0.0, 16.0]])  # start, right corridor, goal corridor
+    scale = 4.0 if name == "PointMaze" else 8.0
+    starts = free * (scale / 8.0)
+    env = make_env(name, num_envs=3, seed=0)
+    reference = make_env(name, num_envs=3, seed=0)
+    td = env.reset(TensorDict({"start": starts}, [3]))
+    plain = reference.reset()
+    # the reset pose moved to the start; the same noise and goals as a plain reset (same random draws)
+    offset = env.simulation.observation[:, :2] - reference.simulation.observation[:, :2]
+    np.testing.assert_allclose(offset, starts.double().numpy(), atol=1e-12)
+    torch.testing.assert_close(td["achieved_goal"] - plain["achieved_goal"], starts)
+    torch.testing.assert_close(td["desired_goal"], plain["desired_goal"])
+    torch.testing.assert_close(td["observation"][:, 2:], plain["observation"][:, 2:])
+    # an episode goes on from there; a masked reset moves only the reset env
+    td = env.step(td.set("action", torch.zeros(3, *env.action_spec.shape[1:])))
+    assert ((td["next", "achieved_goal"] - starts).norm(dim=-1) < 0.5).all()
+    mask = torch.tensor([[False], [True], [False]])
+    before = env.simulation.achieved_goal.copy()
+    td = env.reset(TensorDict({"start": torch.zeros(3, 2), "_reset": mask}, [3]))
+    assert td["achieved_goal"][1].norm() < 0.2
+    np.testing.assert_array_equal(env.simulation.achieved_goal[[0, 2]], before[[0, 2]])
+    # in a wall, outside the arena, of the wrong shape: refused, naming the start
+    inside = torch.tensor([[8.0, 8.0], [0.0, 0.0], [0.0, 0.0]]) * (scale / 8.0)
+    with pytest.raises(ValueError, match=r"Start \[\d.*inside a wall"):
+        env.reset(TensorDict({"start": inside}, [3]))
+    with pytest.raises(ValueError, match=f"Start .* outside the {name} arena: starts must be in"):
+        env.reset(TensorDict({"start": torch.full((3, 2), 100.0)}, [3]))
+    with pytest.raises(ValueError, match="'start' passed to reset must have shape"):
+        env.reset(TensorDict({"start": torch.zeros(3, 3)}, [3]))
+
+
+def test_bottleneck_gap_is_narrower_than_the_resting_ant_but_not_the_folded_one():
+    # The gap between AntMazeBottleneck's extra walls (x in 15.4..17.0) is too narrow for the ant's reset pose
+    # (legs spread about 2 wide) anywhere across it; with its ankles folded to 1.22 rad (70 deg, their limit)
+    # the ant fits in its middle: passing it is possible, and takes folded legs.
+    env = make_env("AntMazeBottleneck", num_envs=1, seed=0)
+    for x in np.linspace(15.6, 16.8, 5):
+        with pytest.raises(ValueError, match="inside a wall"):
+            env.reset(TensorDict({"start": torch.tensor([[x, 8.0]])}, [1]))
+    env.reset(TensorDict({"start": torch.tensor([[16.2, 5.5]])}, [1]))  # just below the gap: clear
+    sim = env.simulation
+    model = sim.model
+    folded = np.array(sim.agent.init_qpos, dtype=np.float64)
+    folded[:3] = (16.2, 8.0, 0.55)
+    for joint in range(model.njnt):
+        if "ankle" in model.joint(joint).name:
+            folded[model.jnt_qposadr[joint]] = 1.22 * np.sign(model.jnt_range[joint].sum())
+    sim.set_state(0, folded)
+    assert not sim._overlaps_wall(sim.datas[0])
+
+
+def test_start_is_refused_for_the_arms():
+    env = make_env("Reacher3D", num_envs=1, seed=0)
+    with pytest.raises(ValueError, match="starts is for the mazes.*Reacher3D"):
+        env.reset(TensorDict({"start": torch.zeros(1, 3)}, [1]))
+
+
 @pytest.mark.parametrize("name", ["PointMaze", "AntMaze"])
 def test_reward_success_and_time_limit(name):
     spec = get_maze_spec(name)

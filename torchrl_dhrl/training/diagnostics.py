@@ -7,6 +7,7 @@ from collections.abc import Sequence
 from typing import NamedTuple
 
 import torch
+from tensordict import TensorDict
 from tensordict.nn import TensorDictModuleBase
 from torch import Tensor
 from torchrl.envs import Compose, EnvBase, TransformedEnv
@@ -38,6 +39,7 @@ class ReachResult(NamedTuple):
         steps_to_reach (Tensor): first step within ``reach_radius`` (1-based); ``max_steps + 1`` if never.
         min_distance (Tensor): closest approach over the episode.
         final_distance (Tensor): distance after the last step.
+        offset (Tensor): ``[N, goal_dim]``, each goal's offset from its start.
     """
 
     radius: Tensor
@@ -46,6 +48,7 @@ class ReachResult(NamedTuple):
     steps_to_reach: Tensor
     min_distance: Tensor
     final_distance: Tensor
+    offset: Tensor
 
 
 def reach_offsets(goal_dim: int, radii: Sequence[float], num_directions: int, *, seed: int = 0) -> Tensor:
@@ -92,6 +95,7 @@ def low_level_reach_test(
     *,
     max_steps: int,
     reach_radius: float,
+    start: Tensor | None = None,
 ) -> ReachResult:
     """Runs the low-level actor alone (no high level, no graph) towards ``start + offset`` goals.
 
@@ -110,6 +114,9 @@ def low_level_reach_test(
     Keyword Args:
         max_steps (int): steps per episode.
         reach_radius (float): the low level's success radius (the planner's waypoint radius).
+        start (Tensor, optional): ``[goal_dim]``, where every agent starts (the env's ``"start"`` reset entry,
+            mazes only); the goals are ``start + offsets``. By default the env's own start, and the goals are
+            the offsets from the achieved goal after a first reset.
 
     Examples:
         >>> import torch
@@ -128,10 +135,14 @@ def low_level_reach_test(
         )
     if max_steps < 1 or not reach_radius > 0:
         raise ValueError(f"Need max_steps >= 1 and reach_radius > 0, got {max_steps}, {reach_radius}.")
-    td = env.reset()
-    start = td["achieved_goal"]
-    offsets = offsets.to(start.device, start.dtype)
-    td = env.reset(td.set("desired_goal", start + offsets))
+    if start is None:
+        td = env.reset()
+        origin = td["achieved_goal"]
+    else:
+        td = TensorDict(batch_size=env.batch_size, device=env.device)
+        origin = td.set("start", start.to(env.device, torch.float32).expand(*env.batch_size, -1))["start"]
+    offsets = offsets.to(origin.device, origin.dtype)
+    td = env.reset(td.set("desired_goal", origin + offsets))
     goal = td["desired_goal"]
     policy = goal_as_waypoint(actor)
     with set_exploration_type(ExplorationType.DETERMINISTIC):
@@ -148,19 +159,29 @@ def low_level_reach_test(
         steps_to_reach=first.cpu(),
         min_distance=distance.amin(-1).cpu(),
         final_distance=distance[..., -1].cpu(),
+        offset=offsets.cpu(),
     )
 
 
-def summarize_reach(result: ReachResult) -> list[dict]:
-    """One row per offset radius: goals, reach rate, median steps to reach (reached goals), mean final distance."""
+def summarize_reach(result: ReachResult, *, per_offset: bool = False) -> list[dict]:
+    """One row per offset radius: goals, reach rate, median steps to reach (reached goals), mean final distance.
+
+    ``per_offset=True``: one row per distinct offset instead (its ``"offset"`` added), e.g. to tell the
+    direction through a passage from the others at the same radius.
+    """
     rows = []
-    for radius in torch.unique(result.radius.round(decimals=4)).tolist():
-        mask = (result.radius - radius).abs() < 1e-3
+    if per_offset:
+        keys, group = torch.unique(result.offset.round(decimals=3), dim=0, return_inverse=True)
+    else:
+        keys, group = torch.unique(result.radius.round(decimals=3), return_inverse=True)
+    for index, key in enumerate(keys):
+        mask = group == index
         reached = result.reached[mask]
         steps = result.steps_to_reach[mask][reached]
         rows.append(
             {
-                "radius": radius,
+                **({"offset": key.tolist()} if per_offset else {}),
+                "radius": result.radius[mask][0].item(),
                 "goals": int(mask.sum()),
                 "reach_rate": reached.float().mean().item(),
                 "median_steps": steps.float().median().item() if steps.numel() else float("nan"),
@@ -183,19 +204,27 @@ def reach_test(
     angle_features: Sequence[int] | None = None,
     device: str | torch.device = "cpu",
     seed: int = 0,
+    start: Sequence[float] | None = None,
+    repeats: int = 1,
+    per_offset: bool = False,
 ) -> list[dict]:
     """:func:`low_level_reach_test` of a low-level actor around ``env_name``'s start, summarised per radius.
 
-    ``num_directions`` goals per radius around the start of a fresh env; those blocked by the maze walls (or
-    the UR3 boards, inflated by ``oracle_margin``) or outside the env's goal box are dropped. The envs feed
-    the actor the observation it was trained on (``angle_features``, see
+    ``num_directions`` goals per radius around the start of a fresh env (or around ``start``, a position in
+    a maze); those blocked by the maze walls (or the UR3 boards, inflated by ``oracle_margin``) or outside the
+    env's goal box are dropped, and each is tried ``repeats`` times (each try with its own reset noise). The
+    envs feed the actor the observation it was trained on (``angle_features``, see
     :func:`~torchrl_dhrl.training.observation_transforms`).
 
+    A start below a narrow passage with a radius across it asks whether the low level can pass it (e.g.
+    AntMazeBottleneck's gap: ``start=(16, 4.5)``, ``radii=[6]``: the goal straight up lies past the gap).
+
     Returns:
-        one row per radius (:func:`summarize_reach`).
+        one row per radius, or per offset with ``per_offset=True`` (:func:`summarize_reach`).
 
     Raises:
-        ValueError: when no goal lies inside the goal box.
+        ValueError: when no goal lies inside the goal box; on a ``start`` outside the mazes' free space or for
+            an arm; on ``repeats < 1``.
 
     Examples:
         >>> from torchrl_dhrl.modules import LowLevelActor
@@ -204,9 +233,15 @@ def reach_test(
         >>> [row["radius"] for row in rows]
         [0.5, 1.0]
     """
+    if repeats < 1:
+        raise ValueError(f"repeats must be >= 1, got {repeats}.")
     device = torch.device(device)
     probe = make_env(env_name, num_envs=1, seed=seed, device=device)
-    start = probe.reset()["achieved_goal"][0]
+    reset = None
+    if start is not None:  # validated by the env (free space, mazes only) before any rollout
+        reset = TensorDict(start=torch.tensor([list(start)], dtype=torch.float32), batch_size=[1]).to(device)
+    achieved = probe.reset(reset)["achieved_goal"][0]
+    start = achieved if reset is None else reset["start"][0]
     offsets = reach_offsets(start.shape[-1], radii, num_directions, seed=seed)
     boxes = obstacle_boxes(env_name)
     if boxes is not None:
@@ -221,9 +256,17 @@ def reach_test(
     offsets = offsets[((goals >= low) & (goals <= high)).all(-1)]
     if offsets.shape[0] == 0:
         raise ValueError(f"No reach-test goal around the start {start.tolist()} lies inside the goal box.")
+    offsets = offsets.repeat(repeats, 1)
     env = make_env(env_name, num_envs=offsets.shape[0], seed=seed, device=device)
     features = observation_transforms(angle_features)  # the observation the actor was trained on
     if features:
         env = TransformedEnv(env, Compose(*features))
-    result = low_level_reach_test(env, low_actor, offsets, max_steps=max_steps, reach_radius=reach_radius)
-    return summarize_reach(result)
+    result = low_level_reach_test(
+        env,
+        low_actor,
+        offsets,
+        max_steps=max_steps,
+        reach_radius=reach_radius,
+        start=None if reset is None else start,
+    )
+    return summarize_reach(result, per_offset=per_offset)
