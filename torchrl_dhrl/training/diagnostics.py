@@ -139,8 +139,8 @@ def low_level_reach_test(
         td = env.reset()
         origin = td["achieved_goal"]
     else:
-        td = TensorDict(batch_size=env.batch_size, device=env.device)
-        origin = td.set("start", start.to(env.device, torch.float32).expand(*env.batch_size, -1))["start"]
+        origin = start.to(env.device, torch.float32).expand(*env.batch_size, -1)
+        td = TensorDict(start=origin, batch_size=env.batch_size, device=env.device)
     offsets = offsets.to(origin.device, origin.dtype)
     td = env.reset(td.set("desired_goal", origin + offsets))
     goal = td["desired_goal"]
