@@ -13,7 +13,14 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-__all__ = ["WallBox", "MazeLayout", "U_MAZE", "COMPLEX_MAZE", "bottleneck_walls"]
+__all__ = [
+    "WallBox",
+    "MazeLayout",
+    "U_MAZE",
+    "COMPLEX_MAZE",
+    "BOTTLENECK_WALL_FRICTION",
+    "bottleneck_walls",
+]
 
 #: The U-shaped maze of AntMazeSmall, AntMaze, AntMazeBottleneck and PointMaze.
 U_MAZE = (
@@ -65,8 +72,13 @@ class WallBox:
         return (round(cx - hx, 12), round(cx + hx, 12), round(cy - hy, 12), round(cy + hy, 12))
 
 
+#: Friction (slide, torsion, roll) of all 20 walls of the reference's ``ant_maze_bottleneck.xml``: the 18 blocks
+#: and the two thin walls.
+BOTTLENECK_WALL_FRICTION = (2.0, 0.1, 0.002)
+
+
 def bottleneck_walls(
-    friction: tuple[float, float, float] = (2.0, 0.1, 0.002),
+    friction: tuple[float, float, float] = BOTTLENECK_WALL_FRICTION,
 ) -> tuple[WallBox, WallBox]:
     """The two thin walls of AntMazeBottleneck in the corridor cell centred at (16, 8).
 
@@ -96,6 +108,8 @@ class MazeLayout:
         scale (float): cell size in world units.
         wall_height (float): wall height as a fraction of ``scale``. Defaults to ``0.5``.
         extra_walls (tuple of WallBox): walls added on top of the grid blocks. Defaults to none.
+        wall_friction (tuple of float, optional): MuJoCo friction of the grid blocks (an extra wall keeps its
+            own); ``None`` (the default) gives them the scene's contact friction (the agent's).
 
     Examples:
         >>> from torchrl_dhrl.envs import MazeLayout, U_MAZE
@@ -112,6 +126,7 @@ class MazeLayout:
     scale: float
     wall_height: float = 0.5
     extra_walls: tuple[WallBox, ...] = field(default_factory=tuple)
+    wall_friction: tuple[float, float, float] | None = None
 
     def __post_init__(self) -> None:
         if len({len(row) for row in self.grid}) != 1:
@@ -186,7 +201,11 @@ class MazeLayout:
         rows, cols = np.nonzero(self.walls)
         centers = self.cell_center(rows, cols)
         blocks = tuple(
-            WallBox(center=(float(x), float(y), half_height), half_size=(half, half, half_height))
+            WallBox(
+                center=(float(x), float(y), half_height),
+                half_size=(half, half, half_height),
+                friction=self.wall_friction,
+            )
             for x, y in centers
         )
         return blocks + tuple(self.extra_walls)

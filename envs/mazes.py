@@ -8,7 +8,7 @@ import numpy as np
 
 from .agents import AntAgent, PointAgent
 from .goals import BoxGoalSampler, FixedGoalSampler, FreeCellGoalSampler, GoalSampler
-from .layouts import COMPLEX_MAZE, U_MAZE, MazeLayout, bottleneck_walls
+from .layouts import BOTTLENECK_WALL_FRICTION, COMPLEX_MAZE, U_MAZE, MazeLayout, bottleneck_walls
 from .task import TaskSpec, lookup_spec
 
 __all__ = ["MazeSpec", "MAZES", "MAZE_NAMES", "get_maze_spec"]
@@ -30,6 +30,9 @@ class MazeSpec(TaskSpec):
         test_goals (tuple of (x, y)): the fixed evaluation goals; one is drawn per episode.
         reward_threshold (float): the sparse reward is ``0`` within this distance of the goal, else ``-1``.
             Defaults to ``0.5``.
+        start_position_noise (bool): whether the reset noise moves the start position (``qpos[:2]``); ``False``
+            puts the agent exactly at its start after drawing the same noise (AntMazeBottleneck, as the
+            reference's ``reset_model``). Defaults to ``True``.
 
     Examples:
         >>> from torchrl_dhrl.envs import get_maze_spec
@@ -48,6 +51,7 @@ class MazeSpec(TaskSpec):
     train_goals: GoalSampler
     test_goals: tuple[tuple[float, float], ...]
     reward_threshold: float = 0.5
+    start_position_noise: bool = True
 
     @property
     def test_goal_sampler(self) -> FixedGoalSampler:
@@ -121,13 +125,20 @@ def _make_mazes() -> dict[str, MazeSpec]:
         ),
         MazeSpec(
             name="AntMazeBottleneck",
-            layout=MazeLayout(U_MAZE, scale=8.0, extra_walls=bottleneck_walls()),
+            # As the reference: all 20 walls with the thin walls' friction, the start exactly at (0, 0).
+            layout=MazeLayout(
+                U_MAZE,
+                scale=8.0,
+                extra_walls=bottleneck_walls(),
+                wall_friction=BOTTLENECK_WALL_FRICTION,
+            ),
             agent=ant,
             episode_length=600,
             success_threshold=5.0,
             # As the reference: the thin walls are not excluded from the train goals.
             train_goals=_u_maze_train_goals(8.0),
             test_goals=((0.0, 16.0),),
+            start_position_noise=False,
         ),
         MazeSpec(
             name="AntMazeComplex",

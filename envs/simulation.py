@@ -375,6 +375,8 @@ class GoalSimulation:
             agent.normalize_qpos(qpos)
             qvel = agent.qvel_noise * rng.standard_normal(self._nv)
             self.desired_goal[i] = sampler.sample(rng, 1)[0] if goals is None else goals[k]
+            if not self.spec.start_position_noise:
+                qpos[: self.goal_dim] = self._init_qpos[: self.goal_dim]
             if starts is not None:
                 qpos[: self.goal_dim] += starts[k] - self._init_qpos[: self.goal_dim]
             self.set_state(i, qpos, qvel)

@@ -50,6 +50,8 @@ class TaskSpec:
       ``"achieved"`` (the achieved goal). Defaults to ``("qpos", "qvel")``.
     * :attr:`achieved_goal_site`: name of the MuJoCo site whose world position is the achieved goal;
       ``None`` (the default) takes the first ``goal_dim`` entries of ``qpos`` (a maze agent's x, y).
+    * :attr:`start_position_noise`: ``False`` sets the first ``goal_dim`` entries of ``qpos`` back to the
+      start after the noise is drawn (the same draws either way). Defaults to ``True``.
 
     Examples:
         >>> from torchrl_dhrl.envs import TaskSpec, get_env_spec
@@ -62,6 +64,7 @@ class TaskSpec:
 
     observation_layout: tuple[str, ...] = ("qpos", "qvel")
     achieved_goal_site: str | None = None
+    start_position_noise: bool = True
 
     @property
     def gym_id(self) -> str:

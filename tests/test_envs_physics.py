@@ -119,8 +119,43 @@ def test_ant_scene_contact_parameters():
         np.testing.assert_allclose(model.geom_solimp[g][:3], [0.8, 0.8, 0.01], err_msg=names[g])
         np.testing.assert_allclose(model.geom_solref[g], [0.02, 1.0], err_msg=names[g])
         np.testing.assert_allclose(model.geom_margin[g], 0.01, err_msg=names[g])
-    # The bottleneck's thin walls keep their own friction.
+    # The bottleneck's walls keep their own friction.
     assert any(np.allclose(model.geom_friction[g], [2.0, 0.1, 0.002]) for g in contact)
+
+
+def test_bottleneck_walls_have_the_reference_friction():
+    """All 20 walls of the reference's ``ant_maze_bottleneck.xml`` (18 blocks, 2 thin walls) have friction
+    (2, 0.1, 0.002); the other mazes' blocks take the ant's (1, 0.5, 0.5), as their references."""
+    model = compile_maze_model("AntMazeBottleneck")
+    walls = [g for g in range(model.ngeom) if model.geom(g).name.startswith("wall_")]
+    assert len(walls) == 20
+    for g in walls:
+        np.testing.assert_array_equal(model.geom_friction[g], [2.0, 0.1, 0.002], err_msg=model.geom(g).name)
+    for name in ("AntMazeSmall", "AntMaze", "AntMazeComplex"):
+        model = compile_maze_model(name)
+        walls = [g for g in range(model.ngeom) if model.geom(g).name.startswith("wall_")]
+        assert walls
+        for g in walls:
+            np.testing.assert_array_equal(model.geom_friction[g], [1.0, 0.5, 0.5], err_msg=model.geom(g).name)
+
+
+@pytest.mark.parametrize("seed", [0, 1, 7])
+def test_bottleneck_start_is_exactly_the_origin_with_the_other_noise_unchanged(seed):
+    """The reference's ``reset_model`` draws the reset noise, then sets ``qpos[:2]`` to the start: x, y exactly
+    (0, 0); every other qpos and qvel entry and the goal as AntMaze's reset (same agent, same draws)."""
+    bottleneck = GoalSimulation("AntMazeBottleneck", num_envs=4, seed=seed)
+    plain = GoalSimulation("AntMaze", num_envs=4, seed=seed)
+    for _ in range(3):
+        bottleneck.reset()
+        plain.reset()
+        np.testing.assert_array_equal(bottleneck.observation[:, :2], 0.0)
+        np.testing.assert_array_equal(bottleneck.achieved_goal, 0.0)
+        assert (plain.observation[:, :2] != 0.0).all() and (np.abs(plain.observation[:, :2]) <= 0.1).all()
+        np.testing.assert_array_equal(bottleneck.observation[:, 2:], plain.observation[:, 2:])
+        np.testing.assert_array_equal(bottleneck.desired_goal, plain.desired_goal)
+    # an explicit start is exact there too
+    bottleneck.reset(starts=[4.0, 0.0])
+    np.testing.assert_array_equal(bottleneck.achieved_goal, np.tile([4.0, 0.0], (4, 1)))
 
 
 def test_ant_collides_only_with_floor_and_walls():

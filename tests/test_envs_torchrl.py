@@ -155,10 +155,10 @@ def test_start_positions_through_reset_tensordict(name):
         env.reset(TensorDict({"start": torch.zeros(3, 3)}, [3]))
 
 
-def test_bottleneck_gap_is_narrower_than_the_resting_ant_but_not_the_folded_one():
+def test_bottleneck_gap_is_narrower_than_the_resting_ant_but_not_one_with_ankles_folded_past_0_64():
     # The gap between AntMazeBottleneck's extra walls (x in 15.4..17.0) is too narrow for the ant's reset pose
-    # (legs spread about 2 wide) anywhere across it; with its ankles folded to 1.22 rad (70 deg, their limit)
-    # the ant fits in its middle: passing it is possible, and takes folded legs.
+    # (legs spread about 2 wide) anywhere across it. With the hips at 0 the ant is 2 x (0.48 + 0.4 cos(ankle))
+    # across: below 1.6 once the ankles fold past about 0.64 rad (limit 1.22). Passing is a skill, not a block.
     env = make_env("AntMazeBottleneck", num_envs=1, seed=0)
     for x in np.linspace(15.6, 16.8, 5):
         with pytest.raises(ValueError, match="inside a wall"):
@@ -166,13 +166,19 @@ def test_bottleneck_gap_is_narrower_than_the_resting_ant_but_not_the_folded_one(
     env.reset(TensorDict({"start": torch.tensor([[16.2, 5.5]])}, [1]))  # just below the gap: clear
     sim = env.simulation
     model = sim.model
-    folded = np.array(sim.agent.init_qpos, dtype=np.float64)
-    folded[:3] = (16.2, 8.0, 0.55)
-    for joint in range(model.njnt):
-        if "ankle" in model.joint(joint).name:
-            folded[model.jnt_qposadr[joint]] = 1.22 * np.sign(model.jnt_range[joint].sum())
-    sim.set_state(0, folded)
-    assert not sim._overlaps_wall(sim.datas[0])
+
+    def overlaps_with_ankles_at(angle: float) -> bool:
+        pose = np.array(sim.agent.init_qpos, dtype=np.float64)
+        pose[:3] = (16.2, 8.0, 0.55)
+        for joint in range(model.njnt):
+            if "ankle" in model.joint(joint).name:
+                pose[model.jnt_qposadr[joint]] = angle * np.sign(model.jnt_range[joint].sum())
+        sim.set_state(0, pose)
+        return bool(sim._overlaps_wall(sim.datas[0]))
+
+    assert overlaps_with_ankles_at(0.5) and overlaps_with_ankles_at(0.62)
+    assert not overlaps_with_ankles_at(0.66) and not overlaps_with_ankles_at(0.9)
+    assert not overlaps_with_ankles_at(1.22)
 
 
 def test_start_is_refused_for_the_arms():
