@@ -111,9 +111,11 @@ def test_largest_seed_is_valid():
 
 
 @pytest.mark.parametrize("env", ENV_NAMES)
-@pytest.mark.parametrize("preset", ["paper", "quick", "smoke"])
+@pytest.mark.parametrize("preset", ["paper", "quick", "cpu", "cpu_paper_schedule", "smoke"])
 def test_env_and_preset_files_only_set_keys_of_the_schema(env, preset):
-    check_known_keys(recipe_config(f"env={env}", f"preset={preset}"), config_schema())
+    cfg = recipe_config(f"env={env}", f"preset={preset}")
+    check_known_keys(cfg, config_schema())
+    validate_config(cfg)
 
 
 @pytest.mark.parametrize(
