@@ -30,7 +30,7 @@ import time
 import torch
 from torchrl.envs.utils import step_mdp
 
-from torchrl_dhrl.training import make_agent, make_environment
+from torchrl_dhrl.recipe import make_agent, make_environment
 
 
 def build(args, num_envs, capturable, plan_on_demand=True):

@@ -25,13 +25,12 @@ region), with trajectories, landmarks, edges and paths in goal space.
 """
 
 from .agents import AntAgent, MotorControl, PointAgent
-from .arena import build_maze_mjcf, compile_maze_model
 from .arms import ARM_NAMES, ARMS, ArmSpec, build_arm_mjcf, get_arm_spec, ur3_boards
 from .goal_env import GOAL_ENV_KEYS, GoalEnvError, check_goal_env
 from .goals import BoxGoalSampler, FixedGoalSampler, FreeCellGoalSampler, GaussianGoalSampler, GoalSampler
 from .gym_env import GymGoalEnv, register_gym_envs
 from .layouts import COMPLEX_MAZE, U_MAZE, MazeLayout, WallBox, bottleneck_walls
-from .mazes import MAZE_NAMES, MAZES, MazeSpec, get_maze_spec
+from .mazes import MAZE_NAMES, MAZES, MazeSpec, build_maze_mjcf, compile_maze_model, get_maze_spec
 from .plotting import plot_arm, plot_env, plot_maze
 from .registry import (
     ENV_NAMES,

@@ -102,13 +102,22 @@ class AntAgent(MotorControl):
             identity quaternion and every joint at 0, as in the reference, whose gym ``MujocoEnv`` resets
             around the state at load (its XML's custom ``init_qpos`` numeric, torso at 0.55 with the ankles at
             +-1 rad, is never read). The ankles start outside their ranges; the joint limits fold the legs down
-            within 3 env steps while the ant drops onto its feet, and it stands still after about 10.
+            within 3 env steps while the ant drops onto its feet; the torso settles at about 0.38 after about 100.
         qpos_noise (float): reset noise ``U(-qpos_noise, qpos_noise)`` on every ``qpos`` entry (the
             quaternion is renormalised afterwards). Defaults to ``0.1``.
         qvel_noise (float): reset noise ``N(0, qvel_noise)`` on every ``qvel`` entry. Defaults to ``0.1``.
         timestep (float): MuJoCo timestep. Defaults to ``0.02``.
         frame_skip (int): physics steps per environment step. Defaults to ``5`` (0.1 s per env step).
         integrator (str): MuJoCo integrator. Defaults to ``"RK4"``.
+        reference_engine (bool): emulate MuJoCo 2.0 (the reference's ``mujoco_py`` 2.0.2.8) where MuJoCo 3
+            differs: (1) a contact's margin was the larger of its two geoms' margins, MuJoCo 3 takes their sum,
+            so every geom of the scene (the ant's, and through :attr:`scene_contact` the floor's and the walls')
+            gets half of ``margin`` (0.005: 0.01 per contact, as the reference; the ant only touches static
+            geoms); (2) before MuJoCo 2.1.2 the compiler approximated a capsule's mass and inertia by a solid
+            cylinder of the capsule's radius and length ``L + radius`` (``L`` the ``fromto`` length: the
+            cylindrical section extended by half the radius at both ends), so every leg body gets an explicit
+            ``<inertial>`` of that cylinder (the torso's sphere was exact in 2.0 and is left alone): the ant weighs
+            0.879 instead of 0.911. Defaults to ``False`` (MuJoCo 3's own margins and exact capsules).
 
     Examples:
         >>> from torchrl_dhrl.envs import AntAgent
@@ -141,6 +150,7 @@ class AntAgent(MotorControl):
     timestep: float = 0.02
     frame_skip: int = 5
     integrator: str = "RK4"
+    reference_engine: bool = False
 
     #: Legs in reference order 1-4: (name, in-plane direction, sign of the ankle range).
     legs = (
@@ -168,19 +178,74 @@ class AntAgent(MotorControl):
         return True
 
     @property
+    def geom_margin(self) -> float:
+        """The ``margin`` of every geom of the scene: :attr:`margin`, or half of it with :attr:`reference_engine`.
+
+        MuJoCo 3 adds the two geoms' margins of a contact where MuJoCo 2.0 took the larger; with equal margins
+        on both sides, half of ``margin`` each gives the reference's ``margin`` per contact.
+
+        Examples:
+            >>> from torchrl_dhrl.envs import AntAgent
+            >>> AntAgent().geom_margin, AntAgent(reference_engine=True).geom_margin
+            (0.01, 0.005)
+        """
+        return self.margin / 2.0 if self.reference_engine else self.margin
+
+    @property
     def scene_contact(self) -> dict:
         """Contact parameters the arena gives the floor and the walls.
 
         In the reference every geom of the scene (floor and wall blocks included) takes the model's default
         class; MuJoCo mixes the two geoms' ``solref``/``solimp`` of a contact, so the static geoms must carry
-        the ant's values for its contacts to be the reference's.
+        the ant's values for its contacts to be the reference's (and the margin :attr:`geom_margin`).
         """
         return {
             "solref": self.solref,
             "solimp": self.solimp,
             "friction": self.friction,
-            "margin": self.margin,
+            "margin": self.geom_margin,
         }
+
+    def capsule_inertial(self, fromto) -> dict:
+        """MuJoCo 2.0's mass and inertia of a leg capsule from ``fromto``, as ``<inertial>`` attributes.
+
+        Before MuJoCo 2.1.2 the compiler approximated a capsule of radius ``r`` and segment length ``L`` by a
+        solid cylinder of radius ``r`` and height ``h = L + r`` about the segment's centre: mass
+        ``density pi r^2 h``, inertia ``m r^2 / 2`` about the axis and ``m (3 r^2 + h^2) / 12`` across it.
+        The inertial frame sits at the segment's centre with its z axis along the segment.
+
+        Examples:
+            >>> from torchrl_dhrl.envs import AntAgent
+            >>> inertial = AntAgent().capsule_inertial((0.0, 0.0, 0.0, 0.4, 0.4, 0.0))
+            >>> round(inertial["mass"], 5), inertial["pos"]
+            (0.06491, (0.2, 0.2, 0.0))
+        """
+        start, end = np.asarray(fromto[:3], dtype=np.float64), np.asarray(fromto[3:], dtype=np.float64)
+        axis = end - start
+        length = float(np.linalg.norm(axis))
+        radius = self.leg_radius
+        height = length + radius
+        mass = self.density * np.pi * radius**2 * height
+        transverse = mass * (3.0 * radius**2 + height**2) / 12.0
+        axial = mass * radius**2 / 2.0
+        # The rotation taking z onto the segment's direction u: the half-way quaternion (1 + z.u, z x u).
+        u = axis / length
+        quat = np.array([1.0 + u[2], -u[1], u[0], 0.0])
+        if quat[0] < 1e-12:  # u = -z: half a turn about x
+            quat = np.array([0.0, 1.0, 0.0, 0.0])
+        quat /= np.linalg.norm(quat)
+        return {
+            "pos": tuple(float(v) for v in (start + end) / 2.0),
+            "quat": tuple(float(v) for v in quat),
+            "mass": float(mass),
+            "diaginertia": (float(transverse), float(transverse), float(axial)),
+        }
+
+    def _add_capsule(self, body, name: str, fromto) -> None:
+        """A leg capsule in ``body`` (with MuJoCo 2.0's inertial under :attr:`reference_engine`)."""
+        body.add("geom", name=name, type="capsule", size=[self.leg_radius], fromto=fromto)
+        if self.reference_engine:
+            body.add("inertial", **self.capsule_inertial(fromto))
 
     def build_mjcf(self) -> mjcf.RootElement:
         """Builds the ant model (torso at the model origin, no root joint; see :meth:`attach_to`)."""
@@ -195,7 +260,7 @@ class AntAgent(MotorControl):
         geom.condim = 3
         geom.density = self.density
         geom.friction = self.friction
-        geom.margin = self.margin
+        geom.margin = self.geom_margin
         geom.solref = self.solref
         geom.solimp = self.solimp
         geom.rgba = (0.8, 0.6, 0.4, 1.0)
@@ -212,24 +277,12 @@ class AntAgent(MotorControl):
             lower = (self.lower_leg * dx, self.lower_leg * dy, 0.0)
             ankle_range = np.sort(sign * np.deg2rad(self.ankle_range_deg))
             leg_body = torso.add("body", name=f"{leg}_leg")
-            leg_body.add(
-                "geom",
-                name=f"aux_{number}_geom",
-                type="capsule",
-                size=[self.leg_radius],
-                fromto=(0.0, 0.0, 0.0) + upper,
-            )
+            self._add_capsule(leg_body, f"aux_{number}_geom", (0.0, 0.0, 0.0) + upper)
             hip_body = leg_body.add("body", name=f"aux_{number}", pos=upper)
             joints[f"hip_{number}"] = hip_body.add(
                 "joint", name=f"hip_{number}", type="hinge", axis=(0, 0, 1), range=hip_range
             )
-            hip_body.add(
-                "geom",
-                name=f"{leg}_upper_geom",
-                type="capsule",
-                size=[self.leg_radius],
-                fromto=(0.0, 0.0, 0.0) + upper,
-            )
+            self._add_capsule(hip_body, f"{leg}_upper_geom", (0.0, 0.0, 0.0) + upper)
             ankle_body = hip_body.add("body", name=f"{leg}_foot", pos=upper)
             # In-plane axis perpendicular to the leg direction (dx, dy): sign * (-dy, dx, 0). A positive
             # angle about (-dy, dx, 0) folds the lower leg down, so with the sign the ankle range (positive
@@ -238,13 +291,7 @@ class AntAgent(MotorControl):
             joints[f"ankle_{number}"] = ankle_body.add(
                 "joint", name=f"ankle_{number}", type="hinge", axis=axis, range=ankle_range
             )
-            ankle_body.add(
-                "geom",
-                name=f"{leg}_lower_geom",
-                type="capsule",
-                size=[self.leg_radius],
-                fromto=(0.0, 0.0, 0.0) + lower,
-            )
+            self._add_capsule(ankle_body, f"{leg}_lower_geom", (0.0, 0.0, 0.0) + lower)
         for number in self.motor_leg_order:
             for part in ("hip", "ankle"):
                 root.actuator.add(

@@ -2,18 +2,14 @@
 
 from __future__ import annotations
 
-import mujoco
 import numpy as np
 from dm_control import mjcf
 
 from .agents import AGENT_CONTYPE
 from .layouts import WallBox
-from .mazes import MazeSpec, get_maze_spec
 from .task import GOAL_BODY, OVERVIEW_CAMERA
 
 __all__ = [
-    "build_maze_mjcf",
-    "compile_maze_model",
     "OVERVIEW_CAMERA",
     "GOAL_BODY",
     "new_scene",
@@ -32,7 +28,18 @@ _OVERVIEW_FOVY = 45.0
 
 
 def new_scene(name: str, agent) -> mjcf.RootElement:
-    """An empty scene with the agent's timestep and integrator, a headlight and a large offscreen buffer."""
+    """An empty scene with the agent's timestep and integrator, a headlight and a large offscreen buffer.
+
+    Examples:
+        >>> from torchrl_dhrl.envs import AntAgent
+        >>> from torchrl_dhrl.envs.arena import add_boxes, new_scene
+        >>> from torchrl_dhrl.envs.layouts import WallBox
+        >>> root = new_scene("demo", AntAgent())
+        >>> root.option.timestep, root.option.integrator
+        (0.02, 'RK4')
+        >>> [geom.name for geom in add_boxes(root, (WallBox((0.0, 0.0, 1.0), (1.0, 1.0, 1.0)),), prefix="wall")]
+        ['wall_0']
+    """
     root = mjcf.RootElement(model=name)
     root.compiler.angle = "radian"
     root.option.timestep = agent.timestep
@@ -159,48 +166,5 @@ def add_camera(root: mjcf.RootElement, name: str, pos, target=None, fovy: float 
     return root.worldbody.add("camera", name=name, pos=tuple(float(v) for v in pos), fovy=fovy, **extra)
 
 
-def build_maze_mjcf(maze: str | MazeSpec) -> mjcf.RootElement:
-    """Builds the MJCF model of a maze programmatically from its grid.
-
-    The arena holds a floor plane, one box per wall cell (and the extra walls), a visual-only mocap goal
-    marker and a top-down camera; the agent is attached at the origin (the start cell's centre).
-
-    Args:
-        maze (str or MazeSpec): a maze name or spec.
-
-    Returns:
-        the :class:`dm_control.mjcf.RootElement` of the whole scene.
-
-    Examples:
-        >>> from torchrl_dhrl.envs import build_maze_mjcf
-        >>> root = build_maze_mjcf("AntMazeSmall")
-        >>> len([g for g in root.worldbody.find_all("geom") if g.name and g.name.startswith("wall")])
-        18
-    """
-    spec = get_maze_spec(maze)
-    agent = spec.agent
-    root = new_scene(spec.name, agent)
-    low, high = spec.layout.extent
-    center = (low + high) / 2
-    half_extent = float(np.max(high - low)) / 2
-    contact = agent.scene_contact
-    add_floor(root, center, half_extent, collides=agent.touches_floor, contact=contact)
-    add_boxes(root, spec.layout.wall_boxes, prefix="wall", contact=contact)
-    add_goal_marker(root, spec.reward_threshold)
-    # A camera looking straight down (-z) with +y up; high enough to see the whole grid.
-    height = half_extent / np.tan(np.deg2rad(_OVERVIEW_FOVY) / 2) * 1.05
-    add_camera(root, OVERVIEW_CAMERA, (center[0], center[1], height))
-    agent.attach_to(root)
-    return root
 
 
-def compile_maze_model(maze: str | MazeSpec) -> mujoco.MjModel:
-    """Compiles a fresh :class:`mujoco.MjModel` of a maze (the MJCF text is built once and cached).
-
-    Examples:
-        >>> from torchrl_dhrl.envs import compile_maze_model
-        >>> model = compile_maze_model("AntMaze")
-        >>> model.nq, model.nv, model.nu, model.opt.timestep
-        (15, 14, 8, 0.02)
-    """
-    return get_maze_spec(maze).compile_model()

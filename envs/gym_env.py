@@ -43,6 +43,9 @@ class GymGoalEnv(gym.Env):
         right_flipped_after (int, optional): ant mazes only: put a flipped ant back on its feet after this
             many consecutive env steps upside down (see :class:`~torchrl_dhrl.envs.GoalSimulation`).
             Defaults to ``None``: never, as the reference.
+        reference_engine (bool): ant mazes only: emulate MuJoCo 2.0 where MuJoCo 3 differs (0.01 margin per
+            contact, MuJoCo 2.0's capsule masses and inertias; see :class:`~torchrl_dhrl.envs.AntAgent`);
+            ``gym.make("dhrl/AntMaze-v0", reference_engine=True)``. Defaults to ``False``.
 
     ``reset(options={"goal": goal})`` sets the goal explicitly (it must lie inside the goal bounds);
     ``reset(options={"start": position})`` starts a maze agent at that position (clear of the walls).
@@ -75,6 +78,7 @@ class GymGoalEnv(gym.Env):
         width: int = 480,
         height: int = 480,
         right_flipped_after: int | None = None,
+        reference_engine: bool = False,
     ) -> None:
         spec = get_env_spec(task)
         if render_mode is not None and render_mode not in self.metadata["render_modes"]:
@@ -87,10 +91,12 @@ class GymGoalEnv(gym.Env):
             max_episode_steps=max_episode_steps,
             eval_goals=eval,
             right_flipped_after=right_flipped_after,
+            reference_engine=reference_engine,
         )
         self.render_mode = render_mode
         self.width, self.height = width, height
         self.metadata = {**self.metadata, "render_fps": int(round(1.0 / self._sim.dt))}
+        spec = self._sim.spec  # with reference_engine: the ant emulating MuJoCo 2.0
         agent, dim = spec.agent, spec.goal_dim
         low, high = spec.goal_bounds
         self.observation_space = spaces.Dict(

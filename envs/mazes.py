@@ -4,14 +4,25 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 
+import mujoco
 import numpy as np
+from dm_control import mjcf
 
 from .agents import AntAgent, PointAgent
+from .arena import (
+    _OVERVIEW_FOVY,
+    OVERVIEW_CAMERA,
+    add_boxes,
+    add_camera,
+    add_floor,
+    add_goal_marker,
+    new_scene,
+)
 from .goals import BoxGoalSampler, FixedGoalSampler, FreeCellGoalSampler, GoalSampler
 from .layouts import BOTTLENECK_WALL_FRICTION, COMPLEX_MAZE, U_MAZE, MazeLayout, bottleneck_walls
 from .task import TaskSpec, lookup_spec
 
-__all__ = ["MazeSpec", "MAZES", "MAZE_NAMES", "get_maze_spec"]
+__all__ = ["MazeSpec", "MAZES", "MAZE_NAMES", "get_maze_spec", "build_maze_mjcf", "compile_maze_model"]
 
 
 @dataclass(frozen=True)
@@ -75,8 +86,6 @@ class MazeSpec(TaskSpec):
 
     def build_mjcf(self):
         """The maze scene, see :func:`~torchrl_dhrl.envs.build_maze_mjcf`."""
-        from .arena import build_maze_mjcf
-
         return build_maze_mjcf(self)
 
 
@@ -172,3 +181,50 @@ def get_maze_spec(maze: str | MazeSpec) -> MazeSpec:
         2
     """
     return lookup_spec(maze, MAZES, MazeSpec, "maze")
+
+
+def build_maze_mjcf(maze: str | MazeSpec) -> mjcf.RootElement:
+    """Builds the MJCF model of a maze programmatically from its grid.
+
+    The arena holds a floor plane, one box per wall cell (and the extra walls), a visual-only mocap goal
+    marker and a top-down camera; the agent is attached at the origin (the start cell's centre).
+
+    Args:
+        maze (str or MazeSpec): a maze name or spec.
+
+    Returns:
+        the :class:`dm_control.mjcf.RootElement` of the whole scene.
+
+    Examples:
+        >>> from torchrl_dhrl.envs import build_maze_mjcf
+        >>> root = build_maze_mjcf("AntMazeSmall")
+        >>> len([g for g in root.worldbody.find_all("geom") if g.name and g.name.startswith("wall")])
+        18
+    """
+    spec = get_maze_spec(maze)
+    agent = spec.agent
+    root = new_scene(spec.name, agent)
+    low, high = spec.layout.extent
+    center = (low + high) / 2
+    half_extent = float(np.max(high - low)) / 2
+    contact = agent.scene_contact
+    add_floor(root, center, half_extent, collides=agent.touches_floor, contact=contact)
+    add_boxes(root, spec.layout.wall_boxes, prefix="wall", contact=contact)
+    add_goal_marker(root, spec.reward_threshold)
+    # A camera looking straight down (-z) with +y up; high enough to see the whole grid.
+    height = half_extent / np.tan(np.deg2rad(_OVERVIEW_FOVY) / 2) * 1.05
+    add_camera(root, OVERVIEW_CAMERA, (center[0], center[1], height))
+    agent.attach_to(root)
+    return root
+
+
+def compile_maze_model(maze: str | MazeSpec) -> mujoco.MjModel:
+    """Compiles a fresh :class:`mujoco.MjModel` of a maze (the MJCF text is built once and cached).
+
+    Examples:
+        >>> from torchrl_dhrl.envs import compile_maze_model
+        >>> model = compile_maze_model("AntMaze")
+        >>> model.nq, model.nv, model.nu, model.opt.timestep
+        (15, 14, 8, 0.02)
+    """
+    return get_maze_spec(maze).compile_model()

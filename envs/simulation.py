@@ -9,6 +9,8 @@ goal sampling, observation, achieved goal, reward, success, time limit) lives he
 
 from __future__ import annotations
 
+import dataclasses
+
 import mujoco
 import numpy as np
 from mujoco import mjtState
@@ -16,7 +18,7 @@ from mujoco import mjtState
 from .registry import get_env_spec
 from .task import GOAL_BODY, OVERVIEW_CAMERA, TaskSpec
 
-__all__ = ["GoalSimulation", "sparse_reward"]
+__all__ = ["GoalSimulation", "reference_engine_spec", "sparse_reward"]
 
 # Goals set explicitly may sit this far outside the goal bounds (float round-off of user inputs).
 _GOAL_BOUNDS_TOLERANCE = 1e-6
@@ -52,6 +54,36 @@ def sparse_reward(achieved_goal, desired_goal, threshold: float = 0.5) -> np.nda
     return np.where(distance > threshold, -1.0, 0.0)
 
 
+def reference_engine_spec(task: str | TaskSpec) -> TaskSpec:
+    """The spec of an ant maze with its agent emulating MuJoCo 2.0 (``AntAgent(reference_engine=True)``).
+
+    The returned spec is a copy of ``task``'s with ``agent=dataclasses.replace(agent, reference_engine=True)``
+    (same name, layout, goals and thresholds); its model has the reference's 0.01 margin per contact and
+    MuJoCo 2.0's capsule masses and inertias (see :class:`~torchrl_dhrl.envs.AntAgent`).
+
+    Raises:
+        ValueError: naming the option and the env, for an env whose agent is not the ant.
+
+    Examples:
+        >>> from torchrl_dhrl.envs.simulation import reference_engine_spec
+        >>> spec = reference_engine_spec("AntMaze")
+        >>> spec.name, spec.agent.reference_engine, round(spec.agent.geom_margin, 3)
+        ('AntMaze', True, 0.005)
+    """
+    spec = get_env_spec(task)
+    agent = getattr(spec, "agent", None)
+    if not (
+        dataclasses.is_dataclass(spec)
+        and dataclasses.is_dataclass(agent)
+        and "reference_engine" in {field.name for field in dataclasses.fields(agent)}
+    ):
+        raise ValueError(
+            f"reference_engine emulates MuJoCo 2.0's contact margins and capsule inertias of the ant: it applies "
+            f"to the ant mazes only, not to {spec.name} (agent {type(agent).__name__}). Leave it False."
+        )
+    return dataclasses.replace(spec, agent=dataclasses.replace(agent, reference_engine=True))
+
+
 class GoalSimulation:
     """Batched MuJoCo simulation of one task: ``num_envs`` independent episodes on one model.
 
@@ -78,6 +110,10 @@ class GoalSimulation:
             pushed clear of any wall it would overlap; the episode goes on. ``None`` (the default, as the
             reference): a flipped ant stays flipped until the episode ends. The count of consecutive steps
             upside down (:attr:`upside_down_steps`) is part of :meth:`get_state`.
+        reference_engine (bool): ant mazes only: emulate MuJoCo 2.0 where MuJoCo 3 differs (the reference's
+            0.01 margin per contact and MuJoCo 2.0's capsule masses and inertias; see
+            :class:`~torchrl_dhrl.envs.AntAgent` and :func:`reference_engine_spec`). Defaults to ``False``:
+            the spec's own agent (MuJoCo 3's sum of margins, exact capsules).
 
     Examples:
         >>> import numpy as np
@@ -104,8 +140,11 @@ class GoalSimulation:
         eval_goals: bool = False,
         seed: int | None = None,
         right_flipped_after: int | None = None,
+        reference_engine: bool = False,
     ) -> None:
-        self.spec = spec = get_env_spec(task)
+        if not isinstance(reference_engine, (bool, np.bool_)):
+            raise ValueError(f"reference_engine must be True or False, got {reference_engine!r}.")
+        self.spec = spec = reference_engine_spec(task) if reference_engine else get_env_spec(task)
         if not isinstance(num_envs, int) or isinstance(num_envs, bool) or num_envs < 1:
             raise ValueError(f"num_envs must be a positive integer, got {num_envs!r}.")
         if max_episode_steps is None:

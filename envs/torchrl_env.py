@@ -67,6 +67,9 @@ class GoalEnv(EnvBase):
         right_flipped_after (int, optional): ant mazes only: put a flipped ant back on its feet after this
             many consecutive env steps upside down (see :class:`~torchrl_dhrl.envs.GoalSimulation`).
             Defaults to ``None``: never, as the reference.
+        reference_engine (bool): ant mazes only: emulate MuJoCo 2.0 where MuJoCo 3 differs (0.01 margin per
+            contact, MuJoCo 2.0's capsule masses and inertias; see :class:`~torchrl_dhrl.envs.AntAgent`).
+            Defaults to ``False``.
 
     Examples:
         >>> import torch
@@ -98,6 +101,7 @@ class GoalEnv(EnvBase):
         device=None,
         seed: int | None = None,
         right_flipped_after: int | None = None,
+        reference_engine: bool = False,
     ) -> None:
         spec = get_env_spec(task)
         sim = GoalSimulation(
@@ -106,6 +110,7 @@ class GoalEnv(EnvBase):
             max_episode_steps=max_episode_steps,
             eval_goals=eval_goals,
             right_flipped_after=right_flipped_after,
+            reference_engine=reference_engine,
         )
         super().__init__(device=device, batch_size=torch.Size([num_envs]))
         self._sim = sim
@@ -283,6 +288,7 @@ def make_env(
     eval: bool = False,  # noqa: A002 - the documented option name
     max_episode_steps: int | None = None,
     right_flipped_after: int | None = None,
+    reference_engine: bool = False,
 ) -> EnvBase:
     """Builds a DHRL environment as a native batched TorchRL environment.
 
@@ -304,10 +310,15 @@ def make_env(
         max_episode_steps (int, optional): time limit override (defaults to the paper's episode length).
         right_flipped_after (int, optional): built-in ant mazes only: put a flipped ant back on its feet
             after this many consecutive env steps upside down. Defaults to ``None`` (never, as the reference).
+        reference_engine (bool): built-in ant mazes only: emulate MuJoCo 2.0 where MuJoCo 3 differs: every
+            geom of the scene gets a 0.005 margin (0.01 per contact, as the reference's MuJoCo 2.0, which took
+            the larger of the two margins where MuJoCo 3 adds them) and the leg capsules MuJoCo 2.0's masses and
+            inertias (a cylinder ``radius`` longer; the ant weighs 0.879 instead of 0.911). The env is built from
+            the spec with ``agent=dataclasses.replace(agent, reference_engine=True)``. Defaults to ``False``.
 
     Raises:
         ValueError: for an unknown name; the message lists the valid ones; for ``right_flipped_after``
-            with an env that has no ant.
+            or ``reference_engine`` with an env that has no ant.
         GoalEnvError: when a registered factory returns an env that does not meet the contract.
 
     Examples:
@@ -323,6 +334,10 @@ def make_env(
         if right_flipped_after is not None:
             raise ValueError(
                 f"right_flipped_after is an option of the built-in ant mazes, not of the registered env {name!r}."
+            )
+        if reference_engine:
+            raise ValueError(
+                f"reference_engine is an option of the built-in ant mazes, not of the registered env {name!r}."
             )
         env = factory(
             num_envs=num_envs, seed=seed, device=device, eval=eval, max_episode_steps=max_episode_steps
@@ -346,4 +361,5 @@ def make_env(
         device=device,
         seed=seed,
         right_flipped_after=right_flipped_after,
+        reference_engine=reference_engine,
     )

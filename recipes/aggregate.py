@@ -22,7 +22,7 @@ from pathlib import Path
 
 from dhrl_utils import PAPER_SUCCESS
 
-from torchrl_dhrl.training.aggregate import aggregate_runs, find_runs, plot_aggregate, write_aggregate_csv
+from torchrl_dhrl.recipe import aggregate_runs, find_runs, plot_aggregate, write_aggregate_csv
 
 
 def summary_markdown(table: list[dict], reference: dict) -> str:

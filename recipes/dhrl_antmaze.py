@@ -7,25 +7,51 @@ Usage::
     python recipes/dhrl_antmaze.py env=AntMaze resume=outputs/<date>/<time>   # continue exactly
     python recipes/dhrl_antmaze.py env=AntMaze fork=<run dir> run_dir=<new dir> high.far_from_graph_factor=1.0
                                                   # branch a run from its checkpoint (an A/B from one state)
-    python recipes/dhrl_antmaze.py env=AntMaze low.sqgc=false                 # ablations, see README
+    python recipes/dhrl_antmaze.py env=AntMaze low.sqgc=false                 # ablations, see docs/faithfulness.md
 
-The loop follows Appendix A, "Overview of DHRL": random-walk warm-up episodes (uniform actions),
-then hierarchical acting without a graph (the planner passes subgoals through), then graph planning
-with a graph rebuilt from scratch every epoch (15 episodes). The collector yields one whole episode
-per env; after each, one low-level (SQGC) update per env step and one high-level update every 10
-env steps are run (both ratios configurable). After every epoch the agent is evaluated on the test
-goals: 10 deterministic episodes, final-state success (any-time success is logged too), logged
-against env steps counted from the start, warm-up included, as the reference does.
+The loop is Appendix A's Algorithm 1, "Overview of DHRL", with the collector yielding one whole episode per env
+and the updates of its env steps run after it (as many as the paper's interleaved ones: one low-level update per
+env step, one high-level update every 10; ``schedule.*``). Each line of the algorithm, and what carries it:
 
-Everything is built by the factories of :mod:`torchrl_dhrl.training`, with the arguments
-``dhrl_utils.py`` maps from ``config/``; the run directory receives ``logs/`` (CSV by default),
-``checkpoint/`` (a ``torchrl.checkpoint`` directory), ``metrics.csv``, ``success_curve.png`` and
+====== =================================== ===============================================================
+Alg. 1 the paper                           here: the component (where)
+====== =================================== ===============================================================
+2      ``Dist(s, g)`` from ``Q_graph``      ``GoalDistance`` (planner/distances.py) on ``SQGCLoss``'s graph
+                                           critics; ``planner.distance=oracle``: ``LineOfSightDistance``
+3      for tau = 1 .. tau_total            ``for batch in run.collector`` in :func:`train` (whole episodes)
+4-5    Env.reset when done                 the ``Collector``; truncation by the env (envs/torchrl_env.py)
+6-7    g <- FGS(G, g, Q_graph)             ``GoalShiftOnReset`` + ``FrontierGoalShifting`` (planner/fgs.py)
+                                           in the training env, with ``fgs.enabled``
+10-11  random actions (warm-up)            ``GaussianUniformExplorationModule.uniform_prob = 1``
+                                           (modules/exploration.py), set by :func:`set_phase`
+12-13  vanilla HRL before the graph        ``GraphPlanner`` (planner/graph_planner.py) passes the subgoal
+                                           through while its graph is empty
+15-16  create the graph with FPS           ``rebuild_graph`` (recipe/epoch.py) -> ``LandmarkGraph.build``
+                                           (planner/graph.py: ``farthest_point_sampling``, edges < cutoff)
+18-19  sg <- pi_hi(s, g) every c_h steps   ``HighLevelPolicy`` + ``SubgoalScheduler`` (modules/); the cadence
+                                           lives in the tensordict
+20     waypoints <- Dijkstra(s, sg)        ``GraphPlanner`` -> ``LandmarkGraph.plan`` (all-pairs shortest
+                                           paths once per rebuild, ``floyd_warshall``; secondary path)
+23-24  next waypoint: reached or timed out ``GraphPlanner``'s waypoint tracking (``planner.reach_radius``)
+26     a <- pi_lo(s, wp)                   ``LowLevelActor`` (modules/actors.py) + the exploration noise
+28     Env.step(a)                         the ``Collector``; ``low_rb.extend`` / ``high_rb.extend``
+29     train both levels                   ``LossUpdater.run`` (training/updates.py): ``SQGCLoss`` on a
+                                           ``RelabelReplayBuffer`` with ``FutureGoalRelabel`` (low level);
+                                           ``HighLevelLoss`` on ``HighLevelTransitionBuilder`` +
+                                           ``HindsightSubgoalRelabel`` (subgoal testing, gradual penalty)
+30-31  update the graph every N            :func:`end_epoch`: ``rebuild_graph`` every
+                                           ``schedule.graph_rebuild_epochs`` epochs (15 episodes each)
+====== =================================== ===============================================================
+
+After every epoch the agent is evaluated on the test goals: 10 deterministic episodes, final-state success
+(any-time success is logged too), logged against env steps counted from the start, warm-up included, as the
+reference does. Everything is built by ``dhrl_utils.py`` from ``config/``; the run directory receives ``logs/``
+(CSV by default), ``checkpoint/`` (a ``torchrl.checkpoint`` directory), ``metrics.csv``, ``success_curve.png`` and
 ``episodes/epoch_*.png``.
 """
 
 from __future__ import annotations
 
-import gc
 import math
 import os
 import sys
@@ -38,6 +64,7 @@ import hydra
 import tqdm
 from dhrl_utils import (
     PAPER_SUCCESS,
+    RunParts,
     build_episode_log,
     build_logger,
     build_run,
@@ -49,27 +76,30 @@ from dhrl_utils import (
 )
 from omegaconf import DictConfig
 
-from torchrl_dhrl.training import (
+from torchrl_dhrl.diagnostics import TrainingEpisodeLog
+from torchrl_dhrl.recipe import (
     CHECKPOINT_NAME,
     LOW_LEVEL_KEYS,
     CheckpointError,
     ConfigError,
     GracefulStop,
     LoopTimer,
-    NonFiniteLossError,
+    RunCounters,
+    RunStart,
     epoch_of,
     evaluate_epoch,
+    frozen_gc,
     graph_metrics,
     log_metrics,
     make_checkpoint,
     plot_epoch,
     plot_success_curve,
     rebuild_graph,
-    record_video,
     restore_checkpoint,
     save_checkpoint,
     write_metrics_csv,
 )
+from torchrl_dhrl.training import NonFiniteLossError, record_video
 
 # Launchers that pickle the task for another process (submitit's local and Slurm executors) import its
 # modules there by name, and this folder is not on that process's path: ship the helpers by value.
@@ -80,194 +110,143 @@ def train(cfg: DictConfig | dict, run_dir: str | Path | None = None) -> dict:
     """Trains DHRL as configured; returns the last evaluation's metrics and the run directory.
 
     Before anything is built or written, :func:`~dhrl_utils.start_up` checks the configuration, the
-    checkpoint to resume and the run directory, and raises :class:`~torchrl_dhrl.training.ConfigError` on any
+    checkpoint to resume and the run directory, and raises :class:`~torchrl_dhrl.recipe.ConfigError` on any
     problem.
     """
     start = start_up(cfg, run_dir)
-    cfg, device, run_dir, resume, state = start
+    cfg, device, run_dir = start.config, start.device, start.run_dir
     seed_everything(cfg["seed"])
     schedule = cfg["schedule"]
-
     # ---- build: env specs -> agent -> envs with the agent's primers -> buffers, updaters, collector
-    agent, train_env, eval_env, low_rb, high_rb, low_updater, high_updater, collector = build_run(cfg, device)
-    episode_length = train_env.base_env.max_episode_steps
-    counters = {"env_steps": 0, "episodes": 0, "epochs": 0, "graph_builds": 0, "wall_s": 0.0}
-    history: list[dict] = []
-    # one registry of everything the run carries, for saving and restoring alike
-    checkpoint = make_checkpoint(
-        config=cfg,
-        agent=agent,
-        low_updater=low_updater,
-        high_updater=high_updater,
-        low_rb=low_rb,
-        high_rb=high_rb,
-        train_env=train_env.base_env,
-        eval_env=eval_env.base_env,
-        collector=collector,
-        counters=counters,
-        history=history,
+    run = build_run(cfg, device)
+    agent, low_rb, high_rb, low_updater, high_updater = (
+        run.agent,
+        run.low_rb,
+        run.high_rb,
+        run.low_updater,
+        run.high_updater,
     )
-    if resume is not None:  # checked by start_up; restored before anything is written
-        try:
-            restore_checkpoint(checkpoint, resume, map_location=device)
-        except CheckpointError as err:
-            key = "fork" if start.forking else "resume"
-            raise ConfigError(f"`{key}={cfg[key]}`: {err}") from err
-        if start.forking:  # a new run from another's state: its own seed's training streams
-            counters.setdefault("forks", []).append(
-                {"checkpoint": str(resume), "env_steps": counters["env_steps"], "seed": cfg["seed"]}
-            )
-            reseeded = cfg["seed"] != state["config"]["seed"]
-            if reseeded:  # the test episodes keep their stream: both arms of an A/B see the same ones
-                seed_everything(cfg["seed"], train_env)
-            print(
-                f"Forked from {resume} at {counters['env_steps']} env steps"
-                + (f", re-seeded with seed {cfg['seed']}." if reseeded else ", its random streams continued.")
-            )
-        else:
-            print(f"Resumed from {resume} at {counters['env_steps']} env steps.")
-    checkpoint_path = run_dir / CHECKPOINT_NAME
-    if (
-        resume is not None and counters["env_steps"] >= cfg["total_steps"]
-    ):  # e.g. a finished job of a re-run sweep
-        collector.shutdown()
-        print(
-            f"Already finished: {counters['env_steps']} env steps (total_steps={cfg['total_steps']}); nothing to do."
+    counters, history = RunCounters(), []
+    checkpoint = (
+        make_checkpoint(  # one registry of everything the run carries, for saving and restoring alike
+            config=cfg,
+            agent=agent,
+            low_updater=low_updater,
+            high_updater=high_updater,
+            low_rb=low_rb,
+            high_rb=high_rb,
+            train_env=run.train_env.base_env,
+            eval_env=run.eval_env.base_env,
+            collector=run.collector,
+            counters=counters,
+            history=history,
         )
-        return {
-            "run_dir": str(run_dir),
-            "checkpoint": str(checkpoint_path),
-            **(history[-1] if history else {}),
-        }
-
-    logger = build_logger(cfg, run_dir)
-    # the training episodes' success, FGS shifts and maze progress per epoch; its counts travel in the counters
-    episode_log = build_episode_log(cfg, counters.get("train_episodes"))
-    warmup_end = schedule["warmup_episodes"]
-    graph_start = warmup_end + schedule["graph_start_epoch"] * schedule["epoch_episodes"]
-    _set_phase(cfg, agent, counters["episodes"])
-    bar = tqdm.tqdm(
-        total=cfg["total_steps"], initial=counters["env_steps"], unit="step", disable=not cfg["progress"]
     )
-    # timers cover this process only (a resumed run starts them again), hence the steps at the start
-    # (the planner's share of acting is timed with forward hooks: not in a compiled policy, whose graph they would
-    # break at the planner; time/planner_ms_per_call is then left out)
-    timer = LoopTimer(
-        None if cfg.get("compile_policy", False) else agent.planner, env_steps=counters["env_steps"]
-    )
-    wall_start, wall_before = time.perf_counter(), counters["wall_s"]
-    stop = GracefulStop()
-    capture_reported: set[str] = set()
-    # What exists now (torch, Hydra, the agent, buffers, envs: about 0.5M objects) lives for the whole run: out of
-    # the cyclic garbage collector's reach, its full collections stop walking it (they took 6% of a PointMaze quick
-    # run's first 12k steps, 2.7% with the freeze). Reference counting still frees these objects; unfrozen at the end.
-    gc.collect()
-    gc.freeze()
-    try:
-        for batch in collector:
-            timer.lap("collect")
-            # ---- store: low-level [num_envs, T] batches (time-major storage); the builder cuts high-level ones
-            low_rb.extend(batch.select(*LOW_LEVEL_KEYS))
-            high_rb.extend(batch)
-            episode_log.update(batch)
-            counters["train_episodes"] = episode_log.state_dict()
-            if counters["episodes"] < warmup_end and not schedule["train_during_warmup"]:
-                # the reference trains nothing on the random warm-up and does not catch up afterwards
-                counters["untrained_steps"] = counters.get("untrained_steps", 0) + batch.numel()
-            counters["env_steps"] += batch.numel()
-            counters["episodes"] += cfg["num_envs"]
-            timer.lap()
-            # ---- learn: low_updates_per_step SQGC updates per env step, a high-level one every 10
-            trained_steps = counters["env_steps"] - counters.get("untrained_steps", 0)
-            n_low = math.floor(trained_steps * schedule["low_updates_per_step"]) - low_updater.num_updates
-            low_out = low_updater.run(n_low)
-            n_high = trained_steps // schedule["high_update_interval"] - high_updater.num_updates
-            high_out = high_updater.run(n_high) if len(high_rb) else None
-            timer.lap("update")
-            for level, updater in (("low", low_updater), ("high", high_updater)):
-                if updater.sampling_captured is not None and level not in capture_reported:
-                    capture_reported.add(level)  # cudagraphs=true or capture_sampling=true
-                    print(f"Sampling, {level} level: {updater.sampling_note}.")
-            bar.update(batch.numel())
-            # ---- phase: random warm-up, then the policies
-            _set_phase(cfg, agent, counters["episodes"])
-            epoch = epoch_of(counters["episodes"], warmup_end, schedule["epoch_episodes"])
-            counters["wall_s"] = wall_before + time.perf_counter() - wall_start
-            if epoch > counters["epochs"]:
-                # ---- epoch end: rebuild the graph (when due), evaluate on the test goals, draw
-                counters["epochs"] = epoch
-                metrics = {
-                    "epoch": epoch,
-                    "env_steps": counters["env_steps"],
-                    "episodes": counters["episodes"],
-                }
-                metrics["time/wall_s"] = counters["wall_s"]  # since the start of the run, resumes included
-                graph_due = (
-                    counters["episodes"] >= graph_start
-                    and (epoch - 1) % schedule["graph_rebuild_epochs"] == 0
+    checkpoint_path = run_dir / CHECKPOINT_NAME
+    try:  # the collector's workers stop however the run ends
+        if start.resume is not None:
+            restore_or_fork(start, checkpoint, counters, run)
+            if counters.env_steps >= cfg["total_steps"]:  # e.g. a finished job of a re-run sweep
+                print(
+                    f"Already finished: {counters.env_steps} env steps (total_steps={cfg['total_steps']}); "
+                    "nothing to do."
                 )
-                if cfg["planner"]["enabled"] and graph_due:
-                    metrics.update(rebuild_graph(agent.planner, low_rb, cfg["planner"]["candidates"]))
-                    counters["graph_builds"] += 1
-                metrics.update(graph_metrics(agent.planner))
-                metrics.update(episode_log.pop_metrics())
-                counters["train_episodes"] = episode_log.state_dict()
-                if epoch % schedule["eval_every_epochs"] == 0:
-                    evaluation, result = evaluate_epoch(
-                        agent, eval_env, episode_length, **evaluation_kwargs(cfg)
+                return {
+                    "run_dir": str(run_dir),
+                    "checkpoint": str(checkpoint_path),
+                    **(history[-1] if history else {}),
+                }
+        logger = build_logger(cfg, run_dir)
+        # the training episodes' success, FGS shifts and maze progress per epoch; its counts travel in the counters
+        episode_log = build_episode_log(cfg, counters.train_episodes)
+        warmup_end = schedule["warmup_episodes"]
+        set_phase(cfg, agent, counters.episodes)
+        bar = tqdm.tqdm(
+            total=cfg["total_steps"], initial=counters.env_steps, unit="step", disable=not cfg["progress"]
+        )
+        # timers cover this process only (a resumed run starts them again), hence the steps at the start (the
+        # planner's share of acting is timed with forward hooks: not in a compiled policy, whose graph they would
+        # break at the planner; time/planner_ms_per_call is then left out)
+        timer = LoopTimer(
+            None if cfg.get("compile_policy", False) else agent.planner, env_steps=counters.env_steps
+        )
+        wall_start, wall_before = time.perf_counter(), counters.wall_s
+        capture_reported: set[str] = set()
+        with GracefulStop() as stop, frozen_gc():
+            try:
+                for batch in run.collector:  # Alg. 1 l.3-28: one whole episode per env, acted by the policy
+                    timer.lap("collect")
+                    # ---- store (l.28): low-level [num_envs, T] batches; the builder cuts high-level ones
+                    low_rb.extend(batch.select(*LOW_LEVEL_KEYS))
+                    high_rb.extend(batch)
+                    episode_log.update(batch)
+                    counters.train_episodes = episode_log.state_dict()
+                    if counters.episodes < warmup_end and not schedule["train_during_warmup"]:
+                        # the reference trains nothing on the random warm-up and does not catch up afterwards
+                        counters.untrained_steps += batch.numel()
+                    counters.env_steps += batch.numel()
+                    counters.episodes += cfg["num_envs"]
+                    timer.lap()
+                    # ---- learn (l.29): low_updates_per_step SQGC updates per env step, a high-level one every 10
+                    trained_steps = counters.env_steps - counters.untrained_steps
+                    low_out = low_updater.run(
+                        math.floor(trained_steps * schedule["low_updates_per_step"]) - low_updater.num_updates
                     )
-                    metrics.update(evaluation)
-                    every = cfg["plots"]["every_epochs"]
-                    if every and (epoch // schedule["eval_every_epochs"]) % every == 0:
-                        plot_epoch(
-                            cfg["env_name"],
-                            agent.planner,
-                            result,
-                            run_dir / "episodes",
-                            epoch=epoch,
-                            env_steps=counters["env_steps"],
+                    n_high = trained_steps // schedule["high_update_interval"] - high_updater.num_updates
+                    high_out = high_updater.run(n_high) if len(high_rb) else None
+                    timer.lap("update")
+                    report_capture(run, capture_reported)
+                    bar.update(batch.numel())
+                    # ---- phase (l.10-13): random warm-up, then the policies
+                    set_phase(cfg, agent, counters.episodes)
+                    counters.wall_s = wall_before + time.perf_counter() - wall_start
+                    epoch = epoch_of(counters.episodes, warmup_end, schedule["epoch_episodes"])
+                    if (
+                        epoch > counters.epochs
+                    ):  # ---- epoch end (l.30-31): graph, evaluation, logs, checkpoint
+                        metrics = end_epoch(
+                            cfg, run, run_dir, counters, epoch, episode_log, timer, low_out, high_out
                         )
-                metrics.update(timer.metrics(counters["env_steps"]))
-                for prefix, out in (("low", low_out), ("high", high_out)):
-                    if out is not None:
-                        metrics.update({f"{prefix}/{k}": v.item() for k, v in out.items()})
-                history.append(metrics)
-                log_metrics(logger, metrics, counters["env_steps"])
-                write_metrics_csv(history, run_dir / "metrics.csv")
-                bar.set_postfix(success=f"{metrics.get('eval/success', float('nan')):.2f}", epoch=epoch)
-                if epoch % cfg["checkpoint"]["every_epochs"] == 0:
-                    save_checkpoint(checkpoint, checkpoint_path)
-            if counters["env_steps"] >= cfg["total_steps"]:
-                break
-            if stop.requested:  # a signal during this batch: stop here, every update of the batch done
-                raise KeyboardInterrupt
-            timer.lap()
-    except KeyboardInterrupt:
-        stop.restore()
+                        history.append(metrics)
+                        log_metrics(logger, metrics, counters.env_steps)
+                        write_metrics_csv(history, run_dir / "metrics.csv")
+                        bar.set_postfix(
+                            success=f"{metrics.get('eval/success', float('nan')):.2f}", epoch=epoch
+                        )
+                        if epoch % cfg["checkpoint"]["every_epochs"] == 0:
+                            save_checkpoint(checkpoint, checkpoint_path)
+                    if counters.env_steps >= cfg["total_steps"]:
+                        break
+                    if (
+                        stop.requested
+                    ):  # a signal during this batch: stop here, every update of the batch done
+                        raise KeyboardInterrupt
+                    timer.lap()
+            except KeyboardInterrupt:
+                bar.close()
+                save_checkpoint(checkpoint, checkpoint_path)
+                plot_curve(cfg, history, run_dir, counters)
+                print(
+                    f"\nInterrupted: checkpoint written to {checkpoint_path}; continue with resume={run_dir}"
+                )
+                raise
+            except NonFiniteLossError as err:
+                bar.close()
+                raise SystemExit(
+                    f"Stopping: {err}. The last good checkpoint is kept at {checkpoint_path}."
+                ) from err
         bar.close()
-        save_checkpoint(checkpoint, checkpoint_path)
-        _plot_curve(cfg, history, run_dir, counters)
-        print(f"\nInterrupted: checkpoint written to {checkpoint_path}; continue with resume={run_dir}")
-        collector.shutdown()
-        raise
-    except NonFiniteLossError as err:
-        stop.restore()
-        bar.close()
-        collector.shutdown()
-        raise SystemExit(f"Stopping: {err}. The last good checkpoint is kept at {checkpoint_path}.") from err
+        path = save_checkpoint(checkpoint, checkpoint_path)
     finally:
-        stop.restore()
-        gc.unfreeze()
-    bar.close()
-    path = save_checkpoint(checkpoint, checkpoint_path)
-    collector.shutdown()
-    _plot_curve(cfg, history, run_dir, counters)
+        run.collector.shutdown()
+    plot_curve(cfg, history, run_dir, counters)
+    episode_length = run.train_env.base_env.max_episode_steps
     if cfg["plots"]["video"]:
-        video = record_video(eval_env, agent.policy, episode_length, run_dir / "test_episode.gif")
+        video = record_video(run.eval_env, agent.policy, episode_length, run_dir / "test_episode.gif")
         print(f"Video of a test episode: {video}")
     summary = {"run_dir": str(run_dir), "checkpoint": str(path), **(history[-1] if history else {})}
     print(
-        f"Done: {counters['env_steps']} env steps, last success {summary.get('eval/success', float('nan')):.2f}. "
+        f"Done: {counters.env_steps} env steps, last success {summary.get('eval/success', float('nan')):.2f}. "
         + (
             f"Curve: {run_dir / 'success_curve.png'}, metrics: {run_dir / 'metrics.csv'}, "
             f"pictures: {run_dir / 'episodes'}, checkpoint: {path}"
@@ -278,7 +257,85 @@ def train(cfg: DictConfig | dict, run_dir: str | Path | None = None) -> dict:
     return summary
 
 
-def _set_phase(cfg: dict, agent, episodes: int) -> None:
+def restore_or_fork(start: RunStart, checkpoint, counters: RunCounters, run: RunParts) -> None:
+    """Restores the checkpoint ``start`` names into the run: ``resume`` continues it exactly, ``fork`` starts a new
+    run from its state (re-seeding the training streams when the seed differs)."""
+    cfg = start.config
+    key = "fork" if start.forking else "resume"
+    try:
+        restore_checkpoint(checkpoint, start.resume, map_location=start.device)
+    except CheckpointError as err:
+        raise ConfigError(f"`{key}={cfg[key]}`: {err}") from err
+    if not start.forking:
+        print(f"Resumed from {start.resume} at {counters.env_steps} env steps.")
+        return
+    counters.forks.append(
+        {"checkpoint": str(start.resume), "env_steps": counters.env_steps, "seed": cfg["seed"]}
+    )
+    reseeded = cfg["seed"] != start.state["config"]["seed"]
+    if reseeded:  # the test episodes keep their stream: both arms of an A/B see the same ones
+        seed_everything(cfg["seed"], run.train_env)
+    print(
+        f"Forked from {start.resume} at {counters.env_steps} env steps"
+        + (f", re-seeded with seed {cfg['seed']}." if reseeded else ", its random streams continued.")
+    )
+
+
+def end_epoch(
+    cfg: dict,
+    run: RunParts,
+    run_dir: Path,
+    counters: RunCounters,
+    epoch: int,
+    episode_log: TrainingEpisodeLog,
+    timer: LoopTimer,
+    low_out,
+    high_out,
+) -> dict:
+    """The epoch end (Alg. 1 l.30-31, and the evaluation): rebuilds the graph when due, evaluates the agent on the
+    test goals, draws the graph and a test episode; returns the epoch's metrics row."""
+    schedule = cfg["schedule"]
+    counters.epochs = epoch
+    metrics = {"epoch": epoch, "env_steps": counters.env_steps, "episodes": counters.episodes}
+    metrics["time/wall_s"] = counters.wall_s  # since the start of the run, resumes included
+    graph_start = schedule["warmup_episodes"] + schedule["graph_start_epoch"] * schedule["epoch_episodes"]
+    graph_due = counters.episodes >= graph_start and (epoch - 1) % schedule["graph_rebuild_epochs"] == 0
+    if cfg["planner"]["enabled"] and graph_due:
+        metrics.update(rebuild_graph(run.agent.planner, run.low_rb, cfg["planner"]["candidates"]))
+        counters.graph_builds += 1
+    metrics.update(graph_metrics(run.agent.planner))
+    metrics.update(episode_log.pop_metrics())
+    counters.train_episodes = episode_log.state_dict()
+    if epoch % schedule["eval_every_epochs"] == 0:
+        episode_length = run.train_env.base_env.max_episode_steps
+        evaluation, result = evaluate_epoch(run.agent, run.eval_env, episode_length, **evaluation_kwargs(cfg))
+        metrics.update(evaluation)
+        every = cfg["plots"]["every_epochs"]
+        if every and (epoch // schedule["eval_every_epochs"]) % every == 0:
+            plot_epoch(
+                cfg["env_name"],
+                run.agent.planner,
+                result,
+                run_dir / "episodes",
+                epoch=epoch,
+                env_steps=counters.env_steps,
+            )
+    metrics.update(timer.metrics(counters.env_steps))
+    for prefix, out in (("low", low_out), ("high", high_out)):
+        if out is not None:
+            metrics.update({f"{prefix}/{k}": v.item() for k, v in out.items()})
+    return metrics
+
+
+def report_capture(run: RunParts, reported: set[str]) -> None:
+    """Says once per level how its updates sample (``cudagraphs=true`` or ``capture_sampling=true``)."""
+    for level, updater in (("low", run.low_updater), ("high", run.high_updater)):
+        if updater.sampling_captured is not None and level not in reported:
+            reported.add(level)
+            print(f"Sampling, {level} level: {updater.sampling_note}.")
+
+
+def set_phase(cfg: dict, agent, episodes: int) -> None:
     """Random warm-up (uniform actions; uniform subgoals unless ``high.warmup_subgoals=policy``), then the policies."""
     warmup = episodes < cfg["schedule"]["warmup_episodes"]
     agent.exploration.uniform_prob = 1.0 if warmup else cfg["low"]["uniform_prob"]
@@ -286,7 +343,7 @@ def _set_phase(cfg: dict, agent, episodes: int) -> None:
     agent.high_policy.exploration.uniform_prob = 1.0 if uniform_subgoals else 0.0
 
 
-def _plot_curve(cfg: dict, history: list[dict], run_dir: Path, counters: dict) -> None:
+def plot_curve(cfg: dict, history: list[dict], run_dir: Path, counters: RunCounters) -> None:
     """``success_curve.png`` with the paper's points and where the run was forked (at the end, and on Ctrl-C)."""
     if history:
         plot_success_curve(
@@ -294,7 +351,7 @@ def _plot_curve(cfg: dict, history: list[dict], run_dir: Path, counters: dict) -
             run_dir / "success_curve.png",
             title=f"DHRL {cfg['env_name']} (seed {cfg['seed']})",
             reference=PAPER_SUCCESS.get(cfg["env_name"]),
-            forks=[fork["env_steps"] for fork in counters.get("forks", ())],
+            forks=[fork["env_steps"] for fork in counters.forks],
         )
 
 

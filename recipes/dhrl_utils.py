@@ -17,15 +17,14 @@ import torch
 from omegaconf import DictConfig, OmegaConf
 from omegaconf.errors import OmegaConfBaseException
 from torchrl_dhrl.envs import GoalEnvError
+from torchrl_dhrl.envs.geometry import obstacle_boxes
 
+from torchrl_dhrl.diagnostics import TrainingEpisodeLog
 from torchrl_dhrl.planner import LineOfSightDistance
-from torchrl_dhrl.training import (
+from torchrl_dhrl.recipe import (
     ConfigError,
     DHRLAgent,
-    LossUpdater,
     RunStart,
-    TrainingEpisodeLog,
-    available_cpus,
     load_checkpoint,
     make_agent,
     make_collector,
@@ -34,10 +33,11 @@ from torchrl_dhrl.training import (
     make_logger,
     make_low_level_buffer,
     make_updater,
-    obstacle_boxes,
+    run_precisions,
     start_run,
+    with_implied_keys,
 )
-from torchrl_dhrl.training.config import run_precisions, with_implied_keys
+from torchrl_dhrl.training import LossUpdater, available_cpus
 
 #: The configuration directory; ``config.yaml`` there is the schema of every configuration key.
 CONFIG_DIR = Path(__file__).resolve().parent / "config"
@@ -160,6 +160,7 @@ def build_environment(cfg: dict, device: torch.device, *, eval: bool = False, ag
             agent=agent,
             goal_shifting=_goal_shifting(cfg) if cfg["fgs"]["enabled"] and not eval else None,
             right_flipped_after=cfg.get("right_flipped_after"),
+            reference_engine=cfg.get("reference_engine", False),
         )
     except GoalEnvError as err:
         raise ConfigError(f"env_name={cfg['env_name']}: {err}") from err
@@ -391,8 +392,7 @@ def build_episode_log(cfg: dict, state: dict | None = None) -> TrainingEpisodeLo
     checkpointed counters, so a run stopped in the middle of an epoch resumes its counts).
     """
     from torchrl_dhrl.envs import MAZE_NAMES, get_maze_spec
-
-    from torchrl_dhrl.training.maze_diagnostics import MazeGeometry
+    from torchrl_dhrl.envs.geometry import MazeGeometry
 
     geometry = upside_down = None
     if cfg["env_name"] in MAZE_NAMES:

@@ -17,8 +17,10 @@ import argparse
 import torch
 from dhrl_utils import agent_from_checkpoint, build_replay_buffers
 from torchrl_dhrl.envs import MAZE_NAMES
+from torchrl_dhrl.envs.geometry import MazeGeometry
 
-from torchrl_dhrl.training import EpisodeProgress, MazeGeometry, episode_progress, load_checkpoint
+from torchrl_dhrl.diagnostics import EpisodeProgress, episode_progress
+from torchrl_dhrl.recipe import load_checkpoint
 
 
 def exploration_from_checkpoint(

@@ -23,17 +23,15 @@ from pathlib import Path
 
 import torch
 from dhrl_utils import agent_from_checkpoint, build_environment, build_replay_buffers
+from torchrl_dhrl.envs.geometry import MazeGeometry
 
-from torchrl_dhrl.training import (
+from torchrl_dhrl.diagnostics import (
     GraphDiagnosis,
-    MazeGeometry,
-    checkpoint_file,
     default_coverage_radius,
     graph_diagnosis,
     landmark_budget_sweep,
-    load_checkpoint,
-    plot_distance_scatter,
 )
+from torchrl_dhrl.recipe import checkpoint_file, load_checkpoint, plot_distance_scatter
 
 
 def graph_diagnosis_from_checkpoint(

@@ -19,16 +19,11 @@ import torch
 from dhrl_utils import agent_from_checkpoint, build_environment
 from tensordict import TensorDict
 from torchrl_dhrl.envs import MAZE_NAMES
+from torchrl_dhrl.envs.geometry import MazeGeometry
 
-from torchrl_dhrl.training import (
-    MazeGeometry,
-    evaluate,
-    landscape_summary,
-    load_checkpoint,
-    subgoal_box,
-    subgoal_landscape,
-    subgoal_values,
-)
+from torchrl_dhrl.diagnostics import landscape_summary, subgoal_box, subgoal_landscape, subgoal_values
+from torchrl_dhrl.recipe import load_checkpoint
+from torchrl_dhrl.training import evaluate
 
 
 def _in_walls(geometry, points):

@@ -18,7 +18,7 @@ from collections.abc import Sequence
 import torch
 from dhrl_utils import agent_from_checkpoint
 
-from torchrl_dhrl.training import reach_test
+from torchrl_dhrl.diagnostics import reach_test
 
 
 def reach_test_from_checkpoint(

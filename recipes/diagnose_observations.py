@@ -16,7 +16,7 @@ import argparse
 import torch
 from dhrl_utils import agent_from_checkpoint, build_replay_buffers
 
-from torchrl_dhrl.training import load_checkpoint
+from torchrl_dhrl.recipe import load_checkpoint
 
 #: The most buffer rows the quantiles are taken over (a uniform subsample beyond; the maximum sees every row).
 SAMPLE = 200_000

@@ -13,7 +13,7 @@ import argparse
 import torch
 from dhrl_utils import agent_from_checkpoint, build_environment, oracle_distance
 
-from torchrl_dhrl.training import planning_ablations
+from torchrl_dhrl.diagnostics import planning_ablations
 
 
 def main(argv: list[str] | None = None) -> list[dict]:

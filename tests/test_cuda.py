@@ -14,18 +14,22 @@ import pytest
 import torch
 from _recipe import load_recipe, recipe_config
 from tensordict import TensorDict
-from test_fps import asymmetric_distance, make_candidates
-from test_recipe import _flat
-from test_relabel_future import GoalStream, check_goals
 from torchrl.data import LazyTensorStorage, TensorDictReplayBuffer
 
+from tests.data.test_future_goals import GoalStream, check_goals
+from tests.planner.test_fps import asymmetric_distance, make_candidates
+from tests.recipe.test_recipe_script import _flat
 from torchrl_dhrl.data import FutureGoalRelabel, RelabelReplayBuffer
 from torchrl_dhrl.modules import GoalConditionedCritic, HighLevelPolicy, LowLevelActor
 from torchrl_dhrl.objectives import HighLevelLoss, SQGCLoss, make_optimizers
 from torchrl_dhrl.planner import GraphPlanner, LandmarkGraph, farthest_point_sampling
-from torchrl_dhrl.training import LossUpdater, NonFiniteLossError, load_checkpoint
+from torchrl_dhrl.recipe import load_checkpoint
+from torchrl_dhrl.training import LossUpdater, NonFiniteLossError
 
-pytestmark = pytest.mark.skipif(not torch.cuda.is_available(), reason="needs a CUDA device")
+pytestmark = [
+    pytest.mark.gpu,
+    pytest.mark.skipif(not torch.cuda.is_available(), reason="needs a CUDA device"),
+]
 CUDA = torch.device("cuda")
 recipe = load_recipe()
 SMOKE = ("env=PointMaze", "preset=smoke", "logger.backend=csv", "plots.every_epochs=0")
@@ -104,7 +108,7 @@ def test_capturable_planner_replayed_as_a_cuda_graph_tracks_like_the_planner(fix
     """``GraphPlanner(capturable=True)`` captured in a CUDA graph (inputs copied into static tensors before
     each replay): the waypoints and tracking state of the host-branching planner, step by step; on a
     ``fixed_size`` graph also across rebuilds to other landmark counts and a clear after the capture."""
-    from test_planner_capturable import _assert_same_tracking, _planner_pair, _step_td, _walk
+    from tests.planner.test_graph_planner import _assert_same_tracking, _planner_pair, _step_td, _walk
 
     gen = torch.Generator().manual_seed(5)
     graph, planner, capturable = _planner_pair(asymmetric_distance, fixed_size=fixed_size)
@@ -294,7 +298,7 @@ def test_bfloat16_cudagraph_updates_match_eager_bfloat16_updates():
 def test_capturable_sampler_replayed_as_a_cuda_graph_sees_later_writes():
     """The capture-safe sampler captured alone in a CUDA graph: every replay draws from the rows written so far
     (the device counters move in place) and relabels within the ground-truth windows, seam included."""
-    from test_capturable_sampling import _filled_buffer
+    from tests.data.test_relabel_buffer import _filled_buffer
 
     rb, relabel, stream = _filled_buffer(3, 40, 1, 10, window=9, seed=3, device=CUDA)
     sample = rb.capturable_sampler(batch_size=512)
@@ -322,7 +326,8 @@ def test_capturable_sampler_replayed_as_a_cuda_graph_sees_later_writes():
 def test_cudagraph_updates_capture_sampling():
     """``cudagraphs=True`` on the low-level buffer: the graphs sample themselves and train (finite losses, moved
     parameters, both graphs), and after new writes keep training on them."""
-    from test_capturable_sampling import _filled_buffer, _loss
+    from tests.data.test_relabel_buffer import _filled_buffer
+    from tests.training.test_updates import _loss
 
     loss = _loss().to(CUDA)
     start = {k: v.clone() for k, v in loss.state_dict().items()}
@@ -341,7 +346,7 @@ def test_compiled_cudagraph_updates_match_eager_updates():
     """``compile=True cudagraphs=True``: compiled kernels captured in the graphs, sampling captured too; after 16
     updates the parameters follow an eager updater fed by the same capture-safe sampler (random draws inside
     the graphs come from the graph-safe Philox stream, so the batches differ: statistics, not bits)."""
-    from test_capturable_sampling import _capture_run, _loss
+    from tests.training.test_updates import _capture_run, _loss
 
     graph_loss, graph, graph_outs = _capture_run(graphs=True, compile_=True, steps=16, device=CUDA)
     _, _, eager_outs = _capture_run(graphs=False, steps=16, device=CUDA)
@@ -357,6 +362,7 @@ def test_compiled_cudagraph_updates_match_eager_updates():
     )
 
 
+@pytest.mark.recipe
 def test_recipe_with_cudagraphs(tmp_path, capsys):
     summary = recipe.train(
         recipe_config(*SMOKE, "device=cuda", "cudagraphs=true", "total_steps=240"), run_dir=tmp_path
@@ -391,6 +397,7 @@ def test_future_goal_relabel_on_a_cuda_buffer():
             check_goals(sample, key, expected)
 
 
+@pytest.mark.recipe
 def test_recipe_every_phase_on_cuda_resumes_on_cuda_and_on_cpu(tmp_path):
     torch.manual_seed(0)
     run = tmp_path / "cuda"

@@ -21,7 +21,7 @@ MODULES = sorted(
 # modules without public classes or functions that would carry an example
 NO_EXAMPLES = {
     "torchrl_dhrl.envs.demo",
-    "torchrl_dhrl.training.plots",  # pictures: tests/test_envs_plotting.py and the recipe tests
+    "torchrl_dhrl.recipe.plots",  # pictures: tests/envs/test_plotting.py and the recipe tests
 }
 
 

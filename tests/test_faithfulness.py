@@ -14,7 +14,8 @@ from tensordict import TensorDict
 from torchrl.envs.utils import ExplorationType, set_exploration_type
 
 from torchrl_dhrl.objectives import make_optimizers
-from torchrl_dhrl.training import LossUpdater, load_checkpoint, resolve_device
+from torchrl_dhrl.recipe import load_checkpoint, resolve_device
+from torchrl_dhrl.training import LossUpdater
 
 recipe = load_recipe()
 SMOKE = ("env=PointMaze", "preset=smoke", "plots.every_epochs=0", "device=cpu", "logger.backend=none")
@@ -28,6 +29,7 @@ def _agent(*overrides):
 
 
 # ---------------------------------------------------------------- 1. no update during the warm-up
+@pytest.mark.recipe
 @pytest.mark.parametrize("train_during_warmup", [False, True])
 def test_warmup_updates(train_during_warmup, tmp_path, monkeypatch):
     """Reference: no optimiser step and no parameter change in the warm-up (4 episodes = 2 batches of 2 x 40
@@ -87,19 +89,19 @@ def _subgoals(agent, num=4000):
 def test_warmup_subgoals_uniform_in_the_box():
     cfg, agent = _agent()
     low, high = cfg["high"]["subgoal_low"], cfg["high"]["subgoal_high"]
-    recipe._set_phase(cfg, agent, episodes=0)  # in the warm-up
+    recipe.set_phase(cfg, agent, episodes=0)  # in the warm-up
     subgoals = _subgoals(agent)
     for axis in range(2):
         u = (subgoals[:, axis] - low[axis]) / (high[axis] - low[axis])
         assert kstest(u.numpy(), "uniform").pvalue > 1e-3
     # after the warm-up: the actor + Gaussian noise (clipped), far from uniform
-    recipe._set_phase(cfg, agent, episodes=cfg["schedule"]["warmup_episodes"])
+    recipe.set_phase(cfg, agent, episodes=cfg["schedule"]["warmup_episodes"])
     u = (_subgoals(agent)[:, 0] - low[0]) / (high[0] - low[0])
     assert kstest(u.numpy(), "uniform").pvalue < 1e-6
     assert agent.exploration.uniform_prob == cfg["low"]["uniform_prob"]
     # high.warmup_subgoals=policy: the actor + noise during the warm-up too, uniform actions still
     cfg, agent = _agent("high.warmup_subgoals=policy")
-    recipe._set_phase(cfg, agent, episodes=0)
+    recipe.set_phase(cfg, agent, episodes=0)
     u = (_subgoals(agent)[:, 0] - low[0]) / (high[0] - low[0])
     assert kstest(u.numpy(), "uniform").pvalue < 1e-6
     assert agent.exploration.uniform_prob == 1.0

@@ -209,7 +209,7 @@ class GoalDistance:
     conversion to a distance stay in the parameters' dtype, so the distance is not rounded to
     the reduced dtype. On a CPU with bfloat16 matrix units this is 2-3.5x faster per pair; the
     cost is a small error from the rounding of the inputs and hidden activations, close to
-    absolute (a few tenths of a step at most in ``tests/test_distance_fast.py``), so small
+    absolute (a few tenths of a step at most in ``tests/planner/test_distances.py``), so small
     distances see the largest relative errors (bfloat16, 3x256 trained-like twin critic,
     pessimistic member: 0.1% median, 0.4% p99, 0.6% max; see ``benchmarks/bench_planner.py``).
     Meant for graph building

@@ -125,7 +125,7 @@ def goal_as_subgoal(
 
     Examples:
         >>> import torch
-        >>> from torchrl_dhrl.training import make_agent, make_environment
+        >>> from torchrl_dhrl.recipe import make_agent, make_environment
         >>> spec_env = make_environment("PointMaze", "cpu", num_envs=1, max_episode_steps=20)
         >>> agent = make_agent(spec_env, "cpu", subgoal_low=[-2.0, -2.0], subgoal_high=[10.0, 10.0],
         ...     subgoal_interval=5, low_num_cells=(16,), high_num_cells=(16,), max_landmarks=8)

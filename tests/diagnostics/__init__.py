@@ -1,0 +1,1 @@
+"""Tests of ``torchrl_dhrl.diagnostics``."""

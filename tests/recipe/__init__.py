@@ -1,0 +1,1 @@
+"""Tests of ``torchrl_dhrl.recipe`` and of the recipe scripts in ``recipes/``."""

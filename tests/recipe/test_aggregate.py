@@ -1,0 +1,130 @@
+"""``recipes/aggregate.py`` and :mod:`torchrl_dhrl.recipe.aggregate` against numpy on hand-made run folders."""
+
+from __future__ import annotations
+
+import csv
+
+import numpy as np
+import pytest
+import yaml
+from _recipe import load_recipe
+
+from torchrl_dhrl.recipe import aggregate_runs, bootstrap_iqm_ci, find_runs, iqm
+from torchrl_dhrl.recipe.aggregate import variant_of
+
+aggregate_cli = load_recipe("aggregate")
+
+
+def _run(root, name, config, success, steps=None, extra_files=True):
+    path = root / name
+    path.mkdir(parents=True)
+    steps = steps or [3000 * (i + 1) for i in range(len(success))]
+    with open(path / "metrics.csv", "w", newline="") as file:
+        writer = csv.DictWriter(file, ["env_steps", "epoch", "eval/success", "time/wall_s"])
+        writer.writeheader()
+        for i, (s, v) in enumerate(zip(steps, success, strict=True)):
+            writer.writerow({"env_steps": s, "epoch": i + 1, "eval/success": v, "time/wall_s": 10.0 * i})
+    if extra_files:
+        (path / "config.yaml").write_text(yaml.safe_dump(config))
+    return path
+
+
+def _config(env, seed, sqgc=True, **extra):
+    return {
+        "env_name": env,
+        "seed": seed,
+        "run_dir": f"/somewhere/{env}_{seed}",
+        "threads": seed % 2 + 1,
+        "total_steps": 9000 + seed,  # bookkeeping keys differ between seeds: never a variant
+        "low": {"sqgc": sqgc, "hidden": [256, 256]},
+        "logger": {"exp_name": f"run{seed}"},
+        **extra,
+    }
+
+
+@pytest.fixture
+def sweep(tmp_path):
+    rng = np.random.default_rng(0)
+    values = {}
+    for seed in range(4):
+        for sqgc in (True, False):
+            success = rng.integers(0, 11, size=3) / 10
+            values[("PointMaze", sqgc, seed)] = success
+            _run(tmp_path / "sweep", f"pm_{sqgc}_{seed}", _config("PointMaze", seed, sqgc), success)
+    for seed in range(2):  # another task, one variant, runs of different lengths
+        success = rng.integers(0, 11, size=4 - seed) / 10
+        values[("AntMaze", True, seed)] = success
+        _run(tmp_path / "sweep", f"am_{seed}", _config("AntMaze", seed), success)
+    return tmp_path / "sweep", values
+
+
+@pytest.mark.recipe
+def test_table_matches_numpy(sweep, tmp_path):
+    root, values = sweep
+    assert aggregate_cli.main([str(root), "--out", str(tmp_path / "out"), "--reps", "500"]) == 0
+    rows = list(csv.DictReader(open(tmp_path / "out" / "aggregate.csv")))
+    groups = {(r["env"], r["variant"]) for r in rows}
+    assert groups == {("PointMaze", "low.sqgc=true"), ("PointMaze", "low.sqgc=false"), ("AntMaze", "default")}
+    for row in rows:
+        sqgc = row["variant"] != "low.sqgc=false"
+        seeds = range(4) if row["env"] == "PointMaze" else range(2)
+        index = int(row["env_steps"]) // 3000 - 1
+        x = np.array([values[(row["env"], sqgc, s)][index] for s in seeds])
+        assert int(row["n"]) == len(x)
+        assert float(row["mean"]) == pytest.approx(x.mean())
+        assert float(row["std"]) == pytest.approx(x.std(ddof=1))
+        middle = np.sort(x)[1:-1] if len(x) == 4 else x  # 4 runs: the IQM drops the lowest and the highest
+        assert float(row["iqm"]) == pytest.approx(middle.mean())
+        assert float(row["iqm_ci_low"]) <= float(row["iqm"]) + 1e-12 <= float(row["iqm_ci_high"]) + 2e-12
+        assert x.min() <= float(row["iqm_ci_low"]) and float(row["iqm_ci_high"]) <= x.max()
+        assert [float(v) for v in row["values"].split()] == pytest.approx(list(x))
+    # AntMaze: seed 1 stopped one evaluation earlier, so only the common points are reported
+    assert sorted(int(r["env_steps"]) for r in rows if r["env"] == "AntMaze") == [3000, 6000, 9000]
+    assert (tmp_path / "out" / "aggregate.png").stat().st_size > 10_000
+    summary = (tmp_path / "out" / "aggregate.md").read_text()
+    assert "| PointMaze | low.sqgc=false | 9000 | 4 |" in summary and "96.9% at 0.25M" in summary
+
+
+def test_iqm_and_bootstrap_against_direct_computation():
+    rng = np.random.default_rng(1)
+    for n in (1, 2, 3, 4, 5, 8, 13):
+        x = rng.random(n)
+        lo, hi = np.quantile(x, [0.25, 0.75])
+        k = int(np.floor(0.25 * n))  # scipy's trim_mean cuts floor(0.25 n) values from each end
+        assert iqm(x) == pytest.approx(np.sort(x)[k : n - k].mean())
+        low, high = bootstrap_iqm_ci(x, reps=3000, seed=2)
+        assert x.min() - 1e-12 <= low <= high <= x.max() + 1e-12
+        assert bootstrap_iqm_ci(x, reps=3000, seed=2) == (low, high)  # seeded: reproducible
+    assert bootstrap_iqm_ci([0.7, 0.7, 0.7]) == pytest.approx((0.7, 0.7))  # no spread, no interval
+
+
+def test_variants_ignore_bookkeeping_and_configless_runs_group_alone(tmp_path):
+    _run(tmp_path, "a", _config("PointMaze", 0, compile=True, device="cpu"), [0.1, 0.2])
+    _run(tmp_path, "b", _config("PointMaze", 1, compile=False, device="cuda"), [0.3, 0.4])
+    _run(tmp_path, "c", {}, [0.5, 0.6], extra_files=False)
+    runs = find_runs([tmp_path])
+    assert [variant_of(r, runs) for r in runs] == ["default", "default", "default"]
+    table = aggregate_runs(runs, reps=200)
+    assert {(r["env"], r["n"]) for r in table} == {("PointMaze", 2), ("unknown", 1)}
+
+
+@pytest.mark.recipe
+def test_no_runs_exits_2(tmp_path, capsys):
+    assert aggregate_cli.main([str(tmp_path)]) == 2
+    assert "no metrics.csv" in capsys.readouterr().err
+
+
+def test_an_older_run_is_labelled_with_the_distance_output_it_was_trained_with(tmp_path):
+    from torchrl_dhrl.recipe import find_runs
+    from torchrl_dhrl.recipe.aggregate import variant_of
+
+    for name, low in (("old", {"gamma": 0.99}), ("new", {"gamma": 0.99, "distance_output": "linear"})):
+        run = tmp_path / name
+        run.mkdir()
+        (run / "metrics.csv").write_text("env_steps,eval/success\n9000,0.5\n")
+        (run / "config.yaml").write_text(yaml.safe_dump({"env_name": "PointMaze", "seed": 0, "low": low}))
+    runs = find_runs([tmp_path])
+    assert [variant_of(r, runs) for r in runs] == [
+        "low.distance_output=linear",
+        "low.distance_output=softplus",
+    ]

@@ -1,0 +1,100 @@
+"""The recipe's acting policy and collector with the capturable planner: no graph break in the policy, the
+collector's ``compile_policy`` and the recipe's key."""
+
+import pytest
+import torch
+
+from tests.planner.test_graph_planner import _agent
+
+
+@pytest.mark.slow
+def test_acting_policy_has_no_graph_break_with_a_capturable_planner():
+    counts = {}
+    for capturable in (False, True):
+        agent, env = _agent(capturable)
+        td = env.reset()
+        for _ in range(2):  # past the first step (a plan exists; the tracking branch)
+            td = env.step(agent.policy(td))["next"]
+        torch._dynamo.reset()
+        counts[capturable] = torch._dynamo.explain(agent.policy)(td.clone()).graph_break_count
+    assert counts[True] == 0
+    assert counts[False] > 0  # the host-side replanning branch
+
+
+def test_make_collector_compile_policy_needs_a_capturable_planner():
+    from torchrl_dhrl.recipe import make_collector
+
+    agent, env = _agent(False)
+    with pytest.raises(ValueError, match="`compile_policy` needs a capturable planner"):
+        make_collector(env, agent, 30, compile_policy=True)
+    make_collector(env, agent, 30).shutdown()  # the default needs nothing
+
+
+@pytest.mark.slow
+def test_compiled_collector_collects_what_the_eager_one_does():
+    """The collector's ``compile_policy`` with a capturable planner: the same two batches as an eager
+    collector with the host-branching planner (inductor's random ops falling back to eager's)."""
+    from torch._inductor import config as inductor_config
+
+    from torchrl_dhrl.recipe import make_collector
+
+    batches = {}
+    for compiled in (False, True):
+        torch.manual_seed(0)
+        agent, env = _agent(compiled)
+        torch.manual_seed(1)
+        collector = make_collector(env, agent, 30, compile_policy={"warmup": 1} if compiled else False)
+        with inductor_config.patch(fallback_random=True):
+            it = iter(collector)
+            batches[compiled] = torch.cat([next(it), next(it)])
+        collector.shutdown()
+    for key in (("next", "observation"), "action", "waypoint", "subgoal", ("planner", "path")):
+        expected = batches[False][key]
+        if expected.is_floating_point():
+            torch.testing.assert_close(batches[True][key], expected, rtol=1e-4, atol=1e-4, msg=str(key))
+        else:
+            assert torch.equal(batches[True][key], expected), key
+
+
+def test_compile_policy_key_is_validated_and_reaches_the_planner_and_collector():
+    from _recipe import recipe_config
+    from dhrl_utils import build_run
+
+    from torchrl_dhrl.recipe import RESUME_MUTABLE_KEYS, ConfigError, validate_config
+
+    assert "compile_policy" in RESUME_MUTABLE_KEYS  # same plans: a resumed run may switch it
+    with pytest.raises(ConfigError, match="`compile_policy` must be true or false, got 'yes'"):
+        validate_config(recipe_config("env=PointMaze", "device=cpu", "compile_policy=yes"))
+    for value in (False, True):
+        cfg = recipe_config("env=PointMaze", "preset=smoke", f"compile_policy={str(value).lower()}")
+        validate_config(cfg)
+        parts = build_run(cfg, torch.device("cpu"))
+        assert parts.agent.planner.capturable is value
+        assert parts.collector.compiled_policy is value
+        parts.collector.shutdown()
+
+
+@pytest.mark.recipe
+@pytest.mark.slow
+def test_recipe_runs_with_a_compiled_policy_and_resumes_without_it(tmp_path, capsys):
+    from _recipe import load_recipe, metrics_rows, recipe_config
+
+    recipe = load_recipe()
+    overrides = ("env=PointMaze", "preset=smoke", "logger.backend=csv", "plots.every_epochs=0", "device=cpu")
+    torch.manual_seed(0)
+    torch._dynamo.reset()
+    torch._dynamo.utils.counters.clear()
+    recipe.train(recipe_config(*overrides, "total_steps=240", "compile_policy=true"), run_dir=tmp_path)
+    assert "Acting: the policy compiled in the collector" in capsys.readouterr().out
+    # one graph: nothing of the recipe's (e.g. a timing hook on the planner) breaks the compiled policy
+    assert not torch._dynamo.utils.counters["graph_break"], dict(torch._dynamo.utils.counters["graph_break"])
+    assert all("time/planner_ms_per_call" not in row for row in metrics_rows(tmp_path))
+    summary = recipe.train(
+        recipe_config(*overrides, "total_steps=480", f"resume={tmp_path}", "compile_policy=false"),
+        run_dir=tmp_path,
+    )
+    printed = capsys.readouterr().out
+    assert "Acting: the policy compiled" not in printed and "compile_policy" in printed  # the resume note
+    assert summary["env_steps"] == 480 and 0.0 <= summary["eval/success"] <= 1.0
+    timed = [row["time/planner_ms_per_call"] != "" for row in metrics_rows(tmp_path)]
+    assert timed and timed[-1]  # the eager segment times the planner again

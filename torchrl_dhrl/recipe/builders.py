@@ -1,0 +1,511 @@
+"""Factories of a DHRL run's TorchRL objects: env, agent, replay buffers, updaters, collector, logger.
+
+They take explicit arguments; the recipe (``recipes/dhrl_antmaze.py``, through ``recipes/dhrl_utils.py``)
+maps its configuration onto them (see ``recipes/config/`` for the keys and the reference values).
+"""
+
+from __future__ import annotations
+
+import functools
+from collections.abc import Mapping, Sequence
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import torch
+from tensordict.nn import TensorDictSequential
+from torchrl.collectors import Collector
+from torchrl.data import ReplayBuffer
+from torchrl.envs import Compose, EnvBase, TransformedEnv
+from torchrl.objectives import LossModule
+
+from torchrl_dhrl.data import (
+    CompactLazyTensorStorage,
+    FutureGoalRelabel,
+    HighLevelTransitionBuilder,
+    HindsightSubgoalRelabel,
+    RelabelReplayBuffer,
+    SparseGoalReward,
+)
+from torchrl_dhrl.envs import check_goal_env, make_env
+from torchrl_dhrl.envs.transforms import AngleFeatures
+from torchrl_dhrl.modules import (
+    GaussianUniformExplorationModule,
+    GoalConditionedCritic,
+    HighLevelPolicy,
+    LowLevelActor,
+)
+from torchrl_dhrl.objectives import HighLevelLoss, SQGCLoss, make_optimizers
+from torchrl_dhrl.planner import (
+    FrontierGoalShifting,
+    GoalDistance,
+    GoalShiftOnReset,
+    GraphPlanner,
+    LandmarkGraph,
+    TemporalDistance,
+)
+from torchrl_dhrl.training import LossUpdater
+
+__all__ = [
+    "DHRLAgent",
+    "LOW_LEVEL_KEYS",
+    "make_agent",
+    "make_collector",
+    "make_environment",
+    "make_high_level_buffer",
+    "make_logger",
+    "make_low_level_buffer",
+    "make_updater",
+    "observation_transforms",
+]
+
+#: Entries of a collector batch the low-level buffer keeps (relabelling, losses, graph candidates).
+LOW_LEVEL_KEYS = (
+    "observation",
+    "achieved_goal",
+    "waypoint",
+    "action",
+    "step_count",
+    ("collector", "traj_ids"),
+    ("next", "observation"),
+    ("next", "achieved_goal"),
+    ("next", "done"),
+)
+
+
+@dataclass
+class DHRLAgent:
+    """The modules of one DHRL agent, as built by :func:`make_agent`.
+
+    The acting policy is ``TensorDictSequential(high_policy, planner, low_policy)``: the high
+    level issues a subgoal every ``c_h`` steps, the planner turns it into the current waypoint and
+    the low level acts towards it. All trainable parameters (with target copies) live in the two
+    losses; the graph lives in the planner. :meth:`state_dict` gathers them for checkpoints.
+    """
+
+    high_policy: HighLevelPolicy
+    low_actor: LowLevelActor
+    exploration: GaussianUniformExplorationModule
+    sqgc_loss: SQGCLoss
+    high_loss: HighLevelLoss
+    planner: GraphPlanner
+    policy: TensorDictSequential
+
+    def state_dict(self) -> dict[str, Any]:
+        return {
+            "sqgc_loss": self.sqgc_loss.state_dict(),
+            "high_loss": self.high_loss.state_dict(),
+            "planner": self.planner.state_dict(),
+        }
+
+    def load_state_dict(self, state_dict: Mapping[str, Any]) -> None:
+        self.sqgc_loss.load_state_dict(state_dict["sqgc_loss"])
+        self.high_loss.load_state_dict(state_dict["high_loss"])
+        self.planner.load_state_dict(state_dict["planner"])
+
+
+def make_agent(
+    env: EnvBase,
+    device: torch.device | str = "cpu",
+    *,
+    subgoal_low: Sequence[float],
+    subgoal_high: Sequence[float],
+    subgoal_interval: int,
+    subgoal_noise: float = 2.0,
+    goal_indices: Sequence[int] | None = None,
+    low_num_cells: Sequence[int] = (256, 256, 256),
+    relative_goal: bool = False,
+    relative_critic_goal: bool = False,
+    low_gamma: float = 0.99,
+    low_distance_output: str = "linear",
+    action_noise: float = 0.1,
+    uniform_prob: float = 0.2,
+    sqgc_loss_kwargs: Mapping[str, Any] | None = None,
+    high_num_cells: Sequence[int] = (256, 256, 256),
+    high_gamma: float = 0.99,
+    high_distance_output: str = "linear",
+    high_loss_kwargs: Mapping[str, Any] | None = None,
+    distance: TemporalDistance | None = None,
+    twin: str = "optimistic",
+    cutoff: float = 30.0,
+    max_landmarks: int = 300,
+    early_stop: float = 10.0,
+    build_autocast_dtype: torch.dtype | None = None,
+    reach_radius: float = 0.5,
+    capturable_planner: bool = False,
+) -> DHRLAgent:
+    """Builds both levels (actors, critics, losses), the graph planner and the acting policy on ``device``.
+
+    The sizes come from ``env``'s specs (``observation``, ``achieved_goal``, the action box).
+
+    Args:
+        env (EnvBase): an env of the goal-env contract (e.g. :func:`make_environment` without ``agent``).
+        device (torch.device or str): where the modules live. Defaults to ``"cpu"``.
+
+    Keyword Args:
+        subgoal_low, subgoal_high (sequence of float): the high level's subgoal box (goal space).
+        subgoal_interval (int): ``c_h``, env steps per subgoal.
+        subgoal_noise (float): the high level's Gaussian exploration (goal units). Defaults to ``2.0``.
+        goal_indices (sequence of int, optional): where the achieved goal sits in the observation.
+        low_num_cells, high_num_cells (sequence of int): hidden layers of each level's networks.
+        relative_goal (bool): the low-level actor sees ``waypoint - achieved goal`` (needs ``goal_indices``).
+        relative_critic_goal (bool): the low-level critics do too (the reference's see the waypoint itself).
+        low_gamma, high_gamma (float): discounts, which also set the critics' distance parameterisation.
+        low_distance_output, high_distance_output (str): each level's critics' map from the raw output to the
+            distance, ``"linear"`` (the reference's) or ``"softplus"``
+            (:class:`~torchrl_dhrl.modules.GoalConditionedCriticNet`).
+        action_noise (float): Gaussian action noise, a fraction of the action box half-width.
+        uniform_prob (float): the probability of a uniform random action.
+        sqgc_loss_kwargs, high_loss_kwargs (dict, optional): keyword arguments of
+            :class:`~torchrl_dhrl.objectives.SQGCLoss` and :class:`~torchrl_dhrl.objectives.HighLevelLoss`
+            (``clip_return``, ``action_l2``, ``target_noise_std``, ``target_action_clamp``, ``sqgc``, ...).
+        distance (TemporalDistance, optional): the planner's distance; defaults to the learned graph
+            critics (Eq. 1), :meth:`GoalDistance.from_loss <torchrl_dhrl.planner.GoalDistance.from_loss>`
+            with ``twin``. Pass e.g. a :class:`~torchrl_dhrl.planner.LineOfSightDistance` for the oracle.
+        cutoff, max_landmarks, early_stop, build_autocast_dtype: the
+            :class:`~torchrl_dhrl.planner.LandmarkGraph`'s.
+        reach_radius (float): a waypoint counts as reached within this distance (goal units).
+        capturable_planner (bool): the :class:`~torchrl_dhrl.planner.GraphPlanner`'s ``capturable``: plans
+            with static shapes, every env in the steps where some env is due for a replan (``torch.cond`` when
+            compiled; ``plan_on_demand``), so that the acting policy compiles whole (:func:`make_collector`'s
+            ``compile_policy``), on a ``fixed_size`` graph (the same storage after every rebuild: no
+            recompilation). Same plans. Defaults to ``False``.
+
+    Raises:
+        ValueError: when the subgoal box does not match the goal space, or ``relative_goal`` lacks
+            ``goal_indices``.
+
+    Examples:
+        >>> from torchrl_dhrl.recipe import make_environment
+        >>> env = make_environment("PointMaze")
+        >>> agent = make_agent(env, subgoal_low=[-2.0, -2.0], subgoal_high=[10.0, 10.0], subgoal_interval=10,
+        ...                    goal_indices=[0, 1], relative_goal=True, low_num_cells=(16,), high_num_cells=(16,))
+        >>> type(agent.planner.distance).__name__, agent.low_actor.module.relative_goal
+        ('GoalDistance', True)
+    """
+    device = torch.device(device)
+    obs_dim = env.observation_spec["observation"].shape[-1]
+    goal_dim = env.observation_spec["achieved_goal"].shape[-1]
+    if len(subgoal_low) != goal_dim or len(subgoal_high) != goal_dim:
+        raise ValueError(
+            f"The subgoal box has {len(subgoal_low)} and {len(subgoal_high)} entries; the goal space has {goal_dim}."
+        )
+    if relative_goal and goal_indices is None:
+        raise ValueError(
+            "relative_goal=True needs goal_indices (where the achieved goal sits in the observation)."
+        )
+    indices = None if goal_indices is None else tuple(int(i) for i in goal_indices)
+    action_spec = env.action_spec_unbatched.to(device)
+    common = {"goal_indices": indices, "num_cells": tuple(low_num_cells)}
+    actor = LowLevelActor(obs_dim, goal_dim, action_spec, relative_goal=relative_goal, **common).to(device)
+    exploration = GaussianUniformExplorationModule(
+        action_spec, sigma=action_noise, uniform_prob=uniform_prob
+    ).to(device)
+
+    def critic() -> GoalConditionedCritic:
+        return GoalConditionedCritic(
+            obs_dim,
+            goal_dim,
+            action_spec,
+            relative_goal=relative_critic_goal,
+            gamma=low_gamma,
+            distance_output=low_distance_output,
+            goal_key="goal",
+            **common,
+        ).to(device)
+
+    sqgc_loss = SQGCLoss(actor, critic(), critic(), **dict(sqgc_loss_kwargs or {}))
+    high_policy = HighLevelPolicy(
+        obs_dim,
+        goal_dim,
+        subgoal_low,
+        subgoal_high,
+        interval=subgoal_interval,
+        noise_sigma=subgoal_noise,
+        goal_indices=indices,
+        num_cells=tuple(high_num_cells),
+    ).to(device)
+    high_critic = GoalConditionedCritic(
+        obs_dim,
+        goal_dim,
+        action_low=subgoal_low,
+        action_high=subgoal_high,
+        goal_indices=indices,
+        relative_goal=False,
+        gamma=high_gamma,
+        distance_output=high_distance_output,
+        num_cells=tuple(high_num_cells),
+        goal_key="desired_goal",
+        action_key="subgoal",
+    ).to(device)
+    high_loss = HighLevelLoss(high_policy.actor, high_critic, **dict(high_loss_kwargs or {}))
+    graph = LandmarkGraph(
+        cutoff=cutoff,
+        max_landmarks=max_landmarks,
+        early_stop=early_stop,
+        build_autocast_dtype=build_autocast_dtype,
+        fixed_size=capturable_planner,  # static storage across rebuilds: no recompilation, CUDA-graph safe
+    )
+    if distance is None:
+        distance = GoalDistance.from_loss(sqgc_loss, twin=twin)
+    planner = GraphPlanner(
+        graph, distance, goal_dim, reach_radius=reach_radius, capturable=capturable_planner
+    ).to(device)
+    policy = TensorDictSequential(high_policy, planner, TensorDictSequential(actor, exploration))
+    return DHRLAgent(high_policy, actor, exploration, sqgc_loss, high_loss, planner, policy)
+
+
+def observation_transforms(angle_features: Sequence[int] | None = None) -> list:
+    """The observation transforms to append to every env the agent acts in (training, evaluation and
+    diagnosis envs alike): :class:`~torchrl_dhrl.envs.transforms.AngleFeatures` of ``angle_features``
+    (observation indices of continuous joint angles), if any.
+
+    Examples:
+        >>> observation_transforms(), [type(t).__name__ for t in observation_transforms([4, 6])]
+        ([], ['AngleFeatures'])
+    """
+    return [AngleFeatures(angle_features)] if angle_features else []
+
+
+def make_environment(
+    env_name: str,
+    device: torch.device | str = "cpu",
+    *,
+    num_envs: int = 1,
+    seed: int = 0,
+    eval: bool = False,  # noqa: A002
+    max_episode_steps: int | None = None,
+    goal_indices: Sequence[int] | None = None,
+    angle_features: Sequence[int] | None = None,
+    agent: DHRLAgent | None = None,
+    goal_shifting: Mapping[str, Any] | None = None,
+    right_flipped_after: int | None = None,
+    reference_engine: bool = False,
+) -> EnvBase:
+    """A batched env of :func:`~torchrl_dhrl.envs.make_env` (``eval``: on the test goals), with the agent's primers.
+
+    Without ``agent`` the env meets the goal-env contract or this raises: it is checked with
+    :func:`~torchrl_dhrl.envs.check_goal_env` (with ``goal_indices``; a short rollout that draws no random
+    numbers), so any env registered with :func:`~torchrl_dhrl.envs.register_env` that passes can be trained;
+    the env is returned with the :func:`observation_transforms` only (to read the specs before the agent
+    exists). With ``agent``, the subgoal scheduler's and the planner's primers are appended, and
+    ``goal_shifting`` (the keyword arguments of :class:`~torchrl_dhrl.planner.FrontierGoalShifting`:
+    ``noise``, ``weighting``, ``trigger``) adds frontier-based goal shifting at every reset.
+    ``right_flipped_after`` and ``reference_engine`` (ant mazes) are passed to :func:`~torchrl_dhrl.envs.make_env`.
+
+    Raises:
+        GoalEnvError: when the env does not meet the contract.
+
+    Examples:
+        >>> env = make_environment("PointMaze", num_envs=2, seed=1, max_episode_steps=50)
+        >>> env.batch_size, env.observation_spec["observation"].shape
+        (torch.Size([2]), torch.Size([2, 6]))
+    """
+    env = make_env(
+        env_name,
+        num_envs=num_envs,
+        seed=seed,
+        device=device,
+        eval=eval,
+        max_episode_steps=max_episode_steps,
+        right_flipped_after=right_flipped_after,
+        reference_engine=reference_engine,
+    )
+    features = observation_transforms(angle_features)
+    if agent is None:  # the whole contract once, with a short rollout that draws no random numbers
+        check_goal_env(env, goal_indices=None if goal_indices is None else tuple(goal_indices))
+        return TransformedEnv(env, Compose(*features)) if features else env
+    transforms = [*features, agent.high_policy.make_primer(), agent.planner.make_primer()]
+    if goal_shifting is not None:
+        transforms.append(GoalShiftOnReset(FrontierGoalShifting(agent.planner, **goal_shifting)))
+    return TransformedEnv(env, Compose(*transforms))
+
+
+def make_collector(
+    env: EnvBase, agent: DHRLAgent, episode_length: int, *, compile_policy: bool | Mapping[str, Any] = False
+) -> Collector:
+    """A :class:`~torchrl.collectors.Collector` yielding one whole episode per env and batch.
+
+    Episodes only truncate, so every env ends its episode at the last step of a batch and the
+    collector's automatic reset starts the next one: batches are ``[num_envs, episode_length]``.
+    Batches are stored on the env's device, trajectory ids included, so that they can be written into
+    replay buffers on that device (also into a storage restored from a checkpoint, which has no device).
+    The policy runs on that device too (``device=env.device``): the collector's step tensordict then
+    keeps a device and the env does not cast it, key by key, on every step (a collector that infers the
+    policy's device leaves it ``None``; 0.2 ms of a 1.46 ms warm-up env step on PointMaze, same data).
+
+    ``compile_policy`` (``True`` or the keyword arguments of :func:`torchrl._utils.compile_with_warmup`)
+    is the collector's own: the acting policy (high level, planner, low level) is compiled with
+    ``torch.compile`` after a warm-up call. It needs a capturable planner (``make_agent(...,
+    capturable_planner=True)``), whose policy compiles as one graph; the same actions up to float
+    round-off (and, in a compiled graph, other random draws for the exploration noise).
+
+    Raises:
+        ValueError: ``compile_policy`` with a planner that is not ``capturable``.
+    """
+    if compile_policy not in (False, None) and not agent.planner.capturable:
+        raise ValueError(
+            "`compile_policy` needs a capturable planner (make_agent(..., capturable_planner=True), or "
+            "agent.planner.capturable = True): the planner's replanning branch would split the compiled "
+            "policy into pieces at every step."
+        )
+    num_envs = env.batch_size.numel()
+    # The planner and the subgoal scheduler carry their state with TensorDictPrimers (already on the env);
+    # they do not need the InitTracker the collector would add for recurrent-looking modules.
+    return Collector(
+        env,
+        agent.policy,
+        frames_per_batch=num_envs * episode_length,
+        total_frames=-1,
+        device=env.device,
+        auto_register_policy_transforms=False,
+        compile_policy=None if compile_policy is False else compile_policy,
+    )
+
+
+def make_low_level_buffer(
+    *,
+    buffer_size: int,
+    batch_size: int,
+    reward_threshold: float,
+    her_ratio: float = 0.8,
+    her_window: int | None = 150,
+    device: torch.device | str = "cpu",
+) -> RelabelReplayBuffer:
+    """The low-level buffer: a time-major ``[T, num_envs]`` :class:`~torchrl_dhrl.data.CompactLazyTensorStorage`
+    (extended with collector batches ``[num_envs, T]``) of ``buffer_size`` transitions, whatever ``num_envs``,
+    whose :meth:`~torchrl_dhrl.data.RelabelReplayBuffer.sample` relabels future goals
+    (:class:`~torchrl_dhrl.data.FutureGoalRelabel`: the waypoint is replaced for ``her_ratio`` of the policy
+    critics' batch and all of the graph critics', within ``her_window`` steps; sparse rewards within
+    ``reward_threshold``).
+
+    Examples:
+        >>> rb = make_low_level_buffer(buffer_size=1000, batch_size=32, reward_threshold=0.5)
+        >>> rb.storage.ndim, rb.batch_size
+        (2, 32)
+    """
+    reward = SparseGoalReward(reward_threshold)
+    # ``max_size`` counts transitions (elements of the ``[T, num_envs]`` storage), not time steps
+    return RelabelReplayBuffer(
+        storage=CompactLazyTensorStorage(buffer_size, ndim=2, device=device),
+        relabel=[
+            FutureGoalRelabel(reward, her_ratio=(her_ratio, 1.0), window=her_window, goal_key="waypoint")
+        ],
+        batch_size=batch_size,
+    )
+
+
+def make_high_level_buffer(
+    *,
+    buffer_size: int,
+    batch_size: int,
+    reward_threshold: float,
+    her_ratio: float = 1.0,
+    her_window: int | None = 15,
+    subgoal_test_ratio: float = 0.2,
+    subgoal_test_threshold: float = 1.0,
+    subgoal_miss_penalty: float = 1.3,
+    gradual_penalty: float | None = 5.0,
+    planner: GraphPlanner | None = None,
+    far_from_graph_threshold: float = 90.0,
+    device: torch.device | str = "cpu",
+) -> RelabelReplayBuffer:
+    """The high-level buffer: a :class:`~torchrl_dhrl.data.HighLevelTransitionBuilder` turns low-level batches
+    into one transition per subgoal at ``extend``; :meth:`~torchrl_dhrl.data.RelabelReplayBuffer.sample`
+    relabels future goals (``her_ratio``, ``her_window`` high-level steps) and runs
+    :class:`~torchrl_dhrl.data.HindsightSubgoalRelabel` (HAC action relabelling, subgoal testing and, with
+    ``gradual_penalty`` and a ``planner``, the gradual penalty of subgoals farther than
+    ``far_from_graph_threshold`` from the planner's graph; without a ``planner`` no subgoal is penalised
+    as far from the graph).
+
+    Examples:
+        >>> rb = make_high_level_buffer(buffer_size=1000, batch_size=32, reward_threshold=0.5)
+        >>> type(rb.transform[0]).__name__, rb.batch_size
+        ('HighLevelTransitionBuilder', 32)
+    """
+    reward = SparseGoalReward(reward_threshold)
+    distance_from_graph = (
+        # exact relative to the threshold, the only thing the penalty reads, at a fraction of the cost
+        functools.partial(planner.distance_from_graph, at_most=far_from_graph_threshold)
+        if gradual_penalty is not None and planner is not None
+        else None
+    )
+    relabel = [
+        FutureGoalRelabel(
+            reward,
+            her_ratio=her_ratio,
+            window=her_window,
+            out_keys=["desired_goal"],
+            reward_keys=None,
+            traj_key="episode_id",
+            step_count_key="segment_index",
+        ),
+        HindsightSubgoalRelabel(
+            distance_from_graph,
+            reward,
+            subgoal_test_ratio=subgoal_test_ratio,
+            subgoal_test_threshold=subgoal_test_threshold,
+            subgoal_miss_penalty=subgoal_miss_penalty,
+            gradual_penalty=gradual_penalty,
+            far_from_graph_threshold=far_from_graph_threshold,
+        ),
+    ]
+    return RelabelReplayBuffer(
+        storage=CompactLazyTensorStorage(buffer_size, device=device),
+        transform=HighLevelTransitionBuilder(reward_fn=reward),
+        relabel=relabel,
+        batch_size=batch_size,
+    )
+
+
+def make_updater(
+    loss: LossModule,
+    replay_buffer: ReplayBuffer,
+    *,
+    actor_lr: float,
+    critic_lr: float,
+    **kwargs,
+) -> LossUpdater:
+    """A :class:`~torchrl_dhrl.training.LossUpdater` of ``loss`` on ``replay_buffer``'s samples, with the two Adam
+    optimisers of :func:`~torchrl_dhrl.objectives.make_optimizers` (``actor_lr``, ``critic_lr``).
+
+    Keyword Args:
+        **kwargs: those of :class:`~torchrl_dhrl.training.LossUpdater` (``polyak``, ``target_update_interval``,
+            ``cudagraphs``, ``autocast_dtype``, ...).
+    """
+    optimizers = make_optimizers(loss, actor_lr=actor_lr, critic_lr=critic_lr)
+    return LossUpdater(loss, replay_buffer, optimizers, **kwargs)
+
+
+def make_logger(
+    backend: str,
+    exp_name: str,
+    run_dir: str | Path,
+    *,
+    project: str | None = None,
+    wandb_mode: str = "offline",
+    group: str | None = None,
+):
+    """A TorchRL logger: ``"csv"`` (files under ``run_dir/logs``), ``"wandb"`` (offline unless
+    ``wandb_mode="online"``; the runs of one sweep share ``group``) or ``"tensorboard"``; ``None`` for ``"none"``.
+
+    Examples:
+        >>> import tempfile
+        >>> type(make_logger("csv", "dhrl", tempfile.mkdtemp())).__name__, make_logger("none", "dhrl", ".")
+        ('CSVLogger', None)
+    """
+    from torchrl.record.loggers import CSVLogger, TensorboardLogger, WandbLogger
+
+    log_dir = str(Path(run_dir) / "logs")
+    if backend == "csv":
+        return CSVLogger(exp_name, log_dir=log_dir)
+    if backend == "tensorboard":
+        return TensorboardLogger(exp_name, log_dir=log_dir)
+    if backend == "wandb":
+        extra = {"group": group} if group else {}
+        return WandbLogger(
+            exp_name, offline=wandb_mode != "online", save_dir=log_dir, project=project, **extra
+        )
+    if backend == "none":
+        return None
+    raise ValueError(f"Unknown logger backend {backend!r}: csv, wandb, tensorboard or none.")

@@ -1,0 +1,707 @@
+"""Validation of a DHRL training configuration, before anything is built or run."""
+
+from __future__ import annotations
+
+import copy
+import difflib
+import fnmatch
+import importlib.util
+import math
+from collections.abc import Mapping
+from typing import Any
+
+import torch
+
+from torchrl_dhrl.modules.critics import DISTANCE_OUTPUTS
+from torchrl_dhrl.planner.distances import TWIN_CHOICES
+from torchrl_dhrl.planner.fgs import FGS_TRIGGERS, FGS_WEIGHTINGS
+from torchrl_dhrl.training import native_bfloat16, resolve_precision
+
+__all__ = [
+    "BUILD_DTYPES",
+    "CHOICES",
+    "ConfigError",
+    "DISTANCES",
+    "IMPLIED_WHEN_ABSENT",
+    "LOGGER_BACKENDS",
+    "FORK_MUTABLE_KEYS",
+    "RESUME_MUTABLE_KEYS",
+    "SEED_MAX",
+    "SWITCHES",
+    "UPDATE_DTYPES",
+    "check_known_keys",
+    "check_resume_config",
+    "describe_precisions",
+    "resolve_device",
+    "run_precisions",
+    "validate_config",
+    "with_implied_keys",
+]
+
+#: Precisions of the distance evaluations of a graph rebuild (``planner.build_dtype``; ``auto``: bfloat16 where the
+#: device has it natively, else float32; :func:`~torchrl_dhrl.training.resolve_precision`).
+BUILD_DTYPES = ("float32", "bfloat16", "float16", "auto")
+#: Precisions of the networks' updates (``update_dtype``; ``auto`` as for ``BUILD_DTYPES``).
+UPDATE_DTYPES = ("float32", "bfloat16", "auto")
+#: Graph distances the recipe can plan with.
+DISTANCES = ("learned", "oracle")
+#: Logger back ends (``none`` logs nothing but the progress bar).
+LOGGER_BACKENDS = ("csv", "wandb", "tensorboard", "none")
+#: The largest ``seed`` (NumPy's global generator takes seeds in ``[0, 2**32 - 1]``).
+SEED_MAX = 2**32 - 1
+#: Keys that may differ between a checkpoint's configuration and the one resuming it, as
+#: :func:`fnmatch.fnmatchcase` patterns over dotted keys: how long the run goes on, where and how it
+#: writes (paths, progress bar, logger, pictures, checkpoint period) and how it computes (device,
+#: threads, CUDA graphs, compilation, update and graph-build precision). Every other key defines the
+#: experiment (environment, seed, networks, buffers, schedule, planner) and must match; see
+#: :func:`check_resume_config`.
+RESUME_MUTABLE_KEYS = (
+    "total_steps",
+    "progress",
+    "run_dir",
+    "resume",
+    "device",
+    "threads",
+    "cudagraphs",
+    "compile",
+    "capture_sampling",
+    "compile_policy",
+    "update_dtype",
+    "planner.build_dtype",
+    "logger.*",
+    "plots.*",
+    "checkpoint.*",
+)
+#: Keys that may also differ between a checkpoint's configuration and a run *forked* from it (``fork=<run>``: a new
+#: run that starts from the checkpoint's state, see :func:`~torchrl_dhrl.training.start_run`): besides
+#: :data:`RESUME_MUTABLE_KEYS`, the seed (the fork re-seeds its random streams, the test episodes' apart) and
+#: the hyperparameters that no checkpointed state holds, read from the configuration by the objects built for
+#: the fork: the high level's subgoal testing and gradual penalty (its relabelling) and when and how the
+#: test episodes run. Not the learning rates, noise scales or network shapes, which the restored optimiser,
+#: module and buffer states would silently overwrite.
+FORK_MUTABLE_KEYS = RESUME_MUTABLE_KEYS + (
+    "fork",
+    "seed",
+    "high.subgoal_test_ratio",
+    "high.subgoal_test_threshold",
+    "high.subgoal_miss_penalty",
+    "high.gradual_penalty",
+    "high.far_from_graph_factor",
+    "schedule.eval_every_epochs",
+    "schedule.eval_flat",
+)
+#: Keys added after runs were checkpointed without them, with the value those runs were trained with: a
+#: saved configuration without the key means that value (:func:`with_implied_keys`), so a checkpoint of an
+#: older version resumes (and rebuilds, e.g. in the diagnosis scripts) with its own behaviour, and resuming it
+#: under another value is refused like any other change of the experiment.
+IMPLIED_WHEN_ABSENT = {
+    "low.distance_output": "softplus",  # 0.3.x and before: softplus distances
+    "high.distance_output": "softplus",
+    "right_flipped_after": None,  # runs from before the switch: a flipped ant stayed flipped
+    "reference_engine": False,  # runs from before the switch: MuJoCo 3's margins and capsule inertias
+    "fork": None,  # runs from before the key: started afresh
+}
+#: Keys with a fixed set of values (the first is the default; see docs/faithfulness.md).
+CHOICES = {
+    "low.critic_goal": ("absolute", "relative"),
+    "low.distance_output": DISTANCE_OUTPUTS,
+    "high.distance_output": DISTANCE_OUTPUTS,
+    "high.warmup_subgoals": ("uniform", "policy"),
+    "planner.twin": TWIN_CHOICES,
+    "fgs.trigger": FGS_TRIGGERS,
+    "fgs.weighting": FGS_WEIGHTINGS,
+}
+#: Boolean switches (see docs/faithfulness.md).
+SWITCHES = (
+    "schedule.train_during_warmup",
+    "schedule.eval_flat",
+    "low.sqgc",
+    "low.relative_goal",
+    "low.target_action_clamp",
+    "high.target_action_clamp",
+    "low.actor_after_critic_step",
+    "high.actor_after_critic_step",
+    "fgs.enabled",
+    "planner.enabled",
+    "reference_engine",
+)
+
+
+class ConfigError(ValueError):
+    """A training configuration that cannot run; the message says which key and why."""
+
+
+def _get(cfg: Mapping, path: str) -> Any:
+    node: Any = cfg
+    for part in path.split("."):
+        if not isinstance(node, Mapping) or part not in node:
+            raise ConfigError(f"Missing configuration key `{path}`.")
+        node = node[part]
+    return node
+
+
+def _number(cfg: Mapping, path: str, *, low: float | None = None, strict: bool = False, integer=False):
+    value = _get(cfg, path)
+    kind = int if integer else (int, float)
+    if isinstance(value, bool) or not isinstance(value, kind):
+        raise ConfigError(f"`{path}` must be {'an integer' if integer else 'a number'}, got {value!r}.")
+    if low is not None and (value <= low if strict else value < low):
+        raise ConfigError(f"`{path}` must be {'>' if strict else '>='} {low}, got {value!r}.")
+    return value
+
+
+def _fraction(cfg: Mapping, path: str) -> float:
+    value = _number(cfg, path, low=0.0)
+    if value > 1:
+        raise ConfigError(f"`{path}` must be in [0, 1], got {value!r}.")
+    return value
+
+
+def _vector(cfg: Mapping, path: str) -> list[float]:
+    value = _get(cfg, path)
+    if not isinstance(value, (list, tuple)) or any(
+        isinstance(v, bool) or not isinstance(v, (int, float)) for v in value
+    ):
+        raise ConfigError(f"`{path}` must be a list of numbers, got {value!r}.")
+    return list(value)
+
+
+def _check_run_keys(cfg: Mapping) -> None:
+    """Types of the keys that only steer the run (threads, paths, switches, logger names)."""
+    threads = _get(cfg, "threads")
+    if threads is not None:
+        if isinstance(threads, bool) or not isinstance(threads, int) or threads < 1:
+            raise ConfigError(
+                f"`threads` must be null (from the available cores) or an integer >= 1, got {threads!r}."
+            )
+    for path in ("run_dir", "resume") + (("fork",) if "fork" in cfg else ()):
+        value = _get(cfg, path)
+        if value is not None and (not isinstance(value, str) or not value):
+            raise ConfigError(f"`{path}` must be null or a path, got {value!r}.")
+    optional = tuple(key for key in ("cudagraphs", "compile", "compile_policy") if key in cfg)
+    for path in ("progress", "plots.video") + optional:
+        if not isinstance(_get(cfg, path), bool):
+            raise ConfigError(f"`{path}` must be true or false, got {_get(cfg, path)!r}.")
+    if not isinstance(_get(cfg, "logger.project"), str):
+        raise ConfigError(f"`logger.project` must be a string, got {_get(cfg, 'logger.project')!r}.")
+    group = cfg.get("logger", {}).get("group") if isinstance(cfg.get("logger"), Mapping) else None
+    if group is not None and (not isinstance(group, str) or not group):
+        raise ConfigError(f"`logger.group` must be null or a non-empty string, got {group!r}.")
+    if _get(cfg, "logger.exp_name") is not None and not isinstance(_get(cfg, "logger.exp_name"), str):
+        raise ConfigError(
+            f"`logger.exp_name` must be null (dhrl_<env>_seed<seed>) or a string, got {_get(cfg, 'logger.exp_name')!r}."
+        )
+
+
+def _check_angle_features(cfg: Mapping, name: str, obs_dim: int | None) -> None:
+    """``angle_features``: null or distinct observation indices (in range when ``obs_dim`` is known) outside
+    ``goal_indices``."""
+    angles, goals = _get(cfg, "angle_features"), _get(cfg, "goal_indices")
+    if angles is None:
+        return
+    bound = math.inf if obs_dim is None else obs_dim
+    if (
+        not isinstance(angles, (list, tuple))
+        or not angles
+        or len(set(angles)) != len(angles)
+        or any(isinstance(i, bool) or not isinstance(i, int) or not 0 <= i < bound for i in angles)
+        or set(angles) & set(goals or ())
+    ):
+        where = "" if obs_dim is None else f" in [0, {obs_dim})"
+        raise ConfigError(
+            f"`angle_features` must be null or distinct observation indices{where} outside `goal_indices` "
+            f"({name}'s continuous joint angles, e.g. [4, 6] for Reacher3D), got {angles!r}."
+        )
+
+
+def _check_right_flipped(cfg: Mapping, name: str, spec) -> None:
+    """``right_flipped_after``: null, or a positive number of env steps for an env whose agent can flip."""
+    steps = _get(cfg, "right_flipped_after")
+    if steps is None:
+        return
+    if isinstance(steps, bool) or not isinstance(steps, int) or steps < 1:
+        raise ConfigError(
+            f"`right_flipped_after` must be null or a positive number of env steps, got {steps!r}."
+        )
+    if spec is None or not hasattr(getattr(spec, "agent", None), "upright_qpos"):
+        raise ConfigError(
+            f"`right_flipped_after` rights a flipped ant: it applies to the ant mazes only, not to {name}; "
+            "leave it null."
+        )
+
+
+def _check_reference_engine(cfg: Mapping, name: str, spec) -> None:
+    """``reference_engine`` (a boolean, see :data:`SWITCHES`): ``true`` only for an env whose agent is the ant."""
+    if _get(cfg, "reference_engine") is not True:
+        return
+    agent = getattr(spec, "agent", None)
+    if spec is None or not hasattr(agent, "reference_engine"):
+        raise ConfigError(
+            f"`reference_engine` emulates MuJoCo 2.0's contact margins and capsule inertias of the ant: it applies "
+            f"to the ant mazes only, not to {name}; leave it false."
+        )
+
+
+def _check_against_env(cfg: Mapping, name: str) -> None:
+    """Sizes that must agree with the environment's spec (read without building it) and with each other."""
+    from torchrl_dhrl.envs import ENVS
+
+    spec = ENVS.get(name)
+    _check_right_flipped(cfg, name, spec)
+    _check_reference_engine(cfg, name, spec)
+    if spec is None:  # a registered user env (or ``env_names`` given): its sizes are checked when it is built
+        _check_angle_features(cfg, name, None)
+        return
+    goal_dim, obs_dim = spec.goal_dim, spec.obs_dim
+    _check_angle_features(cfg, name, obs_dim)
+    indices = _get(cfg, "goal_indices")
+    if indices is not None:
+        if (
+            not isinstance(indices, (list, tuple))
+            or len(indices) != goal_dim
+            or len(set(indices)) != goal_dim
+            or any(isinstance(i, bool) or not isinstance(i, int) or not 0 <= i < obs_dim for i in indices)
+        ):
+            raise ConfigError(
+                f"`goal_indices` must be null or {goal_dim} distinct indices in [0, {obs_dim}) (where {name}'s "
+                f"{goal_dim}-D achieved goal sits in its {obs_dim}-D observation), got {indices!r}."
+            )
+    for path in ("high.subgoal_low", "high.subgoal_high"):
+        if len(_get(cfg, path)) != goal_dim:
+            raise ConfigError(
+                f"`{path}` must have {goal_dim} entries ({name}'s goal space is {goal_dim}-D), got {_get(cfg, path)!r}."
+            )
+    episode = _get(cfg, "episode_length") or spec.episode_length
+    c_h = _get(cfg, "high.c_h")
+    if c_h > episode:
+        raise ConfigError(
+            f"`high.c_h` ({c_h}) must be <= the episode length ({episode}): a subgoal lasts c_h env steps."
+        )
+    batch = _get(cfg, "num_envs") * episode
+    if _get(cfg, "total_steps") < batch:
+        raise ConfigError(
+            f"`total_steps` ({_get(cfg, 'total_steps')}) must be >= one collector batch, num_envs x episode_length "
+            f"= {_get(cfg, 'num_envs')} x {episode} = {batch} env steps (the collector yields whole episodes)."
+        )
+    for level in ("low", "high"):
+        size, buffer = _get(cfg, f"{level}.batch_size"), _get(cfg, f"{level}.buffer_size")
+        if size > buffer:
+            raise ConfigError(
+                f"`{level}.batch_size` ({size}) must be <= `{level}.buffer_size` ({buffer}), the transitions it samples from."
+            )
+
+
+_DEVICES = "'auto', 'cpu', 'cuda' or 'cuda:N' (N < the number of visible CUDA devices)"
+
+
+def resolve_device(device: str | torch.device | None) -> torch.device:
+    """``"auto"`` (or ``None``) -> CUDA when available, else CPU; anything else is checked.
+
+    Only the devices the recipe runs on are accepted: ``"cpu"``, ``"cuda"`` and ``"cuda:N"`` with ``N``
+    below :func:`torch.cuda.device_count`. Other PyTorch devices (``"mps"``, ``"meta"``, ``"xpu"``, ...)
+    raise :class:`ConfigError` here rather than deep inside TorchRL's specs or the replay buffers.
+
+    Args:
+        device (str, torch.device or None): the ``device`` configuration value.
+
+    Returns:
+        the :class:`torch.device` to build everything on.
+
+    Raises:
+        ConfigError: naming ``device``, the value and the accepted ones.
+
+    Examples:
+        >>> resolve_device("cpu")
+        device(type='cpu')
+        >>> try:
+        ...     resolve_device("mps")
+        ... except ConfigError as err:
+        ...     print(err)
+        `device` must be 'auto', 'cpu', 'cuda' or 'cuda:N' (...), got 'mps' (the recipe runs on CPU and CUDA only).
+    """
+    if device is None or str(device) == "auto":
+        return torch.device("cuda" if torch.cuda.is_available() else "cpu")
+    if not isinstance(device, (str, torch.device)):
+        raise ConfigError(f"`device` must be {_DEVICES}, got {device!r}.")
+    try:
+        resolved = torch.device(device)
+    except RuntimeError as err:
+        raise ConfigError(f"`device` must be {_DEVICES}, got {device!r}.") from err
+    if resolved.type not in ("cpu", "cuda"):
+        raise ConfigError(
+            f"`device` must be {_DEVICES}, got {device!r} (the recipe runs on CPU and CUDA only)."
+        )
+    if resolved.type == "cuda":
+        if not torch.cuda.is_available():
+            raise ConfigError(
+                f"`device={device}` asks for CUDA but torch.cuda.is_available() is False; use device=auto or cpu."
+            )
+        count = torch.cuda.device_count()
+        if resolved.index is not None and resolved.index >= count:
+            raise ConfigError(
+                f"`device={device}`: only {count} CUDA device(s) are visible; use cuda:0"
+                + (f" to cuda:{count - 1}." if count > 1 else ".")
+            )
+    return resolved
+
+
+def run_precisions(cfg: Mapping, device: str | torch.device) -> tuple[torch.dtype | None, torch.dtype | None]:
+    """The autocast dtypes of a configuration's updates and graph builds on ``device`` (``None``: float32).
+
+    Resolves ``update_dtype`` and ``planner.build_dtype`` (``auto``: bfloat16 where ``device`` has it natively,
+    else float32; :func:`~torchrl_dhrl.training.resolve_precision`), CUDA-graph updates included.
+
+    Examples:
+        >>> import torch
+        >>> run_precisions({"update_dtype": "bfloat16", "planner": {"build_dtype": "float32"}}, "cpu")
+        (torch.bfloat16, None)
+    """
+    update = resolve_precision(cfg.get("update_dtype", "float32"), device, choices=UPDATE_DTYPES)
+    build = resolve_precision(_get(cfg, "planner.build_dtype"), device, choices=BUILD_DTYPES)
+    return update, build
+
+
+def describe_precisions(cfg: Mapping, device: str | torch.device) -> str:
+    """One start-up line: the precisions :func:`run_precisions` resolves to, and why when ``auto`` chose.
+
+    Examples:
+        >>> describe_precisions({"update_dtype": "float32", "planner": {"build_dtype": "float32"}}, "cpu")
+        'Precision: updates float32, graph builds float32.'
+    """
+    update, build = run_precisions(cfg, device)
+    line = f"Precision: updates {_dtype_name(update)}, graph builds {_dtype_name(build)}"
+    if "auto" in (cfg.get("update_dtype", "float32"), _get(cfg, "planner.build_dtype")):
+        has = "has" if native_bfloat16(device) else "has no"
+        line += f" (auto: {torch.device(device).type} {has} native bfloat16)"
+    return line + "."
+
+
+def _dtype_name(dtype: torch.dtype | None) -> str:
+    return "float32" if dtype is None else str(dtype).removeprefix("torch.")
+
+
+def _flatten(cfg: Mapping, prefix: str = "") -> dict[str, Any]:
+    out: dict[str, Any] = {}
+    for key, value in cfg.items():
+        if isinstance(value, Mapping) and value:
+            out.update(_flatten(value, f"{prefix}{key}."))
+        else:
+            out[f"{prefix}{key}"] = value
+    return out
+
+
+def with_implied_keys(cfg: Mapping, implied: Mapping[str, Any] = IMPLIED_WHEN_ABSENT) -> dict:
+    """A copy of a saved configuration with the keys it predates set to the values it was trained with.
+
+    A key of ``implied`` (dotted, :data:`IMPLIED_WHEN_ABSENT` by default) that ``cfg`` lacks while holding its
+    section (e.g. ``low``) is added with its implied value; everything else is copied as it is.
+
+    Examples:
+        >>> with_implied_keys({"low": {"gamma": 0.99}})["low"]
+        {'gamma': 0.99, 'distance_output': 'softplus'}
+        >>> with_implied_keys({"low": {"distance_output": "linear"}})["low"]["distance_output"]
+        'linear'
+    """
+    out = copy.deepcopy(dict(cfg))
+    for dotted, value in implied.items():
+        *parents, leaf = dotted.split(".")
+        node = out
+        for part in parents:
+            node = node.get(part) if isinstance(node, Mapping) else None
+        if isinstance(node, dict) and leaf not in node:
+            node[leaf] = value
+    return out
+
+
+def _unknown_keys(cfg: Mapping, schema: Mapping, prefix: str = "") -> list[str]:
+    unknown = []
+    for key, value in cfg.items():
+        path = f"{prefix}{key}"
+        if key not in schema:
+            unknown.append(path)
+        elif isinstance(schema[key], Mapping):
+            if not isinstance(value, Mapping):
+                keys = list(schema[key])
+                listed = ", ".join(keys[:4]) + (", ..." if len(keys) > 4 else "")
+                raise ConfigError(
+                    f"`{path}` is a group of keys ({listed}); set one of them "
+                    f"(e.g. `{path}.{keys[0] if keys else 'key'}=...`), got {value!r}."
+                )
+            unknown += _unknown_keys(value, schema[key], f"{path}.")
+    return unknown
+
+
+def check_known_keys(cfg: Mapping, schema: Mapping, *, source: str = "config.yaml") -> None:
+    """Rejects configuration keys that the schema does not define, nested ones included.
+
+    Hydra lets ``+key=value`` (and ``++key=value``) add keys to the composed configuration; nothing
+    reads them, so a misspelt ``+planner.cutof=10`` would otherwise be ignored without a word. The
+    schema is the default configuration (the recipe passes ``recipes/config/config.yaml`` as loaded
+    by OmegaConf), so keys added there are known at once. A schema value that is not a mapping (a
+    number, a list, ``null``) accepts any value; :func:`validate_config` checks the values.
+
+    Args:
+        cfg (Mapping): the configuration to check, as plain containers.
+        schema (Mapping): the configuration that defines the keys.
+
+    Keyword Args:
+        source (str): how the message names the schema. Defaults to ``"config.yaml"``.
+
+    Raises:
+        ConfigError: naming every unknown key (with the closest known one, if any), or a group of keys
+            (e.g. ``low``) set to a plain value.
+
+    Examples:
+        >>> schema = {"seed": 0, "low": {"gamma": 0.99, "hidden": [256]}}
+        >>> check_known_keys({"seed": 3, "low": {"gamma": 0.9}}, schema)
+        >>> try:
+        ...     check_known_keys({"seed": 3, "low": {"gama": 0.9}}, schema)
+        ... except ConfigError as err:
+        ...     print(err)
+        Unknown configuration key `low.gama` (not in config.yaml; did you mean `low.gamma`?). Keys cannot be added with `+key=value`: set existing ones with `key=value`.
+    """
+    unknown = _unknown_keys(cfg, schema)
+    if not unknown:
+        return
+    known = list(_flatten(schema))
+    names = []
+    for key in unknown:
+        close = difflib.get_close_matches(key, known, n=1, cutoff=0.75)
+        names.append((f"`{key}`", f"did you mean `{close[0]}`?" if close else ""))
+    if len(names) == 1:
+        name, hint = names[0]
+        head = f"Unknown configuration key {name} (not in {source}{'; ' + hint if hint else ''})"
+    else:
+        listed = ", ".join(f"{name} ({hint})" if hint else name for name, hint in names)
+        head = f"Unknown configuration keys {listed} (not in {source})"
+    raise ConfigError(f"{head}. Keys cannot be added with `+key=value`: set existing ones with `key=value`.")
+
+
+def _short(value: Any, width: int = 40) -> str:
+    text = repr(value)
+    return text if len(text) <= width else text[: width - 3] + "..."
+
+
+def check_resume_config(
+    saved: Mapping,
+    current: Mapping,
+    *,
+    mutable: tuple[str, ...] = RESUME_MUTABLE_KEYS,
+    what: str = "the checkpoint",
+    action: str = "resume",
+) -> list[str]:
+    """Compares a checkpoint's configuration with the one resuming it.
+
+    Keys matching a pattern of ``mutable`` (:data:`RESUME_MUTABLE_KEYS` by default: run length, outputs,
+    logging, device and speed settings) may differ; any other key that both configurations hold must
+    have the same value, or the resumed run would not be the one that was checkpointed (and would often
+    fail loading it, e.g. other network sizes). A key of :data:`IMPLIED_WHEN_ABSENT` that the checkpoint
+    predates is compared with the value the checkpoint was trained with. Other keys only one side holds (a
+    checkpoint written before a key existed, or after one was removed) are not an error: the current value
+    is used and reported.
+
+    Args:
+        saved (Mapping): the configuration stored in the checkpoint (under ``"config"``).
+        current (Mapping): the configuration of the resuming run.
+
+    Keyword Args:
+        mutable (tuple of str): patterns of the keys that may differ. Defaults to
+            :data:`RESUME_MUTABLE_KEYS`.
+        what (str): how the error message names the checkpoint. Defaults to ``"the checkpoint"``.
+        action (str): the configuration key that continues the checkpoint, for the error message: ``"resume"``
+            (the default) or ``"fork"`` (with ``mutable=FORK_MUTABLE_KEYS``).
+
+    Returns:
+        one ``"key: old -> new"`` note per allowed difference (empty when nothing differs).
+
+    Raises:
+        ConfigError: listing every key that differs but may not, with both values, and the keys that may.
+
+    Examples:
+        >>> saved = {"seed": 0, "total_steps": 480, "low": {"hidden": [32, 32]}}
+        >>> check_resume_config(saved, {"seed": 0, "total_steps": 960, "low": {"hidden": [32, 32]}})
+        ['total_steps: 480 -> 960']
+        >>> try:
+        ...     check_resume_config(saved, {"seed": 0, "total_steps": 960, "low": {"hidden": [64]}})
+        ... except ConfigError as err:
+        ...     print(str(err)[:88])
+        The checkpoint was trained with another configuration: low.hidden [32, 32] -> [64] ...
+    """
+    old, new = _flatten(saved), _flatten(current)
+    # a checkpoint older than a key of IMPLIED_WHEN_ABSENT: the value it was trained with
+    old |= {key: value for key, value in IMPLIED_WHEN_ABSENT.items() if key in new and key not in old}
+    allowed, forbidden = [], []
+    for key in sorted(old.keys() & new.keys()):
+        if old[key] == new[key]:
+            continue
+        change = f"{key} {_short(old[key])} -> {_short(new[key])}"
+        if any(fnmatch.fnmatchcase(key, pattern) for pattern in mutable):
+            allowed.append(change.replace(" ", ": ", 1))
+        else:
+            forbidden.append(change)
+    if forbidden:
+        listed = "; ".join(forbidden[:6]) + (f"; and {len(forbidden) - 6} more" if len(forbidden) > 6 else "")
+        raise ConfigError(
+            f"{what[:1].upper()}{what[1:]} was trained with another configuration: {listed} "
+            f"(saved -> now). On {action} only {', '.join(mutable)} may change; set the others back, or start "
+            f"a new run without `{action}`."
+        )
+    allowed += [
+        f"{key}: not in the checkpoint, {_short(new[key])} now" for key in sorted(new.keys() - old.keys())
+    ]
+    allowed += [
+        f"{key}: {_short(old[key])} in the checkpoint, no longer a key"
+        for key in sorted(old.keys() - new.keys())
+    ]
+    return allowed
+
+
+def validate_config(cfg: Mapping, env_names: tuple[str, ...] | None = None) -> None:
+    """Checks a training configuration and raises :class:`ConfigError` with a clear message.
+
+    Every check runs before any environment, network or file is created, so a typo costs
+    nothing. ``env_names`` lists the valid environment names (defaults to every environment of
+    :mod:`torchrl_dhrl.envs`, built in or registered with :func:`~torchrl_dhrl.envs.register_env`). The
+    sizes of a registered env are checked when it is built (:func:`~torchrl_dhrl.training.make_environment`).
+
+    Examples:
+        >>> try:
+        ...     validate_config({"env_name": "AntMase"}, env_names=("AntMaze",))
+        ... except ConfigError as err:
+        ...     print(err)
+        Unknown env_name 'AntMase'; choose one of: AntMaze.
+    """
+    hint = ""
+    if env_names is None:
+        from torchrl_dhrl.envs import ENV_NAMES, registered_env_names
+
+        env_names = (*ENV_NAMES, *registered_env_names())
+        hint = " (or register your own env with torchrl_dhrl.envs.register_env, see docs/goal_env.md)"
+    name = _get(cfg, "env_name")
+    if name not in env_names:
+        raise ConfigError(f"Unknown env_name {name!r}; choose one of: {', '.join(env_names)}{hint}.")
+    seed = _number(cfg, "seed", integer=True)
+    if not 0 <= seed <= SEED_MAX:
+        raise ConfigError(f"`seed` must be an integer in [0, 2**32 - 1] (NumPy's seed range), got {seed}.")
+    _check_run_keys(cfg)
+    device = resolve_device(_get(cfg, "device"))
+    if cfg.get("cudagraphs", False) and device.type != "cuda":
+        raise ConfigError(f"`cudagraphs=true` needs a CUDA device, but `device` resolves to {device}.")
+    update_dtype = cfg.get("update_dtype", "float32")
+    if update_dtype not in UPDATE_DTYPES:
+        raise ConfigError(f"`update_dtype` must be one of {tuple(UPDATE_DTYPES)}, got {update_dtype!r}.")
+    if cfg.get("capture_sampling") not in (None, True, False):
+        raise ConfigError(
+            f"`capture_sampling` must be null (auto), true or false, got {cfg.get('capture_sampling')!r}."
+        )
+    _number(cfg, "total_steps", low=0, strict=True, integer=True)
+    _number(cfg, "num_envs", low=1, integer=True)
+    length = _get(cfg, "episode_length")
+    if length is not None:
+        _number(cfg, "episode_length", low=1, integer=True)
+
+    for key in ("epoch_episodes", "eval_episodes"):
+        _number(cfg, f"schedule.{key}", low=1, integer=True)
+    for key in ("warmup_episodes", "graph_start_epoch"):
+        _number(cfg, f"schedule.{key}", low=0, integer=True)
+    for key in ("graph_rebuild_epochs", "eval_every_epochs", "high_update_interval"):
+        _number(cfg, f"schedule.{key}", low=1, integer=True)
+    _number(cfg, "schedule.low_updates_per_step", low=0.0)
+    for path in SWITCHES:
+        if not isinstance(_get(cfg, path), bool):
+            raise ConfigError(f"`{path}` must be true or false, got {_get(cfg, path)!r}.")
+    for path, choices in CHOICES.items():
+        if _get(cfg, path) not in choices:
+            raise ConfigError(f"`{path}` must be one of {choices}, got {_get(cfg, path)!r}.")
+    if _get(cfg, "low.critic_goal") == "relative" and _get(cfg, "goal_indices") is None:
+        raise ConfigError(f"low.critic_goal=relative needs goal_indices, which {name} does not provide.")
+
+    for level in ("low", "high"):
+        hidden = _get(cfg, f"{level}.hidden")
+        if (
+            not isinstance(hidden, (list, tuple))
+            or not hidden
+            or any(isinstance(h, bool) or not isinstance(h, int) or h < 1 for h in hidden)
+        ):
+            raise ConfigError(
+                f"`{level}.hidden` must be a non-empty list of positive integers, got {hidden!r}."
+            )
+        _number(cfg, f"{level}.batch_size", low=1, integer=True)
+        _number(cfg, f"{level}.buffer_size", low=1, integer=True)
+        _number(cfg, f"{level}.her_window", low=1, integer=True)
+        _fraction(cfg, f"{level}.her_ratio")
+        gamma = _number(cfg, f"{level}.gamma", low=0.0, strict=True)
+        if gamma >= 1:
+            raise ConfigError(f"`{level}.gamma` must be in (0, 1), got {gamma!r}.")
+        _number(cfg, f"{level}.actor_lr", low=0.0, strict=True)
+        _number(cfg, f"{level}.critic_lr", low=0.0, strict=True)
+        _fraction(cfg, f"{level}.polyak")
+        _number(cfg, f"{level}.target_update_interval", low=1, integer=True)
+        _number(cfg, f"{level}.actor_update_interval", low=1, integer=True)
+    _number(cfg, "low.action_noise", low=0.0)
+    _number(cfg, "high.action_l2", low=0.0)
+    _number(cfg, "low.action_l2", low=0.0)
+    _fraction(cfg, "low.uniform_prob")
+    _number(cfg, "low.reward_threshold", low=0.0, strict=True)
+
+    c_h = _get(cfg, "high.c_h")
+    if isinstance(c_h, bool) or not isinstance(c_h, int) or c_h < 1:
+        raise ConfigError(f"`high.c_h` (the high-level interval) must be an integer >= 1, got {c_h!r}.")
+    low, high = _vector(cfg, "high.subgoal_low"), _vector(cfg, "high.subgoal_high")
+    if len(low) != len(high) or not low:
+        raise ConfigError(
+            f"`high.subgoal_low` and `high.subgoal_high` must have the same length, got {low}, {high}."
+        )
+    if any(lo >= hi for lo, hi in zip(low, high, strict=True)):
+        raise ConfigError(
+            f"`high.subgoal_low` must be below `high.subgoal_high` on every axis, got {low}, {high}."
+        )
+    _check_against_env(cfg, name)
+    _number(cfg, "high.subgoal_noise", low=0.0)
+    _fraction(cfg, "high.subgoal_test_ratio")
+    _number(cfg, "high.subgoal_test_threshold", low=0.0, strict=True)
+    _number(cfg, "high.subgoal_miss_penalty", low=0.0)
+    if _get(cfg, "high.gradual_penalty") is not None:
+        _number(cfg, "high.gradual_penalty", low=0.0)
+    _number(cfg, "high.far_from_graph_factor", low=0.0, strict=True)
+
+    distance = _get(cfg, "planner.distance")
+    if distance not in DISTANCES:
+        raise ConfigError(f"`planner.distance` must be one of {DISTANCES}, got {distance!r}.")
+    if distance == "oracle" and _get(cfg, "goal_indices") is None:
+        raise ConfigError(
+            f"planner.distance=oracle needs the achieved goal inside the observation (goal_indices), "
+            f"which {name} does not provide."
+        )
+    if _get(cfg, "low.relative_goal") and _get(cfg, "goal_indices") is None:
+        raise ConfigError(f"low.relative_goal=true needs goal_indices, which {name} does not provide.")
+    _number(cfg, "planner.cutoff", low=0.0, strict=True)
+    landmarks = _number(cfg, "planner.max_landmarks", integer=True)
+    if landmarks < 2:
+        raise ConfigError(f"`planner.max_landmarks` must be >= 2 (a graph needs two nodes), got {landmarks}.")
+    candidates = _number(cfg, "planner.candidates", integer=True)
+    if candidates < landmarks:
+        raise ConfigError(
+            f"`planner.candidates` ({candidates}) must be >= `planner.max_landmarks` ({landmarks})."
+        )
+    _number(cfg, "planner.early_stop", low=0.0)
+    _number(cfg, "planner.reach_radius", low=0.0, strict=True)
+    if _get(cfg, "planner.build_dtype") not in BUILD_DTYPES:
+        raise ConfigError(
+            f"`planner.build_dtype` must be one of {tuple(BUILD_DTYPES)}, got {_get(cfg, 'planner.build_dtype')!r}."
+        )
+    _number(cfg, "planner.oracle_margin", low=0.0)
+    _number(cfg, "planner.oracle_speed", low=0.0, strict=True)
+    _number(cfg, "fgs.noise", low=0.0)
+
+    backend = _get(cfg, "logger.backend")
+    if backend not in LOGGER_BACKENDS:
+        raise ConfigError(f"`logger.backend` must be one of {LOGGER_BACKENDS}, got {backend!r}.")
+    if backend in ("wandb", "tensorboard") and importlib.util.find_spec(backend) is None:
+        raise ConfigError(f"`logger.backend={backend}` needs the {backend} package: pip install {backend}.")
+    if _get(cfg, "logger.wandb_mode") not in ("offline", "online"):
+        raise ConfigError(
+            f"`logger.wandb_mode` must be 'offline' or 'online', got {_get(cfg, 'logger.wandb_mode')!r}."
+        )
+    _number(cfg, "checkpoint.every_epochs", low=1, integer=True)
+    _number(cfg, "plots.every_epochs", low=0, integer=True)
