@@ -384,3 +384,23 @@ def test_random_action_success_fractions():
     assert truncated.all()
     assert REF_RANDOM_ANY - 0.042 <= ever.mean() <= REF_RANDOM_ANY + 0.042
     assert success.mean() <= REF_RANDOM_FINAL + 0.016
+
+
+def test_reacher_roll_angles_are_unbounded_within_an_episode():
+    """Why Reacher3D feeds its forearm and wrist rolls (observation entries 4 and 6) as (sin, cos) by default: under
+    uniform random torques they wind past 10 rad within one 100-step episode, and past 100 rad under a constant
+    full torque, while every limited joint stays within its range (a few radians)."""
+    sim = GoalSimulation("Reacher3D", num_envs=8, seed=0)
+    rng = np.random.default_rng(0)
+    high = np.asarray(sim.agent.action_high)
+    sim.reset()
+    largest = np.zeros(7)
+    for _ in range(sim.spec.episode_length):
+        sim.step(rng.uniform(-high, high, size=(8, 7)))
+        largest = np.maximum(largest, np.abs(sim.observation[:, :7]).max(axis=0))
+    assert largest[[4, 6]].min() > 10.0
+    assert largest[[0, 1, 2, 3, 5]].max() < 4.0
+    sim.reset()
+    for _ in range(sim.spec.episode_length):
+        sim.step(np.where(np.isin(np.arange(7), [4, 6]), high, 0.0) * np.ones((8, 1)))
+    assert np.abs(sim.observation[:, [4, 6]]).min() > 100.0
