@@ -119,28 +119,22 @@ def train(cfg: DictConfig | dict, run_dir: str | Path | None = None) -> dict:
     schedule = cfg["schedule"]
     # ---- build: env specs -> agent -> envs with the agent's primers -> buffers, updaters, collector
     run = build_run(cfg, device)
-    agent, low_rb, high_rb, low_updater, high_updater = (
-        run.agent,
-        run.low_rb,
-        run.high_rb,
-        run.low_updater,
-        run.high_updater,
-    )
+    agent, low_rb, high_rb = run.agent, run.low_rb, run.high_rb
+    low_updater, high_updater = run.low_updater, run.high_updater
     counters, history = RunCounters(), []
-    checkpoint = (
-        make_checkpoint(  # one registry of everything the run carries, for saving and restoring alike
-            config=cfg,
-            agent=agent,
-            low_updater=low_updater,
-            high_updater=high_updater,
-            low_rb=low_rb,
-            high_rb=high_rb,
-            train_env=run.train_env.base_env,
-            eval_env=run.eval_env.base_env,
-            collector=run.collector,
-            counters=counters,
-            history=history,
-        )
+    # one registry of everything the run carries, for saving and restoring alike
+    checkpoint = make_checkpoint(
+        config=cfg,
+        agent=agent,
+        low_updater=low_updater,
+        high_updater=high_updater,
+        low_rb=low_rb,
+        high_rb=high_rb,
+        train_env=run.train_env.base_env,
+        eval_env=run.eval_env.base_env,
+        collector=run.collector,
+        counters=counters,
+        history=history,
     )
     checkpoint_path = run_dir / CHECKPOINT_NAME
     try:  # the collector's workers stop however the run ends
@@ -201,9 +195,8 @@ def train(cfg: DictConfig | dict, run_dir: str | Path | None = None) -> dict:
                     set_phase(cfg, agent, counters.episodes)
                     counters.wall_s = wall_before + time.perf_counter() - wall_start
                     epoch = epoch_of(counters.episodes, warmup_end, schedule["epoch_episodes"])
-                    if (
-                        epoch > counters.epochs
-                    ):  # ---- epoch end (l.30-31): graph, evaluation, logs, checkpoint
+                    # ---- epoch end (l.30-31): graph, evaluation, logs, checkpoint
+                    if epoch > counters.epochs:
                         metrics = end_epoch(
                             cfg, run, run_dir, counters, epoch, episode_log, timer, low_out, high_out
                         )
@@ -217,9 +210,8 @@ def train(cfg: DictConfig | dict, run_dir: str | Path | None = None) -> dict:
                             save_checkpoint(checkpoint, checkpoint_path)
                     if counters.env_steps >= cfg["total_steps"]:
                         break
-                    if (
-                        stop.requested
-                    ):  # a signal during this batch: stop here, every update of the batch done
+                    # a signal during this batch: stop here, every update of the batch done
+                    if stop.requested:
                         raise KeyboardInterrupt
                     timer.lap()
             except KeyboardInterrupt:
