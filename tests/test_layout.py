@@ -90,7 +90,7 @@ def test_no_import_cycles():
         for cycle in nx.simple_cycles(graph)
         if not any(
             a in modules and modules[a].name == "__init__.py" and b.startswith(a + ".")
-            for a, b in zip(cycle, cycle[1:] + cycle[:1])
+            for a, b in zip(cycle, cycle[1:] + cycle[:1], strict=True)
         )
     ]
     assert cycles == []
@@ -101,7 +101,9 @@ def test_the_layout_separates_components_diagnostics_and_recipe():
     library = [m for m in modules if not m.startswith(("torchrl_dhrl.diagnostics", "torchrl_dhrl.recipe"))]
     for name in library:  # the components know neither the diagnostics nor the recipe
         imported = _imports(name, modules[name], modules)
-        assert not [m for m in imported if m.startswith(("torchrl_dhrl.diagnostics", "torchrl_dhrl.recipe"))], name
+        assert not [
+            m for m in imported if m.startswith(("torchrl_dhrl.diagnostics", "torchrl_dhrl.recipe"))
+        ], name
     for name in [m for m in modules if m.startswith("torchrl_dhrl.diagnostics")]:
         imported = _imports(name, modules[name], modules)
         assert not [m for m in imported if m.startswith("torchrl_dhrl.recipe")], name
