@@ -230,16 +230,22 @@ def _check_right_flipped(cfg: Mapping, name: str, spec) -> None:
         )
 
 
-def _check_reference_engine(cfg: Mapping, name: str, spec) -> None:
-    """``reference_engine`` (a boolean, see :data:`SWITCHES`): ``true`` only for an env whose agent is the ant."""
+def _check_reference_engine(cfg: Mapping, name: str) -> None:
+    """``reference_engine`` (a boolean, see :data:`SWITCHES`): ``true`` only where
+    :func:`~torchrl_dhrl.envs.simulation.reference_engine_spec` accepts the env (an ant maze)."""
     if _get(cfg, "reference_engine") is not True:
         return
-    agent = getattr(spec, "agent", None)
-    if spec is None or not hasattr(agent, "reference_engine"):
+    from torchrl_dhrl.envs import ENVS
+    from torchrl_dhrl.envs.simulation import reference_engine_spec
+
+    if name not in ENVS:  # a registered user env: make_env refuses the option
         raise ConfigError(
-            f"`reference_engine` emulates MuJoCo 2.0's contact margins and capsule inertias of the ant: it applies "
-            f"to the ant mazes only, not to {name}; leave it false."
+            f"`reference_engine` is an option of the built-in ant mazes, not of {name}; leave it false."
         )
+    try:
+        reference_engine_spec(name)
+    except ValueError as err:
+        raise ConfigError(f"`reference_engine`: {err}") from err
 
 
 def _check_against_env(cfg: Mapping, name: str) -> None:
@@ -248,7 +254,7 @@ def _check_against_env(cfg: Mapping, name: str) -> None:
 
     spec = ENVS.get(name)
     _check_right_flipped(cfg, name, spec)
-    _check_reference_engine(cfg, name, spec)
+    _check_reference_engine(cfg, name)
     if spec is None:  # a registered user env (or ``env_names`` given): its sizes are checked when it is built
         _check_angle_features(cfg, name, None)
         return
