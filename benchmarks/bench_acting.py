@@ -37,17 +37,16 @@ def build(args, num_envs, capturable, plan_on_demand=True):
     torch.manual_seed(0)
     device = torch.device(args.device)
     spec_env = make_environment(args.env, num_envs=num_envs, seed=0, max_episode_steps=args.steps)
+    cells = {"num_cells": (args.hidden,) * args.depth}
     agent = make_agent(
         spec_env,
         device,
-        subgoal_low=[-2.0, -2.0],
-        subgoal_high=[10.0, 10.0],
-        subgoal_interval=args.c_h,
         goal_indices=[0, 1],
-        low_num_cells=(args.hidden,) * args.depth,
-        high_num_cells=(args.hidden,) * args.depth,
-        max_landmarks=args.landmarks,
-        early_stop=0.0,
+        high_policy={"subgoal_low": [-2.0, -2.0], "subgoal_high": [10.0, 10.0], "interval": args.c_h, **cells},
+        high_critic=cells,
+        low_actor=cells,
+        low_critic=cells,
+        graph={"max_landmarks": args.landmarks, "early_stop": 0.0},
         capturable_planner=capturable,
     )
     obs_dim = spec_env.observation_spec["observation"].shape[-1]

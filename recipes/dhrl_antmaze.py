@@ -98,6 +98,7 @@ from torchrl_dhrl.recipe import (
     restore_checkpoint,
     save_checkpoint,
     write_metrics_csv,
+    write_run_dir,
 )
 from torchrl_dhrl.training import NonFiniteLossError, record_video
 
@@ -111,14 +112,15 @@ def train(cfg: DictConfig | dict, run_dir: str | Path | None = None) -> dict:
 
     Before anything is built or written, :func:`~dhrl_utils.start_up` checks the configuration, the
     checkpoint to resume and the run directory, and raises :class:`~torchrl_dhrl.recipe.ConfigError` on any
-    problem.
+    problem; the run directory is written once the run's objects are built (their own checks passed too).
     """
-    start = start_up(cfg, run_dir)
+    start = start_up(cfg, run_dir, write=False)
     cfg, device, run_dir = start.config, start.device, start.run_dir
     seed_everything(cfg["seed"])
     schedule = cfg["schedule"]
     # ---- build: env specs -> agent -> envs with the agent's primers -> buffers, updaters, collector
     run = build_run(cfg, device)
+    write_run_dir(start)
     agent, low_rb, high_rb = run.agent, run.low_rb, run.high_rb
     low_updater, high_updater = run.low_updater, run.high_updater
     counters, history = RunCounters(), []

@@ -1,9 +1,10 @@
-"""The recipe's configuration, mapped onto the library: ``cfg`` -> the arguments of :mod:`torchrl_dhrl.training`.
+"""The recipe's objects from its configuration: env, agent, buffers, updaters, collector, logger.
 
 ``dhrl_antmaze.py`` (training) and ``diagnose_*.py`` (a run's checkpoint) build their objects through these
-functions, the only place that reads the configuration's keys (``config/config.yaml`` is their schema). A
-configuration that the library refuses is reported as a :class:`~torchrl_dhrl.training.ConfigError` naming
-the key.
+functions. The components take the keys of their group as their own arguments, routed by name
+(:mod:`torchrl_dhrl.recipe.routing`; ``config/config.yaml`` is the schema); what is left here is the wiring the
+recipe adds (the env's sizes, the run's device and precision, the oracle distance, the graph for the penalty). A
+configuration that a component refuses is reported as a :class:`~torchrl_dhrl.recipe.ConfigError` naming the key.
 """
 
 from __future__ import annotations
@@ -20,6 +21,7 @@ from torchrl_dhrl.envs import GoalEnvError
 from torchrl_dhrl.envs.geometry import obstacle_boxes
 
 from torchrl_dhrl.diagnostics import TrainingEpisodeLog
+from torchrl_dhrl.objectives import make_optimizers
 from torchrl_dhrl.planner import LineOfSightDistance
 from torchrl_dhrl.recipe import (
     ConfigError,
@@ -32,11 +34,11 @@ from torchrl_dhrl.recipe import (
     make_high_level_buffer,
     make_logger,
     make_low_level_buffer,
-    make_updater,
     run_precisions,
     start_run,
     with_implied_keys,
 )
+from torchrl_dhrl.recipe.routing import check_components, component_arguments
 from torchrl_dhrl.training import LossUpdater, available_cpus
 
 #: The configuration directory; ``config.yaml`` there is the schema of every configuration key.
@@ -75,7 +77,7 @@ def to_dict(cfg: DictConfig | dict) -> dict:
         raise ConfigError(f"The configuration does not resolve: {' '.join(str(err).split())}") from err
 
 
-def start_up(cfg: DictConfig | dict, run_dir: str | Path | None = None) -> RunStart:
+def start_up(cfg: DictConfig | dict, run_dir: str | Path | None = None, *, write: bool = True) -> RunStart:
     """:func:`~torchrl_dhrl.training.start_run` of the composed configuration, with ``config/config.yaml`` as
     the schema: every check before anything is built or written, then the run directory.
 
@@ -86,7 +88,7 @@ def start_up(cfg: DictConfig | dict, run_dir: str | Path | None = None) -> RunSt
         ConfigError: naming the key, the value and what is accepted.
     """
     return start_run(
-        to_dict(cfg), run_dir, schema=config_schema(), schema_source="recipes/config/config.yaml"
+        to_dict(cfg), run_dir, schema=config_schema(), schema_source="recipes/config/config.yaml", write=write
     )
 
 
@@ -158,7 +160,7 @@ def build_environment(cfg: dict, device: torch.device, *, eval: bool = False, ag
             goal_indices=goal_indices(cfg),
             angle_features=cfg.get("angle_features"),
             agent=agent,
-            goal_shifting=_goal_shifting(cfg) if cfg["fgs"]["enabled"] and not eval else None,
+            goal_shifting=component_arguments(cfg)["goal_shifting"] if cfg["fgs"]["enabled"] and not eval else None,
             right_flipped_after=cfg.get("right_flipped_after"),
             reference_engine=cfg.get("reference_engine", False),
         )
@@ -166,105 +168,53 @@ def build_environment(cfg: dict, device: torch.device, *, eval: bool = False, ag
         raise ConfigError(f"env_name={cfg['env_name']}: {err}") from err
 
 
-def _goal_shifting(cfg: dict) -> dict[str, Any]:
-    fgs = cfg["fgs"]
-    return {"noise": fgs["noise"], "weighting": fgs["weighting"], "trigger": fgs["trigger"]}
-
-
 def build_agent(cfg: dict, device: torch.device) -> DHRLAgent:
-    """:func:`~torchrl_dhrl.training.make_agent` of the configuration (sizes from the env's specs)."""
+    """:func:`~torchrl_dhrl.recipe.make_agent` of the configuration: each component takes the keys of its
+    group that are its arguments (:mod:`torchrl_dhrl.recipe.routing`); sizes from the env's specs."""
     env = build_environment(cfg, device)
-    goal_dim = env.observation_spec["achieved_goal"].shape[-1]
-    low, high, planner = cfg["low"], cfg["high"], cfg["planner"]
-    if len(high["subgoal_low"]) != goal_dim:
-        raise ConfigError(
-            f"high.subgoal_low has {len(high['subgoal_low'])} entries; the goal space has {goal_dim}."
-        )
-    if low["relative_goal"] and goal_indices(cfg) is None:
-        raise ConfigError(
-            f"low.relative_goal=true needs goal_indices, which {cfg['env_name']} does not provide."
-        )
+    # a registered env's goal size is known only now: the subgoal box is checked against it, naming the keys
+    check_components(cfg, goal_dim=env.observation_spec["achieved_goal"].shape[-1], error=ConfigError)
+    args = component_arguments(cfg)
     return make_agent(
         env,
         device,
-        subgoal_low=high["subgoal_low"],
-        subgoal_high=high["subgoal_high"],
-        subgoal_interval=high["c_h"],
-        subgoal_noise=high["subgoal_noise"],
         goal_indices=goal_indices(cfg),
-        low_num_cells=low["hidden"],
-        relative_goal=bool(low["relative_goal"]),
-        # the reference's low-level critics see the absolute goal even where the actor sees the relative one
-        relative_critic_goal=low["critic_goal"] == "relative",
-        low_gamma=low["gamma"],
-        low_distance_output=low["distance_output"],
-        action_noise=low["action_noise"],
-        uniform_prob=low["uniform_prob"],
-        sqgc_loss_kwargs={**_loss_kwargs(low), "sqgc": low["sqgc"]},
-        high_num_cells=high["hidden"],
-        high_gamma=high["gamma"],
-        high_distance_output=high["distance_output"],
-        high_loss_kwargs=_loss_kwargs(high),
-        distance=oracle_distance(cfg) if planner["distance"] == "oracle" else None,
-        twin=planner["twin"],
-        cutoff=planner["cutoff"],
-        max_landmarks=planner["max_landmarks"],
-        early_stop=planner["early_stop"],
-        build_autocast_dtype=run_precisions(cfg, device)[1],
+        **{part: args[part] for part in AGENT_PARTS},
+        graph={**args["graph"], "build_autocast_dtype": run_precisions(cfg, device)[1]},
+        distance=oracle_distance(cfg) if cfg["planner"]["distance"] == "oracle" else args["distance"],
         capturable_planner=bool(cfg.get("compile_policy", False)),
-        reach_radius=planner["reach_radius"],
     )
 
 
-def _loss_kwargs(level: dict) -> dict[str, Any]:
-    """The keyword arguments both levels' losses take, from ``low.*`` or ``high.*``."""
-    return {
-        "clip_return": level["clip_return"],
-        "action_l2": level["action_l2"],
-        "target_noise_std": level["target_noise"],
-        "target_action_clamp": level["target_action_clamp"],
-    }
+#: The parts of :func:`~torchrl_dhrl.recipe.make_agent` that take their arguments from the configuration as
+#: routed (the graph and the distance get more from the recipe).
+AGENT_PARTS = (
+    "low_actor",
+    "low_critic",
+    "exploration",
+    "sqgc_loss",
+    "high_policy",
+    "high_critic",
+    "high_loss",
+    "planner",
+)
 
 
 def oracle_distance(cfg: dict) -> LineOfSightDistance:
-    """``planner.distance=oracle``: straight-line steps at ``oracle_speed``, blocked by walls and boards."""
-    indices = goal_indices(cfg)
-    if indices is None:
-        raise ConfigError(
-            f"planner.distance=oracle needs the achieved goal inside the observation (goal_indices), "
-            f"which {cfg['env_name']} does not provide."
-        )
-    planner = cfg["planner"]
+    """``planner.distance=oracle``: straight-line steps at ``oracle_speed``, blocked by walls and boards (the
+    configuration's check makes sure that the env has ``goal_indices``)."""
     return LineOfSightDistance(
-        planner["oracle_speed"],
-        boxes=obstacle_boxes(cfg["env_name"]),
-        margin=planner["oracle_margin"],
-        goal_indices=indices,
+        **component_arguments(cfg)["oracle"], boxes=obstacle_boxes(cfg["env_name"]), goal_indices=goal_indices(cfg)
     )
 
 
 def build_replay_buffers(cfg: dict, agent: DHRLAgent, device: torch.device):
     """The low- and high-level buffers of the configuration: ``(low_rb, high_rb)``."""
-    low, high = cfg["low"], cfg["high"]
-    threshold = low["reward_threshold"]
-    low_rb = make_low_level_buffer(
-        buffer_size=low["buffer_size"],
-        batch_size=low["batch_size"],
-        reward_threshold=threshold,
-        her_ratio=low["her_ratio"],
-        her_window=low["her_window"],
-        device=device,
-    )
+    args = component_arguments(cfg)
+    low_rb = make_low_level_buffer(**args["low_buffer"], device=device)
     high_rb = make_high_level_buffer(
-        buffer_size=high["buffer_size"],
-        batch_size=high["batch_size"],
-        reward_threshold=threshold,
-        her_ratio=high["her_ratio"],
-        her_window=high["her_window"],
-        subgoal_test_ratio=high["subgoal_test_ratio"],
-        subgoal_test_threshold=high["subgoal_test_threshold"],
-        subgoal_miss_penalty=high["subgoal_miss_penalty"],
-        gradual_penalty=high["gradual_penalty"],
+        **args["high_buffer"],
+        reward_threshold=cfg["low"]["reward_threshold"],  # one sparse-reward radius for both levels
         planner=agent.planner if cfg["planner"]["enabled"] else None,
         far_from_graph_threshold=far_from_graph_threshold(cfg),
         device=device,
@@ -274,24 +224,20 @@ def build_replay_buffers(cfg: dict, agent: DHRLAgent, device: torch.device):
 
 def build_updaters(cfg: dict, agent: DHRLAgent, low_rb, high_rb) -> tuple[LossUpdater, LossUpdater]:
     """The low-level (SQGC) and high-level updaters of the configuration."""
+    args = component_arguments(cfg)
     out = []
     for level, loss, rb in (("low", agent.sqgc_loss, low_rb), ("high", agent.high_loss, high_rb)):
-        c = cfg[level]
         out.append(
-            make_updater(
+            LossUpdater(
                 loss,
                 rb,
-                actor_lr=c["actor_lr"],
-                critic_lr=c["critic_lr"],
-                polyak=c["polyak"],
-                target_update_interval=c["target_update_interval"],
-                actor_update_interval=c["actor_update_interval"],
+                make_optimizers(loss, **args[f"{level}_optimizers"]),
+                **args[f"{level}_updater"],
                 cudagraphs=cfg.get("cudagraphs", False),
                 compile=cfg.get("compile", False),
                 # the high-level buffer has no capture-safe sampler (its gradual penalty queries the graph)
                 capture_sampling=cfg.get("capture_sampling") if level == "low" else None,
                 autocast_dtype=run_precisions(cfg, next(loss.parameters()).device)[0],
-                actor_after_critic_step=c["actor_after_critic_step"],
             )
         )
     return out[0], out[1]

@@ -19,12 +19,11 @@ def test_oracle_variants_plan_with_the_oracle_on_the_same_landmarks_and_restore(
     agent = make_agent(
         spec_env,
         "cpu",
-        subgoal_low=[-2.0, -2.0],
-        subgoal_high=[10.0, 10.0],
-        subgoal_interval=5,
-        low_num_cells=(16,),
-        high_num_cells=(16,),
-        max_landmarks=12,
+        high_policy={"subgoal_low": [-2.0, -2.0], "subgoal_high": [10.0, 10.0], "interval": 5, "num_cells": (16,)},
+        high_critic={"num_cells": (16,)},
+        low_actor={"num_cells": (16,)},
+        low_critic={"num_cells": (16,)},
+        graph={"max_landmarks": 12},
     )
     env = make_environment(
         "PointMaze", "cpu", num_envs=2, seed=0, eval=True, max_episode_steps=20, agent=agent

@@ -204,7 +204,7 @@ def test_scheduler_step_count_forces_issue_and_errors():
     assert td["new_subgoal"].reshape(-1).tolist() == [True, False]
     assert td["subgoal"][:, 0].tolist() == [1.0, 0.0]
     assert td["subgoal_step"].reshape(-1).tolist() == [0, 4]
-    with pytest.raises(ValueError, match="positive int"):
+    with pytest.raises(ValueError, match=r"`interval` \(the high-level interval\) must be an integer >= 1"):
         SubgoalScheduler(0)
     with pytest.raises(ValueError, match="shape"):
         sched(TensorDict({"subgoal_proposal": torch.ones(2, GOAL), "subgoal_step": torch.zeros(2)}, [2]))

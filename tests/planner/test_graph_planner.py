@@ -711,12 +711,11 @@ def _agent(capturable_planner, num_cells=(16,)):
     env = make_environment("PointMaze", num_envs=2, seed=0, max_episode_steps=30)
     agent = make_agent(
         env,
-        subgoal_low=[-2.0, -2.0],
-        subgoal_high=[10.0, 10.0],
-        subgoal_interval=5,
         goal_indices=[0, 1],
-        low_num_cells=num_cells,
-        high_num_cells=num_cells,
+        high_policy={"subgoal_low": [-2.0, -2.0], "subgoal_high": [10.0, 10.0], "interval": 5, "num_cells": num_cells},
+        high_critic={"num_cells": num_cells},
+        low_actor={"num_cells": num_cells},
+        low_critic={"num_cells": num_cells},
         capturable_planner=capturable_planner,
     )
     points = torch.rand(

@@ -237,8 +237,10 @@ def graph_diagnosis(
         >>> import torch
         >>> from torchrl_dhrl.recipe import make_agent, make_environment
         >>> _ = torch.manual_seed(0)
-        >>> agent = make_agent(make_environment("PointMaze"), subgoal_low=[-2.0, -2.0], subgoal_high=[10.0, 10.0],
-        ...                    subgoal_interval=5, low_num_cells=(8,), high_num_cells=(8,))
+        >>> cells = {"num_cells": (8,)}
+        >>> agent = make_agent(make_environment("PointMaze"), high_policy={"subgoal_low": [-2.0, -2.0],
+        ...     "subgoal_high": [10.0, 10.0], "interval": 5, **cells}, high_critic=cells, low_actor=cells,
+        ...     low_critic=cells)
         >>> env = make_environment("PointMaze", eval=True, max_episode_steps=10, agent=agent)
         >>> diagnosis = graph_diagnosis(agent, env, "PointMaze", rollout=False)
         >>> diagnosis.metrics["graph/landmarks"], diagnosis.pairs["true"].numel()

@@ -65,8 +65,9 @@ def planning_ablations(
         >>> import torch
         >>> from torchrl_dhrl.recipe import make_agent, make_environment
         >>> spec_env = make_environment("PointMaze", "cpu", num_envs=1, max_episode_steps=20)
-        >>> agent = make_agent(spec_env, "cpu", subgoal_low=[-2.0, -2.0], subgoal_high=[10.0, 10.0],
-        ...     subgoal_interval=5, low_num_cells=(16,), high_num_cells=(16,), max_landmarks=8)
+        >>> agent = make_agent(spec_env, "cpu", high_policy={"subgoal_low": [-2.0, -2.0], "subgoal_high": [10.0, 10.0], "interval": 5,
+        ...     "num_cells": (16,)}, high_critic={"num_cells": (16,)}, low_actor={"num_cells": (16,)},
+        ...     low_critic={"num_cells": (16,)}, graph={"max_landmarks": 8})
         >>> env = make_environment("PointMaze", "cpu", num_envs=2, seed=0, eval=True, max_episode_steps=20,
         ...     agent=agent)
         >>> rows = planning_ablations(agent, env, 20, reach_radii=[1.0])

@@ -85,6 +85,15 @@ def box_loc_scale(low: torch.Tensor, high: torch.Tensor) -> tuple[torch.Tensor, 
     return (high + low) / 2, (high - low) / 2
 
 
+def relative_goal_needs_indices(relative_goal: bool, goal_indices) -> None:
+    """A goal fed relative to the achieved goal needs ``goal_indices`` (a :func:`~torchrl_dhrl.checks.checked`
+    relation of the goal-conditioned modules)."""
+    if relative_goal and goal_indices is None:
+        raise ValueError(
+            "`relative_goal` needs `goal_indices` (where the achieved goal sits in the observation), got None."
+        )
+
+
 def as_goal_indices(goal_indices: Sequence[int] | torch.Tensor | None, goal_dim: int) -> torch.Tensor:
     """Validates the indices of the achieved goal inside the observation."""
     if goal_indices is None:

@@ -10,17 +10,22 @@ from torch import nn
 from torchrl.data import Bounded, Composite, TensorSpec
 from torchrl.modules import MLP, Actor
 
+from torchrl_dhrl.checks import checked, flag, layer_sizes
+
 from ._utils import (
     box_loc_scale,
     check_last_dim,
     full_precision_output,
     goal_input,
     register_goal_indices,
+    relative_goal_needs_indices,
     resolve_box,
 )
 
 #: Hidden widths of every DHRL network (reference: 3 x 256 ReLU).
 DEFAULT_NUM_CELLS = (256, 256, 256)
+#: The checks of the goal-conditioned networks' shared arguments (:func:`~torchrl_dhrl.checks.checked`).
+goal_network_checks = checked(relative_goal_needs_indices, relative_goal=flag(), num_cells=layer_sizes())
 
 
 class GoalConditionedActorNet(nn.Module):
@@ -183,6 +188,7 @@ class LowLevelActor(_BoxedGoalActor):
         tensor(True)
     """
 
+    @goal_network_checks
     def __init__(
         self,
         observation_dim: int,
@@ -251,6 +257,7 @@ class HighLevelActor(_BoxedGoalActor):
         True
     """
 
+    @goal_network_checks
     def __init__(
         self,
         observation_dim: int,

@@ -13,12 +13,15 @@ from torch import nn
 from torch.nn import functional as F
 from torchrl.data import TensorSpec
 
+from torchrl_dhrl.checks import checked, choice, flag, integer, layer_sizes, number
+
 from ._utils import (
     box_loc_scale,
     call_with_params,
     check_last_dim,
     goal_input,
     register_goal_indices,
+    relative_goal_needs_indices,
     resolve_box,
     routes_tensors_only,
 )
@@ -31,6 +34,18 @@ PARAMETERIZATIONS = ("distance", "q")
 DISTANCE_OUTPUTS = ("linear", "softplus")
 #: The default discount (the reference's); the losses and GoalDistance use it for critics that hold none.
 DEFAULT_GAMMA = 0.99
+#: The accepted discounts.
+GAMMA = number(0.0, 1.0, low_open=True, high_open=True)
+#: The checks of the critics' arguments (:func:`~torchrl_dhrl.checks.checked`).
+critic_checks = checked(
+    relative_goal_needs_indices,
+    relative_goal=flag(),
+    num_cells=layer_sizes(),
+    num_nets=integer(1),
+    parameterization=choice(PARAMETERIZATIONS),
+    distance_output=choice(DISTANCE_OUTPUTS),
+    gamma=GAMMA,
+)
 
 
 def _check_gamma(gamma: float) -> float:
@@ -124,6 +139,7 @@ class GoalConditionedCriticNet(nn.Module):
         tensor([ 1.0101,  0.0000, -1.9900])
     """
 
+    @critic_checks
     def __init__(
         self,
         observation_dim: int,
@@ -141,14 +157,6 @@ class GoalConditionedCriticNet(nn.Module):
         gamma: float = DEFAULT_GAMMA,
     ) -> None:
         super().__init__()
-        if parameterization not in PARAMETERIZATIONS:
-            raise ValueError(
-                f"`parameterization` must be one of {PARAMETERIZATIONS}, got {parameterization!r}."
-            )
-        if distance_output not in DISTANCE_OUTPUTS:
-            raise ValueError(f"`distance_output` must be one of {DISTANCE_OUTPUTS}, got {distance_output!r}.")
-        if num_nets < 1:
-            raise ValueError(f"`num_nets` must be >= 1, got {num_nets}.")
         self.observation_dim = observation_dim
         self.goal_dim = goal_dim
         self.action_dim = int(action_low.shape[-1])
@@ -259,6 +267,7 @@ class GoalConditionedCritic(TensorDictModule):
         torch.Size([4, 2])
     """
 
+    @critic_checks
     def __init__(
         self,
         observation_dim: int,

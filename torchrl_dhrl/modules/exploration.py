@@ -9,7 +9,12 @@ from tensordict.utils import NestedKey
 from torchrl.data import TensorSpec
 from torchrl.envs.utils import ExplorationType, exploration_type
 
+from torchrl_dhrl.checks import checked, number
+
 from ._utils import box_loc_scale, resolve_box
+
+#: The accepted probabilities of a uniform action.
+PROBABILITY = number(0.0, 1.0)
 
 
 class GaussianUniformExplorationModule(TensorDictModuleBase):
@@ -59,6 +64,7 @@ class GaussianUniformExplorationModule(TensorDictModuleBase):
         (True, True)
     """
 
+    @checked(sigma=number(0.0), uniform_prob=PROBABILITY)
     def __init__(
         self,
         spec: TensorSpec | None = None,
@@ -73,9 +79,6 @@ class GaussianUniformExplorationModule(TensorDictModuleBase):
         super().__init__()
         low_t, high_t = resolve_box(spec=spec, low=low, high=high, key=action_key, allow_scalar=True)
         sigma_t = torch.as_tensor(sigma, dtype=torch.float32)
-        if (sigma_t < 0).any():
-            raise ValueError(f"`sigma` must be >= 0, got {sigma}.")
-        _check_probability(uniform_prob)
         _, half_width = box_loc_scale(low_t, high_t)
         self.register_buffer("low", low_t)
         self.register_buffer("high", high_t)
@@ -137,5 +140,4 @@ class GaussianUniformExplorationModule(TensorDictModuleBase):
 
 
 def _check_probability(value: float) -> None:
-    if not 0.0 <= float(value) <= 1.0:
-        raise ValueError(f"`uniform_prob` must be in [0, 1], got {value}.")
+    PROBABILITY("uniform_prob", value)

@@ -10,9 +10,29 @@ from tensordict.utils import NestedKey
 from torch import nn
 from torchrl.envs import TensorDictPrimer
 
+from torchrl_dhrl.checks import checked, flag, layer_sizes, number, vector
+
+from ._utils import relative_goal_needs_indices
 from .actors import DEFAULT_NUM_CELLS, HighLevelActor
 from .exploration import GaussianUniformExplorationModule
-from .subgoal import SubgoalScheduler
+from .subgoal import INTERVAL, SubgoalScheduler
+
+
+def _subgoal_box(subgoal_low, subgoal_high) -> None:
+    low, high = list(map(float, subgoal_low)), list(map(float, subgoal_high))
+    if len(low) != len(high) or not low:
+        raise ValueError(
+            f"`subgoal_low` and `subgoal_high` must have the same length, got {low}, {high}."
+        )
+    if any(lo >= hi for lo, hi in zip(low, high, strict=True)):
+        raise ValueError(f"`subgoal_low` must be below `subgoal_high` on every axis, got {low}, {high}.")
+
+
+def _subgoal_box_size(goal_dim, subgoal_low) -> None:
+    if len(subgoal_low) != goal_dim:
+        raise ValueError(
+            f"`subgoal_low` must have {goal_dim} entries (the goal space is {goal_dim}-D), got {list(subgoal_low)}."
+        )
 
 
 class HighLevelPolicy(TensorDictSequential):
@@ -66,6 +86,17 @@ class HighLevelPolicy(TensorDictSequential):
         [True, False, False, True, False, False]
     """
 
+    @checked(
+        _subgoal_box,
+        _subgoal_box_size,
+        relative_goal_needs_indices,
+        subgoal_low=vector(),
+        subgoal_high=vector(),
+        interval=INTERVAL,
+        noise_sigma=number(0.0),
+        relative_goal=flag(),
+        num_cells=layer_sizes(),
+    )
     def __init__(
         self,
         observation_dim: int,

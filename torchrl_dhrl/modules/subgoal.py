@@ -9,6 +9,11 @@ from tensordict.utils import NestedKey
 from torchrl.data import Categorical, Composite, Unbounded
 from torchrl.envs import TensorDictPrimer
 
+from torchrl_dhrl.checks import checked, integer
+
+#: The accepted high-level intervals ``c_h`` (env steps per subgoal).
+INTERVAL = integer(1, what="the high-level interval")
+
 #: Value of the subgoal counter after a reset: no subgoal is in force yet.
 NO_SUBGOAL = -1
 
@@ -64,6 +69,7 @@ class SubgoalScheduler(TensorDictModuleBase):
         [0.0, 0.0, 0.0, 3.0, 3.0, 3.0, 6.0]
     """
 
+    @checked(interval=INTERVAL)
     def __init__(
         self,
         interval: int,
@@ -76,8 +82,6 @@ class SubgoalScheduler(TensorDictModuleBase):
         step_count_key: NestedKey | None = "step_count",
     ) -> None:
         super().__init__()
-        if not isinstance(interval, int) or isinstance(interval, bool) or interval < 1:
-            raise ValueError(f"`interval` (c_h) must be a positive int, got {interval!r}.")
         if goal_dim is not None and goal_dim < 1:
             raise ValueError(f"`goal_dim` must be positive, got {goal_dim}.")
         self.interval = interval

@@ -13,6 +13,7 @@ from torchrl.envs.utils import set_exploration_type
 from torchrl.objectives import LossModule
 from torchrl.objectives.utils import distance_loss
 
+from torchrl_dhrl.checks import choice, flag, integer, number
 from torchrl_dhrl.modules._utils import box_loc_scale, check_positional_keys, resolve_box, run_positional
 from torchrl_dhrl.modules.critics import (
     DEFAULT_GAMMA,
@@ -25,6 +26,18 @@ from torchrl_dhrl.modules.critics import (
 )
 
 LOSS_FUNCTIONS = ("l2", "l1", "smooth_l1")
+#: The checks of the arguments both goal-conditioned TD3 losses take (:func:`~torchrl_dhrl.checks.checked`).
+LOSS_CHECKS = {
+    "gamma": number(0.0, 1.0, low_open=True, high_open=True, optional=True),
+    "num_qvalue_nets": integer(1, optional=True),
+    "clip_return": number(0.0, low_open=True, optional=True),
+    "action_l2": number(0.0),
+    "target_noise_std": number(0.0),
+    "target_noise_clip": number(0.0, low_open=True, optional=True),
+    "target_action_clamp": flag(),
+    "use_terminated": flag(),
+    "loss_function": choice(LOSS_FUNCTIONS),
+}
 #: Members stacked from a single-member critic when ``num_qvalue_nets`` is not given (the TD3 twin).
 DEFAULT_NUM_QVALUE_NETS = 2
 
@@ -136,10 +149,6 @@ class _GoalConditionedTD3Base(LossModule):
         check_positional_keys(actor_network, 2, "actor_network")
         for name, critic in critics.items():
             check_critic(critic, name)
-        if num_qvalue_nets is not None and (
-            isinstance(num_qvalue_nets, bool) or not isinstance(num_qvalue_nets, int) or num_qvalue_nets < 1
-        ):
-            raise ValueError(f"`num_qvalue_nets` must be a positive int or None, got {num_qvalue_nets!r}.")
         own = {name: c for name, c in critics.items() if isinstance(c, GoalConditionedCritic)}
         for name, critic in own.items():
             if num_qvalue_nets is not None and num_qvalue_nets != critic.num_nets:
@@ -156,14 +165,6 @@ class _GoalConditionedTD3Base(LossModule):
                 f"`gamma`={gamma} differs from the critics' gamma={critic_gamma}: the distance "
                 "parameterisation and Eq. (1) need the same discount. Build the critics with that gamma."
             )
-        if action_l2 < 0:
-            raise ValueError(f"`action_l2` must be >= 0, got {action_l2}.")
-        if target_noise_std < 0:
-            raise ValueError(f"`target_noise_std` must be >= 0, got {target_noise_std}.")
-        if target_noise_clip is not None and target_noise_clip <= 0:
-            raise ValueError(f"`target_noise_clip` must be > 0 or None, got {target_noise_clip}.")
-        if loss_function not in LOSS_FUNCTIONS:
-            raise ValueError(f"`loss_function` must be one of {LOSS_FUNCTIONS}, got {loss_function!r}.")
 
         action_loc, action_scale = self._action_box(actor_network, own, action_spec)
         self.convert_to_functional(actor_network, "actor_network", create_target_params=True)

@@ -10,7 +10,9 @@ from tensordict.nn import TensorDictModule
 from tensordict.utils import NestedKey
 from torchrl.data import TensorSpec
 
-from ._goal_td3 import _CriticGroup, _GoalConditionedTD3Base
+from torchrl_dhrl.checks import checked
+
+from ._goal_td3 import LOSS_CHECKS, _CriticGroup, _GoalConditionedTD3Base
 
 
 class HighLevelLoss(_GoalConditionedTD3Base):
@@ -124,6 +126,7 @@ class HighLevelLoss(_GoalConditionedTD3Base):
     critic_network_params: TensorDictParams
     target_critic_network_params: TensorDictParams
 
+    @checked(**LOSS_CHECKS)
     def __init__(
         self,
         actor_network: TensorDictModule,
@@ -141,8 +144,6 @@ class HighLevelLoss(_GoalConditionedTD3Base):
         loss_function: str = "l2",
     ) -> None:
         super().__init__()
-        if clip_return is not None and clip_return <= 0:
-            raise ValueError(f"`clip_return` must be > 0 or None, got {clip_return}.")
         self._init_common(
             actor_network,
             {"critic_network": critic},

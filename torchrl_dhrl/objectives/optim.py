@@ -5,6 +5,8 @@ from __future__ import annotations
 import torch
 from torchrl.objectives import LossModule
 
+from torchrl_dhrl.checks import checked, flag, number
+
 #: Reference learning rates (both levels).
 ACTOR_LR = 1e-4
 CRITIC_LR = 1e-3
@@ -19,6 +21,7 @@ def _adam(params: list, lr: float, fused: bool | None) -> torch.optim.Optimizer:
     return torch.optim.Adam(params, lr=lr, fused=fused)
 
 
+@checked(actor_lr=number(0.0, low_open=True), critic_lr=number(0.0, low_open=True), fused=flag(optional=True))
 def make_optimizers(
     loss: LossModule,
     *,

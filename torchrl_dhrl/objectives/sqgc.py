@@ -10,7 +10,9 @@ from tensordict.nn import TensorDictModule
 from tensordict.utils import NestedKey
 from torchrl.data import TensorSpec
 
-from ._goal_td3 import _CriticGroup, _GoalConditionedTD3Base
+from torchrl_dhrl.checks import checked, flag, number
+
+from ._goal_td3 import LOSS_CHECKS, _CriticGroup, _GoalConditionedTD3Base
 
 
 class SQGCLoss(_GoalConditionedTD3Base):
@@ -216,6 +218,12 @@ class SQGCLoss(_GoalConditionedTD3Base):
     graph_critic_params: TensorDictParams
     target_graph_critic_params: TensorDictParams
 
+    @checked(
+        **LOSS_CHECKS,
+        graph_clip_return=number(0.0, low_open=True, optional=True),
+        sqgc=flag(),
+        fuse_critics=flag(optional=True),
+    )
     def __init__(
         self,
         actor_network: TensorDictModule,
@@ -239,9 +247,6 @@ class SQGCLoss(_GoalConditionedTD3Base):
         super().__init__()
         if policy_critic is graph_critic:
             raise ValueError("`policy_critic` and `graph_critic` must be two separate modules.")
-        for name, value in (("clip_return", clip_return), ("graph_clip_return", graph_clip_return)):
-            if value is not None and value <= 0:
-                raise ValueError(f"`{name}` must be > 0 or None, got {value}.")
         self._init_common(
             actor_network,
             {"policy_critic": policy_critic, "graph_critic": graph_critic},

@@ -27,6 +27,7 @@ from tensordict.utils import NestedKey
 from torch import Tensor
 from torchrl.envs.utils import ExplorationType, set_exploration_type
 
+from torchrl_dhrl.checks import checked, choice, integer, number
 from torchrl_dhrl.modules._utils import (
     call_with_params,
     check_last_dim,
@@ -253,6 +254,12 @@ class GoalDistance:
         (torch.Size([5, 7]), True)
     """
 
+    @checked(
+        gamma=number(0.0, 1.0, low_open=True, high_open=True, optional=True),
+        chunk_size=integer(1, optional=True),
+        max_distance=number(0.0, low_open=True, optional=True),
+        twin=choice(TWIN_CHOICES),
+    )
     def __init__(
         self,
         actor: TensorDictModuleBase,
@@ -268,15 +275,7 @@ class GoalDistance:
         value_key: NestedKey = "state_action_value",
     ) -> None:
         check_positional_keys(actor, 2, "actor")
-        if twin not in TWIN_CHOICES:
-            raise ValueError(f"`twin` must be one of {TWIN_CHOICES}, got {twin!r}.")
         check_critic(critic, "critic")
-        if chunk_size is not None and (
-            isinstance(chunk_size, bool) or not isinstance(chunk_size, int) or chunk_size < 1
-        ):
-            raise ValueError(f"`chunk_size` must be a positive int or None, got {chunk_size!r}.")
-        if max_distance is not None and max_distance <= 0:
-            raise ValueError(f"`max_distance` must be > 0, got {max_distance}.")
         self.actor = actor
         self.critic = critic
         own_gamma = critic.gamma if isinstance(critic, GoalConditionedCritic) else DEFAULT_GAMMA
@@ -438,6 +437,7 @@ class LineOfSightDistance:
         [6.0, 10000.0]
     """
 
+    @checked(speed=number(0.0, low_open=True), margin=number(0.0), blocked=number(0.0, low_open=True))
     def __init__(
         self,
         speed: float,
@@ -448,10 +448,6 @@ class LineOfSightDistance:
         blocked: float = 1e4,
         chunk_size: int = 65536,
     ) -> None:
-        if not speed > 0:
-            raise ValueError(f"`speed` must be > 0, got {speed}.")
-        if margin < 0:
-            raise ValueError(f"`margin` must be >= 0, got {margin}.")
         self.speed = float(speed)
         self.goal_indices = list(goal_indices)
         dim = len(self.goal_indices)

@@ -13,6 +13,7 @@ from torchrl.data import Composite, Unbounded
 from torchrl.envs.transforms import Transform
 
 from torchrl_dhrl._unregistered import UnregisteredAttributes
+from torchrl_dhrl.checks import checked, choice, number
 
 from ._distance import paired_distances, pairwise_distances
 from .graph_planner import GraphPlanner
@@ -109,6 +110,14 @@ class FrontierGoalShifting(UnregisteredAttributes, TensorDictModuleBase):
     #: the planner is a plain attribute, not a submodule (it owns the graph buffers)
     _unregistered = ("planner",)
 
+    @checked(
+        noise=number(0.0),
+        weighting=choice(FGS_WEIGHTINGS),
+        unreachable_weight=number(0.0),
+        temperature=number(0.0, low_open=True, optional=True),
+        trigger=choice(FGS_TRIGGERS),
+        cutoff=number(0.0, low_open=True, optional=True),
+    )
     def __init__(
         self,
         planner: GraphPlanner,
@@ -129,17 +138,6 @@ class FrontierGoalShifting(UnregisteredAttributes, TensorDictModuleBase):
     ) -> None:
         super().__init__()
         self.planner = planner
-        if weighting not in FGS_WEIGHTINGS:
-            raise ValueError(f"`weighting` must be one of {FGS_WEIGHTINGS}, got {weighting!r}.")
-        if trigger not in FGS_TRIGGERS:
-            raise ValueError(f"`trigger` must be one of {FGS_TRIGGERS}, got {trigger!r}.")
-        for name, value in (("noise", noise), ("unreachable_weight", unreachable_weight)):
-            if isinstance(value, bool) or not isinstance(value, (int, float)) or not value >= 0:
-                raise ValueError(f"`{name}` must be a number >= 0, got {value!r}.")
-        if temperature is not None and not temperature > 0:
-            raise ValueError(f"`temperature` must be > 0, got {temperature!r}.")
-        if cutoff is not None and not cutoff > 0:
-            raise ValueError(f"`cutoff` must be > 0, got {cutoff!r}.")
         self.noise = float(noise)
         self.weighting = weighting
         self.trigger = trigger

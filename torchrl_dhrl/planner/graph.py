@@ -10,6 +10,7 @@ import torch
 from torch import Tensor, nn
 
 from torchrl_dhrl._unregistered import UnregisteredAttributes, callable_attribute
+from torchrl_dhrl.checks import checked, integer, number
 
 from ._distance import (
     DEFAULT_CHUNK_SIZE,
@@ -103,14 +104,6 @@ class GraphTensors(NamedTuple):
     version: Tensor
 
 
-def _check_positive(name: str, value: float, allow_zero: bool = False) -> float:
-    if isinstance(value, bool) or not isinstance(value, (int, float)) or math.isnan(value):
-        raise TypeError(f"`{name}` must be a number, got {value!r}.")
-    if value < 0 or (value == 0 and not allow_zero):
-        raise ValueError(f"`{name}` must be {'>= 0' if allow_zero else '> 0'}, got {value}.")
-    return float(value)
-
-
 class LandmarkGraph(UnregisteredAttributes, nn.Module):
     """Directed landmark graph with precomputed all-pairs shortest paths (the graph level of DHRL).
 
@@ -200,6 +193,14 @@ class LandmarkGraph(UnregisteredAttributes, nn.Module):
     #: callables (possibly ``nn.Module`` s) are plain attributes, never submodules
     _unregistered = ("fps_proxy", "edge_rule")
 
+    @checked(
+        cutoff=number(0.0, low_open=True),
+        max_landmarks=integer(2),  # a graph needs two nodes
+        early_stop=number(0.0),
+        min_landmarks=integer(0, optional=True),
+        start_fallback_factor=number(1.0),
+        fps_lazy_batch=integer(1),
+    )
     def __init__(
         self,
         cutoff: float = 30.0,
@@ -217,26 +218,18 @@ class LandmarkGraph(UnregisteredAttributes, nn.Module):
         fixed_size: bool = False,
     ) -> None:
         super().__init__()
-        self.cutoff = _check_positive("cutoff", cutoff)
-        if isinstance(max_landmarks, bool) or not isinstance(max_landmarks, int) or max_landmarks < 1:
-            raise ValueError(f"`max_landmarks` must be a positive int, got {max_landmarks!r}.")
+        self.cutoff = float(cutoff)
         self.max_landmarks = max_landmarks
-        self.early_stop = _check_positive("early_stop", early_stop, allow_zero=True)
-        if min_landmarks is not None and (not isinstance(min_landmarks, int) or min_landmarks < 0):
-            raise ValueError(f"`min_landmarks` must be a non-negative int, got {min_landmarks!r}.")
+        self.early_stop = float(early_stop)
         self.min_landmarks = max_landmarks // 10 if min_landmarks is None else min_landmarks
         self.edge_rule = CutoffEdgeRule() if edge_rule is None else edge_rule
-        self.start_fallback_factor = _check_positive("start_fallback_factor", start_fallback_factor)
-        if self.start_fallback_factor < 1.0:
-            raise ValueError(f"`start_fallback_factor` must be >= 1, got {start_fallback_factor}.")
+        self.start_fallback_factor = float(start_fallback_factor)
         self.chunk_size = check_chunk_size(chunk_size)
         if fps_strategy not in FPS_STRATEGIES:
             raise ValueError(f"`fps_strategy` must be one of {FPS_STRATEGIES}, got {fps_strategy!r}.")
         self.fps_strategy = fps_strategy
         resolve_proxy(fps_proxy)
         self.fps_proxy = fps_proxy
-        if isinstance(fps_lazy_batch, bool) or not isinstance(fps_lazy_batch, int) or fps_lazy_batch < 1:
-            raise ValueError(f"`fps_lazy_batch` must be a positive int, got {fps_lazy_batch!r}.")
         self.fps_lazy_batch = fps_lazy_batch
         self.build_autocast_dtype = check_build_autocast_dtype(build_autocast_dtype)
         self.register_buffer("landmark_states", torch.zeros(0, 0))

@@ -13,6 +13,7 @@ from torchrl.envs import TensorDictPrimer
 from torchrl.envs.transforms import Transform
 
 from torchrl_dhrl._unregistered import UnregisteredAttributes, callable_attribute
+from torchrl_dhrl.checks import checked, integer, number
 
 from ._distance import check_supports_autocast
 from .distances import TemporalDistance
@@ -153,6 +154,11 @@ class GraphPlanner(UnregisteredAttributes, Transform):
     #: plain attributes, never registered as submodules (see ``torchrl_dhrl._unregistered``)
     _unregistered = ("distance",)
 
+    @checked(
+        goal_dim=integer(1),
+        reach_radius=number(0.0, low_open=True),
+        max_path_length=integer(1),
+    )
     def __init__(
         self,
         graph: LandmarkGraph,
@@ -175,16 +181,6 @@ class GraphPlanner(UnregisteredAttributes, Transform):
                 "`graph` must be a LandmarkGraph, e.g. GraphPlanner(LandmarkGraph(cutoff=30.0, "
                 f"max_landmarks=300), distance, goal_dim), got {type(graph).__name__}."
             )
-        if isinstance(goal_dim, bool) or not isinstance(goal_dim, int) or goal_dim < 1:
-            raise ValueError(f"`goal_dim` must be a positive int, got {goal_dim!r}.")
-        if (
-            isinstance(reach_radius, bool)
-            or not isinstance(reach_radius, (int, float))
-            or not reach_radius >= 0
-        ):
-            raise ValueError(f"`reach_radius` must be a number >= 0, got {reach_radius!r}.")
-        if isinstance(max_path_length, bool) or not isinstance(max_path_length, int) or max_path_length < 1:
-            raise ValueError(f"`max_path_length` must be a positive int, got {max_path_length!r}.")
         self.observation_key = unravel_key(observation_key)
         self.achieved_goal_key = unravel_key(achieved_goal_key)
         self.subgoal_key = unravel_key(subgoal_key)

@@ -1,7 +1,8 @@
 """Support of the training recipe ``recipes/dhrl_antmaze.py``: the one place of the library that knows the recipe's
 configuration keys (not imported by ``import torchrl_dhrl``; pipelines compose the components directly).
 
-``config`` (schema and value checks, :class:`ConfigError`), ``run`` (start-up, resume and fork, run directory,
+``config`` (schema and value checks, :class:`ConfigError`), ``routing`` (each configuration key to the constructor
+argument of its name, the components' own checks run on them before anything is built), ``run`` (start-up, resume and fork, run directory,
 :class:`GracefulStop`, :class:`LoopTimer`, metrics files), ``checkpoint`` (one ``torchrl.checkpoint`` registry of
 everything a run carries), ``builders`` (factories of the agent, envs, buffers, updaters, collector and logger),
 ``epoch`` (the epoch end: graph rebuild, evaluation, pictures), ``plots`` and ``aggregate`` (many runs' curves)."""
@@ -17,6 +18,7 @@ from .aggregate import (
     write_aggregate_csv,
 )
 from .builders import (
+    AGENT_DEFAULTS,
     LOW_LEVEL_KEYS,
     DHRLAgent,
     make_agent,
@@ -74,6 +76,7 @@ from .plots import (
     plot_success_curve,
     success_curve_series,
 )
+from .routing import RECIPE_KEYS, RENAMED, TARGETS, ConfigRoutingError, check_components, component_arguments
 from .run import (
     CONFIG_NAME,
     RESUME_AUTO,
@@ -85,9 +88,17 @@ from .run import (
     log_metrics,
     start_run,
     write_metrics_csv,
+    write_run_dir,
 )
 
 __all__ = [
+    "AGENT_DEFAULTS",
+    "ConfigRoutingError",
+    "RECIPE_KEYS",
+    "RENAMED",
+    "TARGETS",
+    "check_components",
+    "component_arguments",
     "BUILD_DTYPES",
     "CHECKPOINT_COMPONENTS",
     "CHECKPOINT_NAME",
@@ -148,6 +159,7 @@ __all__ = [
     "run_precisions",
     "save_checkpoint",
     "start_run",
+    "write_run_dir",
     "success_curve_series",
     "validate_config",
     "with_implied_keys",

@@ -19,6 +19,7 @@ from torchrl.data import ReplayBuffer
 from torchrl.envs import Compose, EnvBase, TransformedEnv
 from torchrl.objectives import LossModule
 
+from torchrl_dhrl.checks import checked, integer, number
 from torchrl_dhrl.data import (
     CompactLazyTensorStorage,
     FutureGoalRelabel,
@@ -47,6 +48,7 @@ from torchrl_dhrl.planner import (
 from torchrl_dhrl.training import LossUpdater
 
 __all__ = [
+    "AGENT_DEFAULTS",
     "DHRLAgent",
     "LOW_LEVEL_KEYS",
     "make_agent",
@@ -71,6 +73,16 @@ LOW_LEVEL_KEYS = (
     ("next", "achieved_goal"),
     ("next", "done"),
 )
+
+
+#: The arguments :func:`make_agent` gives its parts where the caller does not: every critic sees the goal as
+#: it is (the reference's critics; the high-level critics always), and so does the low-level actor unless told
+#: otherwise (a relative goal needs ``goal_indices``).
+AGENT_DEFAULTS: dict[str, dict[str, Any]] = {
+    "low_actor": {"relative_goal": False},
+    "low_critic": {"relative_goal": False},
+    "high_critic": {"relative_goal": False},
+}
 
 
 @dataclass
@@ -108,63 +120,54 @@ def make_agent(
     env: EnvBase,
     device: torch.device | str = "cpu",
     *,
-    subgoal_low: Sequence[float],
-    subgoal_high: Sequence[float],
-    subgoal_interval: int,
-    subgoal_noise: float = 2.0,
+    high_policy: Mapping[str, Any],
     goal_indices: Sequence[int] | None = None,
-    low_num_cells: Sequence[int] = (256, 256, 256),
-    relative_goal: bool = False,
-    relative_critic_goal: bool = False,
-    low_gamma: float = 0.99,
-    low_distance_output: str = "linear",
-    action_noise: float = 0.1,
-    uniform_prob: float = 0.2,
-    sqgc_loss_kwargs: Mapping[str, Any] | None = None,
-    high_num_cells: Sequence[int] = (256, 256, 256),
-    high_gamma: float = 0.99,
-    high_distance_output: str = "linear",
-    high_loss_kwargs: Mapping[str, Any] | None = None,
-    distance: TemporalDistance | None = None,
-    twin: str = "optimistic",
-    cutoff: float = 30.0,
-    max_landmarks: int = 300,
-    early_stop: float = 10.0,
-    build_autocast_dtype: torch.dtype | None = None,
-    reach_radius: float = 0.5,
+    low_actor: Mapping[str, Any] | None = None,
+    low_critic: Mapping[str, Any] | None = None,
+    exploration: Mapping[str, Any] | None = None,
+    sqgc_loss: Mapping[str, Any] | None = None,
+    high_critic: Mapping[str, Any] | None = None,
+    high_loss: Mapping[str, Any] | None = None,
+    graph: Mapping[str, Any] | None = None,
+    planner: Mapping[str, Any] | None = None,
+    distance: TemporalDistance | Mapping[str, Any] | None = None,
     capturable_planner: bool = False,
 ) -> DHRLAgent:
     """Builds both levels (actors, critics, losses), the graph planner and the acting policy on ``device``.
 
-    The sizes come from ``env``'s specs (``observation``, ``achieved_goal``, the action box).
+    Each component's hyperparameters are a mapping of its own constructor's keyword arguments, passed on as
+    they are (its checks apply; see :mod:`torchrl_dhrl.checks`): a new argument of a component is reachable
+    here without a change to this function. What this function supplies is the wiring: the sizes from
+    ``env``'s specs (``observation``, ``achieved_goal``, the action box), ``goal_indices``, the tensordict
+    keys of each level, the high-level critics' action box (the subgoal box), the SQGC critic pairs.
 
     Args:
         env (EnvBase): an env of the goal-env contract (e.g. :func:`make_environment` without ``agent``).
         device (torch.device or str): where the modules live. Defaults to ``"cpu"``.
 
     Keyword Args:
-        subgoal_low, subgoal_high (sequence of float): the high level's subgoal box (goal space).
-        subgoal_interval (int): ``c_h``, env steps per subgoal.
-        subgoal_noise (float): the high level's Gaussian exploration (goal units). Defaults to ``2.0``.
+        high_policy (mapping): :class:`~torchrl_dhrl.modules.HighLevelPolicy`'s arguments: ``subgoal_low``,
+            ``subgoal_high`` (the subgoal box, goal space), ``interval`` (``c_h``), ``noise_sigma``,
+            ``num_cells``, ...
         goal_indices (sequence of int, optional): where the achieved goal sits in the observation.
-        low_num_cells, high_num_cells (sequence of int): hidden layers of each level's networks.
-        relative_goal (bool): the low-level actor sees ``waypoint - achieved goal`` (needs ``goal_indices``).
-        relative_critic_goal (bool): the low-level critics do too (the reference's see the waypoint itself).
-        low_gamma, high_gamma (float): discounts, which also set the critics' distance parameterisation.
-        low_distance_output, high_distance_output (str): each level's critics' map from the raw output to the
-            distance, ``"linear"`` (the reference's) or ``"softplus"``
-            (:class:`~torchrl_dhrl.modules.GoalConditionedCriticNet`).
-        action_noise (float): Gaussian action noise, a fraction of the action box half-width.
-        uniform_prob (float): the probability of a uniform random action.
-        sqgc_loss_kwargs, high_loss_kwargs (dict, optional): keyword arguments of
-            :class:`~torchrl_dhrl.objectives.SQGCLoss` and :class:`~torchrl_dhrl.objectives.HighLevelLoss`
-            (``clip_return``, ``action_l2``, ``target_noise_std``, ``target_action_clamp``, ``sqgc``, ...).
-        distance (TemporalDistance, optional): the planner's distance; defaults to the learned graph
-            critics (Eq. 1), :meth:`GoalDistance.from_loss <torchrl_dhrl.planner.GoalDistance.from_loss>`
-            with ``twin``. Pass e.g. a :class:`~torchrl_dhrl.planner.LineOfSightDistance` for the oracle.
-        cutoff, max_landmarks, early_stop, build_autocast_dtype: the
-            :class:`~torchrl_dhrl.planner.LandmarkGraph`'s.
-        reach_radius (float): a waypoint counts as reached within this distance (goal units).
+        low_actor (mapping, optional): :class:`~torchrl_dhrl.modules.LowLevelActor`'s (``relative_goal``,
+            ``num_cells``, ...). ``relative_goal`` defaults to ``False`` here (it needs ``goal_indices``).
+        low_critic (mapping, optional): :class:`~torchrl_dhrl.modules.GoalConditionedCritic`'s, for the policy
+            and the graph critics alike (``relative_goal``, default ``False`` here as in the reference;
+            ``gamma``, ``distance_output``, ``num_cells``, ...).
+        exploration (mapping, optional): :class:`~torchrl_dhrl.modules.GaussianUniformExplorationModule`'s
+            (``sigma``, a fraction of the action box half-width; ``uniform_prob``).
+        sqgc_loss (mapping, optional): :class:`~torchrl_dhrl.objectives.SQGCLoss`'s (``clip_return``,
+            ``action_l2``, ``target_noise_std``, ``target_action_clamp``, ``sqgc``, ...).
+        high_critic, high_loss (mapping, optional): the high level's :class:`~torchrl_dhrl.modules.GoalConditionedCritic`
+            (``gamma``, ``distance_output``, ``num_cells``) and :class:`~torchrl_dhrl.objectives.HighLevelLoss`.
+        graph (mapping, optional): :class:`~torchrl_dhrl.planner.LandmarkGraph`'s (``cutoff``,
+            ``max_landmarks``, ``early_stop``, ``build_autocast_dtype``, ...).
+        planner (mapping, optional): :class:`~torchrl_dhrl.planner.GraphPlanner`'s (``reach_radius``, ...).
+        distance (TemporalDistance or mapping, optional): the planner's distance, e.g. a
+            :class:`~torchrl_dhrl.planner.LineOfSightDistance` for the oracle; or the keyword arguments of
+            :meth:`GoalDistance.from_loss <torchrl_dhrl.planner.GoalDistance.from_loss>` (``twin``) over the
+            graph critics (Eq. 1), the default.
         capturable_planner (bool): the :class:`~torchrl_dhrl.planner.GraphPlanner`'s ``capturable``: plans
             with static shapes, every env in the steps where some env is due for a replan (``torch.cond`` when
             compiled; ``plan_on_demand``), so that the acting policy compiles whole (:func:`make_collector`'s
@@ -172,87 +175,66 @@ def make_agent(
             recompilation). Same plans. Defaults to ``False``.
 
     Raises:
-        ValueError: when the subgoal box does not match the goal space, or ``relative_goal`` lacks
-            ``goal_indices``.
+        ValueError: from the component whose argument is refused, naming the argument (e.g. a subgoal box
+            that does not match the goal space, ``relative_goal`` without ``goal_indices``).
 
     Examples:
         >>> from torchrl_dhrl.recipe import make_environment
         >>> env = make_environment("PointMaze")
-        >>> agent = make_agent(env, subgoal_low=[-2.0, -2.0], subgoal_high=[10.0, 10.0], subgoal_interval=10,
-        ...                    goal_indices=[0, 1], relative_goal=True, low_num_cells=(16,), high_num_cells=(16,))
+        >>> agent = make_agent(
+        ...     env,
+        ...     goal_indices=[0, 1],
+        ...     high_policy={"subgoal_low": [-2.0, -2.0], "subgoal_high": [10.0, 10.0], "interval": 10,
+        ...                  "num_cells": (16,)},
+        ...     high_critic={"num_cells": (16,)},
+        ...     low_actor={"relative_goal": True, "num_cells": (16,)},
+        ...     low_critic={"num_cells": (16,)},
+        ... )
         >>> type(agent.planner.distance).__name__, agent.low_actor.module.relative_goal
         ('GoalDistance', True)
     """
     device = torch.device(device)
     obs_dim = env.observation_spec["observation"].shape[-1]
     goal_dim = env.observation_spec["achieved_goal"].shape[-1]
-    if len(subgoal_low) != goal_dim or len(subgoal_high) != goal_dim:
-        raise ValueError(
-            f"The subgoal box has {len(subgoal_low)} and {len(subgoal_high)} entries; the goal space has {goal_dim}."
-        )
-    if relative_goal and goal_indices is None:
-        raise ValueError(
-            "relative_goal=True needs goal_indices (where the achieved goal sits in the observation)."
-        )
     indices = None if goal_indices is None else tuple(int(i) for i in goal_indices)
     action_spec = env.action_spec_unbatched.to(device)
-    common = {"goal_indices": indices, "num_cells": tuple(low_num_cells)}
-    actor = LowLevelActor(obs_dim, goal_dim, action_spec, relative_goal=relative_goal, **common).to(device)
-    exploration = GaussianUniformExplorationModule(
-        action_spec, sigma=action_noise, uniform_prob=uniform_prob
+    actor = LowLevelActor(
+        obs_dim, goal_dim, action_spec, goal_indices=indices, **{**AGENT_DEFAULTS["low_actor"], **(low_actor or {})}
     ).to(device)
+    exploration_module = GaussianUniformExplorationModule(action_spec, **(exploration or {})).to(device)
 
     def critic() -> GoalConditionedCritic:
         return GoalConditionedCritic(
             obs_dim,
             goal_dim,
             action_spec,
-            relative_goal=relative_critic_goal,
-            gamma=low_gamma,
-            distance_output=low_distance_output,
+            goal_indices=indices,
             goal_key="goal",
-            **common,
+            **{**AGENT_DEFAULTS["low_critic"], **(low_critic or {})},
         ).to(device)
 
-    sqgc_loss = SQGCLoss(actor, critic(), critic(), **dict(sqgc_loss_kwargs or {}))
-    high_policy = HighLevelPolicy(
+    sqgc = SQGCLoss(actor, critic(), critic(), **(sqgc_loss or {}))
+    high = HighLevelPolicy(obs_dim, goal_dim, goal_indices=indices, **high_policy).to(device)
+    high_critic_module = GoalConditionedCritic(
         obs_dim,
         goal_dim,
-        subgoal_low,
-        subgoal_high,
-        interval=subgoal_interval,
-        noise_sigma=subgoal_noise,
+        action_low=high_policy["subgoal_low"],
+        action_high=high_policy["subgoal_high"],
         goal_indices=indices,
-        num_cells=tuple(high_num_cells),
-    ).to(device)
-    high_critic = GoalConditionedCritic(
-        obs_dim,
-        goal_dim,
-        action_low=subgoal_low,
-        action_high=subgoal_high,
-        goal_indices=indices,
-        relative_goal=False,
-        gamma=high_gamma,
-        distance_output=high_distance_output,
-        num_cells=tuple(high_num_cells),
         goal_key="desired_goal",
         action_key="subgoal",
+        **{**AGENT_DEFAULTS["high_critic"], **(high_critic or {})},
     ).to(device)
-    high_loss = HighLevelLoss(high_policy.actor, high_critic, **dict(high_loss_kwargs or {}))
-    graph = LandmarkGraph(
-        cutoff=cutoff,
-        max_landmarks=max_landmarks,
-        early_stop=early_stop,
-        build_autocast_dtype=build_autocast_dtype,
-        fixed_size=capturable_planner,  # static storage across rebuilds: no recompilation, CUDA-graph safe
-    )
-    if distance is None:
-        distance = GoalDistance.from_loss(sqgc_loss, twin=twin)
-    planner = GraphPlanner(
-        graph, distance, goal_dim, reach_radius=reach_radius, capturable=capturable_planner
+    high_loss_module = HighLevelLoss(high.actor, high_critic_module, **(high_loss or {}))
+    # a capturable planner plans on static storage across rebuilds: no recompilation, CUDA-graph safe
+    landmark_graph = LandmarkGraph(**{"fixed_size": capturable_planner, **(graph or {})})
+    if distance is None or isinstance(distance, Mapping):
+        distance = GoalDistance.from_loss(sqgc, **(distance or {}))
+    graph_planner = GraphPlanner(
+        landmark_graph, distance, goal_dim, capturable=capturable_planner, **(planner or {})
     ).to(device)
-    policy = TensorDictSequential(high_policy, planner, TensorDictSequential(actor, exploration))
-    return DHRLAgent(high_policy, actor, exploration, sqgc_loss, high_loss, planner, policy)
+    policy = TensorDictSequential(high, graph_planner, TensorDictSequential(actor, exploration_module))
+    return DHRLAgent(high, actor, exploration_module, sqgc, high_loss_module, graph_planner, policy)
 
 
 def observation_transforms(angle_features: Sequence[int] | None = None) -> list:
@@ -363,6 +345,24 @@ def make_collector(
     )
 
 
+def _batch_within_buffer(batch_size, buffer_size) -> None:
+    if batch_size > buffer_size:
+        raise ValueError(
+            f"`batch_size` ({batch_size}) must be <= `buffer_size` ({buffer_size}), the transitions it samples from."
+        )
+
+
+#: The checks of both levels' buffer arguments (:func:`~torchrl_dhrl.checks.checked`).
+_BUFFER_CHECKS = {
+    "buffer_size": integer(1),
+    "batch_size": integer(1),
+    "reward_threshold": number(0.0, low_open=True),
+    "her_ratio": number(0.0, 1.0),
+    "her_window": integer(1, optional=True),
+}
+
+
+@checked(_batch_within_buffer, **_BUFFER_CHECKS)
 def make_low_level_buffer(
     *,
     buffer_size: int,
@@ -395,6 +395,15 @@ def make_low_level_buffer(
     )
 
 
+@checked(
+    _batch_within_buffer,
+    **_BUFFER_CHECKS,
+    subgoal_test_ratio=number(0.0, 1.0),
+    subgoal_test_threshold=number(0.0, low_open=True),
+    subgoal_miss_penalty=number(0.0),
+    gradual_penalty=number(0.0, optional=True),
+    far_from_graph_threshold=number(0.0, low_open=True),
+)
 def make_high_level_buffer(
     *,
     buffer_size: int,

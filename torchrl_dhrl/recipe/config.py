@@ -12,10 +12,9 @@ from typing import Any
 
 import torch
 
-from torchrl_dhrl.modules.critics import DISTANCE_OUTPUTS
-from torchrl_dhrl.planner.distances import TWIN_CHOICES
-from torchrl_dhrl.planner.fgs import FGS_TRIGGERS, FGS_WEIGHTINGS
 from torchrl_dhrl.training import native_bfloat16, resolve_precision
+
+from .routing import check_components
 
 __all__ = [
     "BUILD_DTYPES",
@@ -101,26 +100,16 @@ IMPLIED_WHEN_ABSENT = {
     "reference_engine": False,  # runs from before the switch: MuJoCo 3's margins and capsule inertias
     "fork": None,  # runs from before the key: started afresh
 }
-#: Keys with a fixed set of values (the first is the default; see docs/faithfulness.md).
+#: Keys the recipe reads itself with a fixed set of values (the first is the default; see docs/faithfulness.md).
+#: The components check the values of the keys they take (:mod:`torchrl_dhrl.recipe.routing`).
 CHOICES = {
     "low.critic_goal": ("absolute", "relative"),
-    "low.distance_output": DISTANCE_OUTPUTS,
-    "high.distance_output": DISTANCE_OUTPUTS,
     "high.warmup_subgoals": ("uniform", "policy"),
-    "planner.twin": TWIN_CHOICES,
-    "fgs.trigger": FGS_TRIGGERS,
-    "fgs.weighting": FGS_WEIGHTINGS,
 }
-#: Boolean switches (see docs/faithfulness.md).
+#: Boolean switches the recipe reads itself (see docs/faithfulness.md); the components check theirs.
 SWITCHES = (
     "schedule.train_during_warmup",
     "schedule.eval_flat",
-    "low.sqgc",
-    "low.relative_goal",
-    "low.target_action_clamp",
-    "high.target_action_clamp",
-    "low.actor_after_critic_step",
-    "high.actor_after_critic_step",
     "fgs.enabled",
     "planner.enabled",
     "reference_engine",
@@ -148,22 +137,6 @@ def _number(cfg: Mapping, path: str, *, low: float | None = None, strict: bool =
     if low is not None and (value <= low if strict else value < low):
         raise ConfigError(f"`{path}` must be {'>' if strict else '>='} {low}, got {value!r}.")
     return value
-
-
-def _fraction(cfg: Mapping, path: str) -> float:
-    value = _number(cfg, path, low=0.0)
-    if value > 1:
-        raise ConfigError(f"`{path}` must be in [0, 1], got {value!r}.")
-    return value
-
-
-def _vector(cfg: Mapping, path: str) -> list[float]:
-    value = _get(cfg, path)
-    if not isinstance(value, (list, tuple)) or any(
-        isinstance(v, bool) or not isinstance(v, (int, float)) for v in value
-    ):
-        raise ConfigError(f"`{path}` must be a list of numbers, got {value!r}.")
-    return list(value)
 
 
 def _check_run_keys(cfg: Mapping) -> None:
@@ -272,11 +245,6 @@ def _check_against_env(cfg: Mapping, name: str) -> None:
                 f"`goal_indices` must be null or {goal_dim} distinct indices in [0, {obs_dim}) (where {name}'s "
                 f"{goal_dim}-D achieved goal sits in its {obs_dim}-D observation), got {indices!r}."
             )
-    for path in ("high.subgoal_low", "high.subgoal_high"):
-        if len(_get(cfg, path)) != goal_dim:
-            raise ConfigError(
-                f"`{path}` must have {goal_dim} entries ({name}'s goal space is {goal_dim}-D), got {_get(cfg, path)!r}."
-            )
     episode = _get(cfg, "episode_length") or spec.episode_length
     c_h = _get(cfg, "high.c_h")
     if c_h > episode:
@@ -289,12 +257,6 @@ def _check_against_env(cfg: Mapping, name: str) -> None:
             f"`total_steps` ({_get(cfg, 'total_steps')}) must be >= one collector batch, num_envs x episode_length "
             f"= {_get(cfg, 'num_envs')} x {episode} = {batch} env steps (the collector yields whole episodes)."
         )
-    for level in ("low", "high"):
-        size, buffer = _get(cfg, f"{level}.batch_size"), _get(cfg, f"{level}.buffer_size")
-        if size > buffer:
-            raise ConfigError(
-                f"`{level}.batch_size` ({size}) must be <= `{level}.buffer_size` ({buffer}), the transitions it samples from."
-            )
 
 
 _DEVICES = "'auto', 'cpu', 'cuda' or 'cuda:N' (N < the number of visible CUDA devices)"
@@ -437,8 +399,9 @@ def _unknown_keys(cfg: Mapping, schema: Mapping, prefix: str = "") -> list[str]:
     return unknown
 
 
-def check_known_keys(cfg: Mapping, schema: Mapping, *, source: str = "config.yaml") -> None:
-    """Rejects configuration keys that the schema does not define, nested ones included.
+def check_known_keys(cfg: Mapping, schema: Mapping, *, source: str = "config.yaml", complete: bool = False) -> None:
+    """Rejects configuration keys that the schema does not define, nested ones included (and, with
+    ``complete``, keys of the schema that the configuration lacks).
 
     Hydra lets ``+key=value`` (and ``++key=value``) add keys to the composed configuration; nothing
     reads them, so a misspelt ``+planner.cutof=10`` would otherwise be ignored without a word. The
@@ -452,10 +415,13 @@ def check_known_keys(cfg: Mapping, schema: Mapping, *, source: str = "config.yam
 
     Keyword Args:
         source (str): how the message names the schema. Defaults to ``"config.yaml"``.
+        complete (bool): also require every key of the schema: the components' keys reach their constructors
+            by name (:mod:`~torchrl_dhrl.recipe.routing`), where a missing one would silently take the
+            constructor's default. Defaults to ``False``.
 
     Raises:
-        ConfigError: naming every unknown key (with the closest known one, if any), or a group of keys
-            (e.g. ``low``) set to a plain value.
+        ConfigError: naming every unknown key (with the closest known one, if any), a group of keys
+            (e.g. ``low``) set to a plain value, or (``complete``) the first missing key.
 
     Examples:
         >>> schema = {"seed": 0, "low": {"gamma": 0.99, "hidden": [256]}}
@@ -468,6 +434,11 @@ def check_known_keys(cfg: Mapping, schema: Mapping, *, source: str = "config.yam
     """
     unknown = _unknown_keys(cfg, schema)
     if not unknown:
+        if complete:
+            present = set(_flatten(cfg))
+            for key in _flatten(schema):
+                if key not in present and not any(key.startswith(f"{p}.") for p in present):
+                    raise ConfigError(f"Missing configuration key `{key}` (defined in {source}).")
         return
     known = list(_flatten(schema))
     names = []
@@ -619,10 +590,8 @@ def validate_config(cfg: Mapping, env_names: tuple[str, ...] | None = None) -> N
     for path, choices in CHOICES.items():
         if _get(cfg, path) not in choices:
             raise ConfigError(f"`{path}` must be one of {choices}, got {_get(cfg, path)!r}.")
-    if _get(cfg, "low.critic_goal") == "relative" and _get(cfg, "goal_indices") is None:
-        raise ConfigError(f"low.critic_goal=relative needs goal_indices, which {name} does not provide.")
 
-    for level in ("low", "high"):
+    for level in ("low", "high"):  # the components accept no hidden layer; the recipe's networks have some
         hidden = _get(cfg, f"{level}.hidden")
         if (
             not isinstance(hidden, (list, tuple))
@@ -632,45 +601,13 @@ def validate_config(cfg: Mapping, env_names: tuple[str, ...] | None = None) -> N
             raise ConfigError(
                 f"`{level}.hidden` must be a non-empty list of positive integers, got {hidden!r}."
             )
-        _number(cfg, f"{level}.batch_size", low=1, integer=True)
-        _number(cfg, f"{level}.buffer_size", low=1, integer=True)
-        _number(cfg, f"{level}.her_window", low=1, integer=True)
-        _fraction(cfg, f"{level}.her_ratio")
-        gamma = _number(cfg, f"{level}.gamma", low=0.0, strict=True)
-        if gamma >= 1:
-            raise ConfigError(f"`{level}.gamma` must be in (0, 1), got {gamma!r}.")
-        _number(cfg, f"{level}.actor_lr", low=0.0, strict=True)
-        _number(cfg, f"{level}.critic_lr", low=0.0, strict=True)
-        _fraction(cfg, f"{level}.polyak")
-        _number(cfg, f"{level}.target_update_interval", low=1, integer=True)
-        _number(cfg, f"{level}.actor_update_interval", low=1, integer=True)
-    _number(cfg, "low.action_noise", low=0.0)
-    _number(cfg, "high.action_l2", low=0.0)
-    _number(cfg, "low.action_l2", low=0.0)
-    _fraction(cfg, "low.uniform_prob")
-    _number(cfg, "low.reward_threshold", low=0.0, strict=True)
+    # the components' own checks of the keys they take (by argument name; messages name the keys)
+    from torchrl_dhrl.envs import ENVS
 
-    c_h = _get(cfg, "high.c_h")
-    if isinstance(c_h, bool) or not isinstance(c_h, int) or c_h < 1:
-        raise ConfigError(f"`high.c_h` (the high-level interval) must be an integer >= 1, got {c_h!r}.")
-    low, high = _vector(cfg, "high.subgoal_low"), _vector(cfg, "high.subgoal_high")
-    if len(low) != len(high) or not low:
-        raise ConfigError(
-            f"`high.subgoal_low` and `high.subgoal_high` must have the same length, got {low}, {high}."
-        )
-    if any(lo >= hi for lo, hi in zip(low, high, strict=True)):
-        raise ConfigError(
-            f"`high.subgoal_low` must be below `high.subgoal_high` on every axis, got {low}, {high}."
-        )
+    spec = ENVS.get(name)
+    check_components(cfg, goal_dim=None if spec is None else spec.goal_dim, error=ConfigError)
     _check_against_env(cfg, name)
-    _number(cfg, "high.subgoal_noise", low=0.0)
-    _fraction(cfg, "high.subgoal_test_ratio")
-    _number(cfg, "high.subgoal_test_threshold", low=0.0, strict=True)
-    _number(cfg, "high.subgoal_miss_penalty", low=0.0)
-    if _get(cfg, "high.gradual_penalty") is not None:
-        _number(cfg, "high.gradual_penalty", low=0.0)
     _number(cfg, "high.far_from_graph_factor", low=0.0, strict=True)
-
     distance = _get(cfg, "planner.distance")
     if distance not in DISTANCES:
         raise ConfigError(f"`planner.distance` must be one of {DISTANCES}, got {distance!r}.")
@@ -679,26 +616,15 @@ def validate_config(cfg: Mapping, env_names: tuple[str, ...] | None = None) -> N
             f"planner.distance=oracle needs the achieved goal inside the observation (goal_indices), "
             f"which {name} does not provide."
         )
-    if _get(cfg, "low.relative_goal") and _get(cfg, "goal_indices") is None:
-        raise ConfigError(f"low.relative_goal=true needs goal_indices, which {name} does not provide.")
-    _number(cfg, "planner.cutoff", low=0.0, strict=True)
-    landmarks = _number(cfg, "planner.max_landmarks", integer=True)
-    if landmarks < 2:
-        raise ConfigError(f"`planner.max_landmarks` must be >= 2 (a graph needs two nodes), got {landmarks}.")
-    candidates = _number(cfg, "planner.candidates", integer=True)
+    landmarks, candidates = _get(cfg, "planner.max_landmarks"), _number(cfg, "planner.candidates", integer=True)
     if candidates < landmarks:
         raise ConfigError(
             f"`planner.candidates` ({candidates}) must be >= `planner.max_landmarks` ({landmarks})."
         )
-    _number(cfg, "planner.early_stop", low=0.0)
-    _number(cfg, "planner.reach_radius", low=0.0, strict=True)
     if _get(cfg, "planner.build_dtype") not in BUILD_DTYPES:
         raise ConfigError(
             f"`planner.build_dtype` must be one of {tuple(BUILD_DTYPES)}, got {_get(cfg, 'planner.build_dtype')!r}."
         )
-    _number(cfg, "planner.oracle_margin", low=0.0)
-    _number(cfg, "planner.oracle_speed", low=0.0, strict=True)
-    _number(cfg, "fgs.noise", low=0.0)
 
     backend = _get(cfg, "logger.backend")
     if backend not in LOGGER_BACKENDS:

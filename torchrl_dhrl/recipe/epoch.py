@@ -141,8 +141,9 @@ def evaluate_epoch(
         >>> from torchrl_dhrl.recipe import make_agent, make_environment
         >>> _ = torch.manual_seed(0)
         >>> env = make_environment("PointMaze", max_episode_steps=20)
-        >>> agent = make_agent(env, subgoal_low=[-2.0, -2.0], subgoal_high=[10.0, 10.0], subgoal_interval=5,
-        ...                    low_num_cells=(16,), high_num_cells=(16,), cutoff=5.0)
+        >>> agent = make_agent(env, high_policy={"subgoal_low": [-2.0, -2.0], "subgoal_high": [10.0, 10.0], "interval": 5,
+        ...     "num_cells": (16,)}, high_critic={"num_cells": (16,)}, low_actor={"num_cells": (16,)},
+        ...     low_critic={"num_cells": (16,)}, graph={"cutoff": 5.0})
         >>> eval_env = make_environment("PointMaze", num_envs=2, eval=True, max_episode_steps=20, agent=agent)
         >>> metrics, result = evaluate_epoch(agent, eval_env, 20, env_name="PointMaze", reward_threshold=0.5,
         ...                                  far_from_graph_threshold=15.0)

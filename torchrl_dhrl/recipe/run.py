@@ -47,6 +47,7 @@ __all__ = [
     "frozen_gc",
     "log_metrics",
     "start_run",
+    "write_run_dir",
     "write_metrics_csv",
 ]
 
@@ -159,6 +160,7 @@ def start_run(
     *,
     schema: Mapping[str, Any] | None = None,
     schema_source: str = "config.yaml",
+    write: bool = True,
 ) -> RunStart:
     """Checks everything that can be checked before a run builds or writes anything, then prepares it.
 
@@ -169,7 +171,9 @@ def start_run(
     a file, writable; no checkpoint of another run in it, which the run would overwrite) and, with
     ``plots.video=true``, MuJoCo's offscreen rendering. Only then it sets the thread count (``threads``,
     printed as one line), creates the run directory and writes the configuration there
-    (:data:`CONFIG_NAME`, YAML; rewritten by a resume, whose keys differ only in run bookkeeping).
+    (:data:`CONFIG_NAME`, YAML; rewritten by a resume, whose keys differ only in run bookkeeping); with
+    ``write=False`` it leaves that to :func:`write_run_dir`, for a caller that builds the run's objects first
+    (whose own checks may still refuse it: an env's sizes are known only once it is built).
 
     ``resume="auto"`` (:data:`RESUME_AUTO`) resumes the run directory's own checkpoint when it holds one and
     starts afresh otherwise, so re-launching a sweep continues its interrupted runs (the returned
@@ -193,6 +197,7 @@ def start_run(
         schema (Mapping, optional): the keys a configuration may hold (the recipe's ``config.yaml``); not
             checked when ``None``.
         schema_source (str): how error messages name the schema.
+        write (bool): create the run directory and write the configuration. Defaults to ``True``.
 
     Returns:
         a :class:`RunStart`.
@@ -202,7 +207,7 @@ def start_run(
     """
     cfg = dict(cfg)
     if schema is not None:
-        check_known_keys(cfg, schema, source=schema_source)
+        check_known_keys(cfg, schema, source=schema_source, complete=True)
     validate_config(cfg)
     device = resolve_device(cfg["device"])
     run_dir = Path(run_dir or cfg["run_dir"] or ".").expanduser().resolve()
@@ -265,9 +270,16 @@ def start_run(
         )
     elif notes:
         print(f"Resuming {resume} with: {'; '.join(notes)}.")
-    run_dir.mkdir(parents=True, exist_ok=True)
-    _write_config(cfg, run_dir / CONFIG_NAME)
-    return RunStart(cfg, device, run_dir, resume, state)
+    start = RunStart(cfg, device, run_dir, resume, state)
+    if write:
+        write_run_dir(start)
+    return start
+
+
+def write_run_dir(start: RunStart) -> None:
+    """Creates the run directory of a :func:`start_run` and writes its configuration (:data:`CONFIG_NAME`)."""
+    start.run_dir.mkdir(parents=True, exist_ok=True)
+    _write_config(start.config, start.run_dir / CONFIG_NAME)
 
 
 def _read_checkpoint(path: Path, what: str) -> dict:

@@ -13,6 +13,8 @@ from tensordict.nn import CudaGraphModule
 from torchrl.data import ReplayBuffer
 from torchrl.objectives import LossModule, SoftUpdate
 
+from torchrl_dhrl.checks import checked, flag, integer, number
+
 __all__ = ["AUTOCAST_DTYPES", "LossUpdater", "NonFiniteLossError", "compile_available"]
 
 #: ``autocast_dtype`` values of :class:`LossUpdater` (``None``: full precision).
@@ -168,6 +170,15 @@ class LossUpdater:
         (1, True)
     """
 
+    @checked(
+        polyak=number(0.0, 1.0),
+        target_update_interval=integer(1),
+        actor_update_interval=integer(1),
+        cudagraphs=flag(),
+        actor_after_critic_step=flag(),
+        compile=flag(),
+        capture_sampling=flag(optional=True),
+    )
     def __init__(
         self,
         loss: LossModule,
@@ -185,18 +196,6 @@ class LossUpdater:
     ) -> None:
         if set(optimizers) != {"actor", "critic"}:
             raise ValueError(f"`optimizers` must have keys 'actor' and 'critic', got {sorted(optimizers)}.")
-        if not 0.0 <= polyak <= 1.0:
-            raise ValueError(f"`polyak` must be in [0, 1], got {polyak}.")
-        if target_update_interval < 1:
-            raise ValueError(f"`target_update_interval` must be >= 1, got {target_update_interval}.")
-        if (
-            isinstance(actor_update_interval, bool)
-            or not isinstance(actor_update_interval, int)
-            or actor_update_interval < 1
-        ):
-            raise ValueError(
-                f"`actor_update_interval` must be a positive int, got {actor_update_interval!r}."
-            )
         if autocast_dtype not in AUTOCAST_DTYPES:
             raise ValueError(
                 f"`autocast_dtype` must be None or torch.bfloat16, got {autocast_dtype!r} (float16 would "
@@ -217,8 +216,6 @@ class LossUpdater:
         self.target_updater = SoftUpdate(loss, eps=polyak)
         self.num_updates = 0
         self.cudagraphs = bool(cudagraphs)
-        if capture_sampling not in (None, True, False):
-            raise ValueError(f"`capture_sampling` must be None, True or False, got {capture_sampling!r}.")
         self.capture_sampling = capture_sampling
         #: whether batches come from the capture-safe sampler (``None`` until the first update that decides)
         self.sampling_captured: bool | None = None
