@@ -20,12 +20,12 @@ __all__ = ["GOAL_ENV_KEYS", "GoalEnvError", "check_goal_env"]
 #: The entries of the contract: key -> (where it lives, dtype kind, shape after the batch dims).
 #: ``"obs_dim"`` / ``"goal_dim"`` / ``"action_dim"`` stand for sizes the env chooses (>= 1).
 GOAL_ENV_KEYS: dict[str, tuple[str, str, tuple]] = {
-    "observation": ("observation", "float", ("obs_dim",)),
-    "achieved_goal": ("observation", "float", ("goal_dim",)),
-    "desired_goal": ("observation", "float", ("goal_dim",)),
+    "observation": ("observation", "float32", ("obs_dim",)),
+    "achieved_goal": ("observation", "float32", ("goal_dim",)),
+    "desired_goal": ("observation", "float32", ("goal_dim",)),
     "is_success": ("observation", "bool", (1,)),
     "step_count": ("observation", "int", (1,)),
-    "action": ("action", "float", ("action_dim",)),
+    "action": ("action", "float32", ("action_dim",)),
     "reward": ("reward", "float", (1,)),
     "done": ("done", "bool", (1,)),
     "terminated": ("done", "bool", (1,)),
@@ -34,6 +34,11 @@ GOAL_ENV_KEYS: dict[str, tuple[str, str, tuple]] = {
 
 _DOC = "see docs/goal_env.md"
 _KINDS = {
+    "float32": (
+        "torch.float32, the networks' dtype (a float64 env: append torchrl's DoubleToFloat transform, or wrap a "
+        "Gymnasium goal env with torchrl_dhrl.envs.GymnasiumGoalEnv, which converts)",
+        lambda dtype: dtype == torch.float32,
+    ),
     "float": ("a floating dtype", lambda dtype: dtype.is_floating_point),
     "bool": ("torch.bool", lambda dtype: dtype == torch.bool),
     "int": ("an integer dtype", lambda dtype: not dtype.is_floating_point and dtype != torch.bool),
@@ -153,6 +158,7 @@ def _check_rollout(env: EnvBase, steps: int, goal_indices: Sequence[int] | None)
     done = rollout["next", "done"]
     if not torch.equal(done, rollout["next", "terminated"] | rollout["next", "truncated"]):
         _fail(env, "done must equal terminated | truncated")
+    _check_truncation(env, rollout, steps)
     if goal_indices is not None:
         indices = list(goal_indices)
         obs_dim = rollout["observation"].shape[-1]
@@ -166,6 +172,33 @@ def _check_rollout(env: EnvBase, steps: int, goal_indices: Sequence[int] | None)
                     f"observation[..., {indices}] is not the achieved_goal; goal_indices must say where the "
                     "achieved goal sits in the observation (null when it does not)",
                 )
+
+
+def _check_truncation(env: EnvBase, rollout: TensorDictBase, steps: int) -> None:
+    """Every episode of the rollout ends by truncation after exactly ``max_episode_steps`` steps, never sooner and
+    never by termination (the rollout resets the env after each end)."""
+    length = env.max_episode_steps
+    batch = len(env.batch_size)
+    step = torch.arange(1, steps + 1).reshape((1,) * batch + (steps, 1))
+    expected = (step % length == 0).expand_as(rollout["next", "truncated"]).to(rollout.device)
+    terminated = rollout["next", "terminated"]
+    if terminated.any():
+        first = int(terminated.reshape(-1, steps).any(0).nonzero()[0]) + 1
+        _fail(
+            env,
+            f"terminated is True at step {first}; every episode must end by truncation after max_episode_steps "
+            f"({length}) steps, the collector yields whole episodes of that length (make the task continuing)",
+        )
+    truncated = rollout["next", "truncated"]
+    if not torch.equal(truncated, expected):
+        wrong = (truncated != expected).reshape(-1, steps).any(0).nonzero()
+        first = int(wrong[0]) + 1
+        actual = "truncated" if bool(truncated.reshape(-1, steps)[:, first - 1].any()) else "did not truncate"
+        _fail(
+            env,
+            f"max_episode_steps is {length}, but the env {actual} at step {first} of the checking rollout "
+            f"({steps} steps); max_episode_steps must be the step at which every episode truncates",
+        )
 
 
 def check_goal_env(env: EnvBase, *, goal_indices: Sequence[int] | None = None, steps: int = 2) -> None:
@@ -211,7 +244,7 @@ def check_goal_env(env: EnvBase, *, goal_indices: Sequence[int] | None = None, s
 
     Examples:
         >>> from torchrl.testing.mocking_classes import ContinuousActionVecMockEnv
-        >>> from torchrl_dhrl.envs import check_goal_env, make_env
+        >>> from torchrl_dhrl.envs import GoalEnvError, check_goal_env, make_env
         >>> check_goal_env(make_env("PointMaze", num_envs=2, seed=0), goal_indices=[0, 1])
         >>> try:
         ...     check_goal_env(ContinuousActionVecMockEnv())

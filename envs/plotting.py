@@ -13,6 +13,7 @@ import numpy as np
 
 from .arms import ArmSpec, get_arm_spec
 from .goals import BoxGoalSampler, FixedGoalSampler, GaussianGoalSampler
+from .gymnasium_goal_env import gymnasium_id
 from .mazes import MazeSpec, get_maze_spec
 from .registry import get_env_factory, get_env_spec
 
@@ -367,7 +368,7 @@ def plot_env(
         'Reacher3D (side)'
     """
     overlays = {"trajectory": trajectory, "landmarks": landmarks, "edges": edges, "path": path, "goal": goal}
-    if get_env_factory(name) is not None:
+    if get_env_factory(name) is not None or gymnasium_id(name) is not None:  # goal space only
         return _plot_goal_space(name, ax=ax, title=title, **overlays)
     spec = get_env_spec(name)
     if isinstance(spec, MazeSpec):

@@ -2,6 +2,9 @@
 
 from __future__ import annotations
 
+from collections.abc import Mapping
+from typing import Any
+
 import numpy as np
 import torch
 from tensordict import TensorDict, TensorDictBase
@@ -9,6 +12,7 @@ from torchrl.data import Bounded, Categorical, Composite, Unbounded
 from torchrl.envs import EnvBase
 
 from .goal_env import GoalEnvError, check_goal_env
+from .gymnasium_goal_env import GymnasiumGoalEnv, gymnasium_id
 from .registry import get_env_factory, get_env_spec
 from .simulation import GoalSimulation
 from .task import OVERVIEW_CAMERA, TaskSpec
@@ -289,6 +293,7 @@ def make_env(
     max_episode_steps: int | None = None,
     right_flipped_after: int | None = None,
     reference_engine: bool = False,
+    env_kwargs: Mapping[str, Any] | None = None,
 ) -> EnvBase:
     """Builds a DHRL environment as a native batched TorchRL environment.
 
@@ -298,7 +303,8 @@ def make_env(
             ``"dhrl/<name>-v0"`` are accepted too), or the name of an env registered with
             :func:`~torchrl_dhrl.envs.register_env`: its factory is called with the keyword arguments
             below and the env it returns is checked against the goal-env contract
-            (:func:`~torchrl_dhrl.envs.check_goal_env` on the specs, batch size ``[num_envs]``).
+            (:func:`~torchrl_dhrl.envs.check_goal_env` on the specs, batch size ``[num_envs]``); or
+            ``"gymnasium:<id>"``, any registered Gymnasium goal env (:class:`~torchrl_dhrl.envs.GymnasiumGoalEnv`).
 
     Keyword Args:
         num_envs (int): batch size of the env. Defaults to ``1``.
@@ -315,6 +321,9 @@ def make_env(
             the larger of the two margins where MuJoCo 3 adds them) and the leg capsules MuJoCo 2.0's masses and
             inertias (a cylinder ``radius`` longer; the ant weighs 0.879 instead of 0.911). The env is built from
             the spec with ``agent=dataclasses.replace(agent, reference_engine=True)``. Defaults to ``False``.
+        env_kwargs (dict, optional): ``"gymnasium:<id>"`` only: keyword arguments of
+            :class:`~torchrl_dhrl.envs.GymnasiumGoalEnv` (``reset_options``, ``success_threshold``,
+            ``make_kwargs``). Defaults to ``None``.
 
     Raises:
         ValueError: for an unknown name; the message lists the valid ones; for ``right_flipped_after``
@@ -329,6 +338,17 @@ def make_env(
         >>> make_env("Reacher3D", seed=0).rollout(3)["next", "achieved_goal"].shape
         torch.Size([1, 3, 3])
     """
+    env_id = gymnasium_id(name)
+    if env_kwargs and env_id is None:
+        raise ValueError(f"env_kwargs are options of the Gymnasium goal envs (gymnasium:<id>), not of {name!r}.")
+    if env_id is not None:
+        if right_flipped_after is not None or reference_engine:
+            raise ValueError(f"right_flipped_after and reference_engine are options of the built-in ant mazes, not of {name!r}.")
+        env = GymnasiumGoalEnv(
+            env_id, num_envs, seed=seed, device=device, max_episode_steps=max_episode_steps, **dict(env_kwargs or {})
+        )
+        check_goal_env(env, steps=0)
+        return env
     factory = get_env_factory(name)
     if factory is not None:
         if right_flipped_after is not None:

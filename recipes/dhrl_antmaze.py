@@ -56,24 +56,12 @@ import math
 import os
 import sys
 import time
+import warnings
 from pathlib import Path
 
 import cloudpickle
-import dhrl_utils
 import hydra
 import tqdm
-from dhrl_utils import (
-    PAPER_SUCCESS,
-    RunParts,
-    build_episode_log,
-    build_logger,
-    build_run,
-    evaluation_kwargs,
-    remove_unused_output_dir,
-    seed_everything,
-    start_up,
-    sweep_defaults,
-)
 from omegaconf import DictConfig
 
 from torchrl_dhrl.diagnostics import TrainingEpisodeLog
@@ -90,6 +78,7 @@ from torchrl_dhrl.recipe import (
     evaluate_epoch,
     frozen_gc,
     graph_metrics,
+    holds_state,
     log_metrics,
     make_checkpoint,
     plot_epoch,
@@ -101,6 +90,25 @@ from torchrl_dhrl.recipe import (
     write_run_dir,
 )
 from torchrl_dhrl.training import NonFiniteLossError, record_video
+
+# The helpers beside the script, also when it is started from elsewhere (runpy.run_path, a user's launcher)
+if str(Path(__file__).resolve().parent) not in sys.path:
+    sys.path.insert(0, str(Path(__file__).resolve().parent))
+import dhrl_utils  # noqa: E402
+from dhrl_utils import (  # noqa: E402
+    PAPER_SUCCESS,
+    RunParts,
+    adopt_output_dir,
+    build_episode_log,
+    build_logger,
+    build_run,
+    evaluation_kwargs,
+    remove_unused_output_dir,
+    resumed_run_dir,
+    seed_everything,
+    start_up,
+    sweep_defaults,
+)
 
 # Launchers that pickle the task for another process (submitit's local and Slurm executors) import its
 # modules there by name, and this folder is not on that process's path: ship the helpers by value.
@@ -234,7 +242,7 @@ def train(cfg: DictConfig | dict, run_dir: str | Path | None = None) -> dict:
     finally:
         run.collector.shutdown()
     plot_curve(cfg, history, run_dir, counters)
-    episode_length = run.train_env.base_env.max_episode_steps
+    episode_length = run.train_env.max_episode_steps
     if cfg["plots"]["video"]:
         video = record_video(run.eval_env, agent.policy, episode_length, run_dir / "test_episode.gif")
         print(f"Video of a test episode: {video}")
@@ -260,6 +268,13 @@ def restore_or_fork(start: RunStart, checkpoint, counters: RunCounters, run: Run
         restore_checkpoint(checkpoint, start.resume, map_location=start.device)
     except CheckpointError as err:
         raise ConfigError(f"`{key}={cfg[key]}`: {err}") from err
+    for name, env in (("training", run.train_env.base_env), ("test", run.eval_env.base_env)):
+        if not holds_state(env.state_dict()):
+            warnings.warn(
+                f"The {name} env ({type(env).__name__}) keeps no state in its state_dict: it goes on from a fresh "
+                "simulation, so this run does not continue exactly where it stopped (docs/goal_env.md).",
+                stacklevel=2,
+            )
     if not start.forking:
         print(f"Resumed from {start.resume} at {counters.env_steps} env steps.")
         return
@@ -301,7 +316,7 @@ def end_epoch(
     metrics.update(episode_log.pop_metrics())
     counters.train_episodes = episode_log.state_dict()
     if epoch % schedule["eval_every_epochs"] == 0:
-        episode_length = run.train_env.base_env.max_episode_steps
+        episode_length = run.train_env.max_episode_steps
         evaluation, result = evaluate_epoch(run.agent, run.eval_env, episode_length, **evaluation_kwargs(cfg))
         metrics.update(evaluation)
         every = cfg["plots"]["every_epochs"]
@@ -351,7 +366,9 @@ def plot_curve(cfg: dict, history: list[dict], run_dir: Path, counters: RunCount
 
 @hydra.main(config_path="config", config_name="config", version_base="1.3")
 def main(cfg: DictConfig) -> None:
-    """The command line: :func:`train` in Hydra's output directory (or ``run_dir``).
+    """The command line: :func:`train` in Hydra's output directory, or in ``run_dir``, or (``resume=<run dir>``
+    without ``run_dir``) in the resumed run's directory; Hydra's record of the job (``.hydra/``, its log) then
+    moves there too, and its output directory is removed.
 
     A configuration error prints one line to stderr (``<script>: configuration error: <key, value, what is
     accepted>``) and exits with status 2, without a traceback (``HYDRA_FULL_ERROR=1`` shows it) and without
@@ -363,8 +380,10 @@ def main(cfg: DictConfig) -> None:
     hydra_cfg = HydraConfig.get()
     output_dir = Path(hydra_cfg.runtime.output_dir)
     sweep_defaults(cfg, hydra_cfg)
+    run_dir = Path(cfg.run_dir or resumed_run_dir(cfg) or output_dir)
     try:
-        train(cfg, run_dir=cfg.run_dir or output_dir)
+        train(cfg, run_dir=run_dir)
+        adopt_output_dir(output_dir, run_dir)
     except ConfigError as err:
         remove_unused_output_dir(output_dir)
         if os.environ.get("HYDRA_FULL_ERROR") == "1":
@@ -372,6 +391,7 @@ def main(cfg: DictConfig) -> None:
         print(f"{Path(sys.argv[0]).name}: configuration error: {' '.join(str(err).split())}", file=sys.stderr)
         sys.exit(2)
     except KeyboardInterrupt:
+        adopt_output_dir(output_dir, run_dir)
         sys.exit(130)
 
 

@@ -9,7 +9,9 @@ configuration that a component refuses is reported as a :class:`~torchrl_dhrl.re
 
 from __future__ import annotations
 
+import copy
 import random
+import shutil
 from pathlib import Path
 from typing import Any, NamedTuple
 
@@ -17,16 +19,20 @@ import numpy as np
 import torch
 from omegaconf import DictConfig, OmegaConf
 from omegaconf.errors import OmegaConfBaseException
-from torchrl_dhrl.envs import GoalEnvError
+from torchrl_dhrl.envs import ENVS, GoalEnvError, gymnasium_id
 from torchrl_dhrl.envs.geometry import obstacle_boxes
 
 from torchrl_dhrl.diagnostics import TrainingEpisodeLog
 from torchrl_dhrl.objectives import make_optimizers
 from torchrl_dhrl.planner import LineOfSightDistance
 from torchrl_dhrl.recipe import (
+    GOAL_UNIT_KEYS,
     ConfigError,
     DHRLAgent,
     RunStart,
+    check_known_keys,
+    checkpoint_file,
+    derive_goal_units,
     load_checkpoint,
     make_agent,
     make_collector,
@@ -36,6 +42,7 @@ from torchrl_dhrl.recipe import (
     make_low_level_buffer,
     run_precisions,
     start_run,
+    validate_env_name,
     with_implied_keys,
 )
 from torchrl_dhrl.recipe.routing import check_components, component_arguments
@@ -87,9 +94,62 @@ def start_up(cfg: DictConfig | dict, run_dir: str | Path | None = None, *, write
     Raises:
         ConfigError: naming the key, the value and what is accepted.
     """
-    return start_run(
-        to_dict(cfg), run_dir, schema=config_schema(), schema_source="recipes/config/config.yaml", write=write
-    )
+    cfg = to_dict(cfg)
+    check_known_keys(cfg, config_schema(), source="recipes/config/config.yaml", complete=True)
+    cfg = resolve_goal_units(cfg)
+    return start_run(cfg, run_dir, schema=config_schema(), schema_source="recipes/config/config.yaml", write=write)
+
+
+def resolve_goal_units(cfg: dict) -> dict:
+    """The configuration with its keys in goal units derived from the env where they are ``null``, and
+    ``goal_indices=auto`` read from it (:func:`~torchrl_dhrl.recipe.derive_goal_units`; ``env=gymnasium`` and
+    ``env=custom`` leave them so), printed as one line; the configuration as it is when nothing is to derive.
+
+    Raises:
+        ConfigError: for an env of its own (registered, ``gymnasium:<id>``) run with the default env file's
+            (AntMaze's) values in goal units, which are sized for a 24-unit maze; or when the env cannot be built.
+    """
+    name = cfg["env_name"]
+    derive = cfg.get("goal_indices") == "auto" or any(_get_path(cfg, path) is None for path in GOAL_UNIT_KEYS)
+    if name not in ENVS and not derive and isinstance(name, str):
+        default = default_goal_units()
+        if all(_get_path(cfg, path) == value for path, value in default.items()):
+            listed = ", ".join(f"{path}={value}" for path, value in default.items())
+            raise ConfigError(
+                f"env_name={name} runs with the default env file's values in goal units ({listed}), sized for "
+                f"AntMaze's 24-unit maze: choose env=custom (a registered env) or env=gymnasium (gymnasium:<id>), "
+                "which derive them from the env, or set them for your env."
+            )
+    if not derive:
+        return cfg
+    validate_env_name(cfg)
+    cfg = copy.deepcopy(cfg)
+    try:
+        env = make_environment(
+            name, num_envs=1, seed=cfg["seed"], max_episode_steps=cfg["episode_length"],
+            env_kwargs=gymnasium_kwargs(cfg),
+        )
+    except (GoalEnvError, ValueError) as err:
+        raise ConfigError(f"env_name={name}: {err}") from err
+    notes = derive_goal_units(cfg, env)
+    env.close()
+    print(f"Derived from {name}: {'; '.join(notes)}.")
+    return cfg
+
+
+def default_goal_units() -> dict[str, Any]:
+    """The values in goal units of the default configuration (``config.yaml`` with its default env file)."""
+    base = OmegaConf.load(CONFIG_DIR / "config.yaml")
+    env = next(entry["env"] for entry in base.defaults if isinstance(entry, DictConfig) and "env" in entry)
+    merged = OmegaConf.to_container(OmegaConf.merge(base, OmegaConf.load(CONFIG_DIR / "env" / f"{env}.yaml")))
+    return {path: _get_path(merged, path) for path in GOAL_UNIT_KEYS}
+
+
+def _get_path(cfg: dict, path: str) -> Any:
+    node = cfg
+    for part in path.split("."):
+        node = node.get(part) if isinstance(node, dict) else None
+    return node
 
 
 def seed_everything(seed: int, *envs) -> None:
@@ -100,6 +160,47 @@ def seed_everything(seed: int, *envs) -> None:
     random.seed(seed)
     for env in envs:
         env.set_seed(seed)
+
+
+def resumed_run_dir(cfg: DictConfig | dict) -> Path | None:
+    """The directory of the run that ``resume=<run dir or checkpoint>`` continues (``None`` for ``resume=auto``,
+    no ``resume``, a ``fork``, or a path that holds no checkpoint): a resumed run goes on writing where it wrote."""
+    resume, fork = cfg.get("resume"), cfg.get("fork")
+    if not resume or resume == "auto" or fork:
+        return None
+    checkpoint = checkpoint_file(Path(str(resume)).expanduser())
+    return checkpoint.resolve().parent if checkpoint.exists() else None
+
+
+def adopt_output_dir(output_dir: Path, run_dir: Path) -> None:
+    """Moves Hydra's record of a job (``.hydra/``, the job log) from its output directory into the run directory
+    when they differ, and removes the output directory and the parents this leaves empty (within the current
+    directory), so that ``run_dir=...`` or a resume leaves no stray ``outputs/<date>/<time>``. An output
+    directory that holds anything else is left as it is."""
+    output_dir, run_dir = Path(output_dir).resolve(), Path(run_dir).resolve()
+    if output_dir == run_dir or not output_dir.is_dir() or not run_dir.is_dir():
+        return
+    from hydra.core.hydra_config import HydraConfig
+
+    hydra_cfg = HydraConfig.get()
+    record = {output_dir / f"{hydra_cfg.job.name}.log"}
+    if hydra_cfg.output_subdir is not None:
+        record.add(output_dir / hydra_cfg.output_subdir)
+    if any(path not in record for path in output_dir.iterdir()):
+        return
+    for path in record:
+        if path.exists():
+            target = run_dir / path.name
+            if target.is_dir():
+                shutil.rmtree(target)
+            shutil.move(str(path), str(target))
+    remove_unused_output_dir(output_dir)
+    if output_dir.is_dir() and not any(output_dir.iterdir()):
+        output_dir.rmdir()
+        parent, cwd = output_dir.parent, Path.cwd().resolve()
+        while parent != cwd and cwd in parent.parents and not any(parent.iterdir()):
+            parent.rmdir()
+            parent = parent.parent
 
 
 def remove_unused_output_dir(output_dir: Path) -> None:
@@ -163,9 +264,21 @@ def build_environment(cfg: dict, device: torch.device, *, eval: bool = False, ag
             goal_shifting=component_arguments(cfg)["goal_shifting"] if cfg["fgs"]["enabled"] and not eval else None,
             right_flipped_after=cfg.get("right_flipped_after"),
             reference_engine=cfg.get("reference_engine", False),
+            env_kwargs=gymnasium_kwargs(cfg, eval=eval),
         )
     except GoalEnvError as err:
         raise ConfigError(f"env_name={cfg['env_name']}: {err}") from err
+
+
+def gymnasium_kwargs(cfg: dict, *, eval: bool = False) -> dict[str, Any] | None:  # noqa: A002
+    """The :class:`~torchrl_dhrl.envs.GymnasiumGoalEnv` arguments of ``env_name=gymnasium:<id>`` (``gymnasium.*``;
+    the test envs reset with ``eval_reset_options``), ``None`` for any other env."""
+    if gymnasium_id(cfg["env_name"]) is None:
+        return None
+    args = dict(component_arguments(cfg)["gymnasium_env"])
+    if eval:
+        args["reset_options"] = cfg["gymnasium"]["eval_reset_options"]
+    return args
 
 
 def build_agent(cfg: dict, device: torch.device) -> DHRLAgent:
@@ -267,7 +380,7 @@ def build_run(cfg: dict, device: torch.device) -> RunParts:
     collector = make_collector(
         train_env,
         agent,
-        train_env.base_env.max_episode_steps,
+        train_env.max_episode_steps,
         compile_policy=bool(cfg.get("compile_policy", False)),
     )
     return RunParts(agent, train_env, eval_env, low_rb, high_rb, low_updater, high_updater, collector)

@@ -132,7 +132,7 @@ def main(argv: list[str] | None = None) -> dict:
 
 def _along(agent, env, geometry, low, high, args) -> list[dict]:
     """The landscape at every new subgoal of a failed and of a successful test episode (if any)."""
-    result = evaluate(env, agent.policy, env.base_env.max_episode_steps)
+    result = evaluate(env, agent.policy, env.max_episode_steps)
     rollout = result.rollout.reshape(-1, result.rollout.shape[-1])
     success = rollout["next", "is_success"].reshape(*rollout.shape, -1).any(-1)[:, -1]
     picked = [(int(i), "failed") for i in (~success).nonzero()[:1, 0]]

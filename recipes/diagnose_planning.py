@@ -35,7 +35,7 @@ def main(argv: list[str] | None = None) -> list[dict]:
     rows = planning_ablations(
         agent,
         env,
-        env.base_env.max_episode_steps,
+        env.max_episode_steps,
         reach_radii=args.reach_radii,
         repeats=args.repeats,
         oracle=oracle_distance(cfg) if args.oracle else None,

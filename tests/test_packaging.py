@@ -42,8 +42,9 @@ def test_wheel_layout(wheel):
     assert "torchrl_dhrl/envs/__init__.py" in names
     # never a bare top-level ``envs`` package in site-packages
     assert not any(n.startswith("envs/") for n in names), [n for n in names if n.startswith("envs/")]
-    for sub in ("modules", "objectives", "planner", "data", "training"):
+    for sub in ("modules", "objectives", "planner", "data", "training", "diagnostics", "recipe"):
         assert f"torchrl_dhrl/{sub}/__init__.py" in names
+    assert "torchrl_dhrl/checks.py" in names
 
 
 @pytest.mark.slow

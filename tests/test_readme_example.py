@@ -2,6 +2,7 @@
 
 import re
 import runpy
+import warnings
 from pathlib import Path
 
 import torch
@@ -21,7 +22,13 @@ def _example() -> str:
 def test_readme_composition_example_runs_verbatim(tmp_path, capsys):
     path = tmp_path / "example.py"
     path.write_text(_example())
-    ns = runpy.run_path(str(path), run_name="__main__")
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always")
+        ns = runpy.run_path(str(path), run_name="__main__")
+    # a newcomer's first run prints no FutureWarning of TorchRL's (e.g. the collector's InitTracker notice)
+    assert not [w for w in caught if issubclass(w.category, FutureWarning) and "torchrl" in w.filename], [
+        str(w.message)[:200] for w in caught
+    ]
     # one update of each level happened, with finite losses, and the graph was built from buffer states
     assert ns["low_updater"].num_updates == 1 and ns["high_updater"].num_updates == 1
     for key in ("loss_policy_qvalue", "loss_graph_qvalue"):

@@ -252,7 +252,7 @@ def graph_diagnosis(
     if env_name not in MAZE_NAMES:
         raise ValueError(f"The graph diagnostics need a maze; this run is on {env_name}.")
     if rollout:
-        length = eval_env.base_env.max_episode_steps
+        length = eval_env.max_episode_steps
         td = evaluate(eval_env, agent.policy, length).rollout
     else:
         td = eval_env.reset().unsqueeze(-1)

@@ -131,7 +131,9 @@ class GraphPlanner(UnregisteredAttributes, Transform):
     Examples:
         >>> import torch
         >>> from tensordict import TensorDict
-        >>> dist = lambda s, g: (g - s[..., :2]).norm(dim=-1)  # one unit of distance per step
+        >>> # distances count env steps (the planner gives each waypoint that many steps to be reached): this one
+        >>> # is an agent that moves one goal unit per step; a slower agent's is the length divided by its speed
+        >>> dist = lambda s, g: (g - s[..., :2]).norm(dim=-1)
         >>> graph = LandmarkGraph(cutoff=1.5, max_landmarks=20, early_stop=0.9)
         >>> planner = GraphPlanner(graph, dist, goal_dim=2)
         >>> xs = torch.linspace(0, 5, 51)

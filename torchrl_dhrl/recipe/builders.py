@@ -28,7 +28,7 @@ from torchrl_dhrl.data import (
     RelabelReplayBuffer,
     SparseGoalReward,
 )
-from torchrl_dhrl.envs import check_goal_env, make_env
+from torchrl_dhrl.envs import check_goal_env, get_env_factory, gymnasium_id, make_env
 from torchrl_dhrl.envs.transforms import AngleFeatures
 from torchrl_dhrl.modules import (
     GaussianUniformExplorationModule,
@@ -263,6 +263,7 @@ def make_environment(
     goal_shifting: Mapping[str, Any] | None = None,
     right_flipped_after: int | None = None,
     reference_engine: bool = False,
+    env_kwargs: Mapping[str, Any] | None = None,
 ) -> EnvBase:
     """A batched env of :func:`~torchrl_dhrl.envs.make_env` (``eval``: on the test goals), with the agent's primers.
 
@@ -273,7 +274,8 @@ def make_environment(
     exists). With ``agent``, the subgoal scheduler's and the planner's primers are appended, and
     ``goal_shifting`` (the keyword arguments of :class:`~torchrl_dhrl.planner.FrontierGoalShifting`:
     ``noise``, ``weighting``, ``trigger``) adds frontier-based goal shifting at every reset.
-    ``right_flipped_after`` and ``reference_engine`` (ant mazes) are passed to :func:`~torchrl_dhrl.envs.make_env`.
+    ``right_flipped_after``, ``reference_engine`` (ant mazes) and ``env_kwargs`` (``gymnasium:<id>``) are passed
+    to :func:`~torchrl_dhrl.envs.make_env`.
 
     Raises:
         GoalEnvError: when the env does not meet the contract.
@@ -292,15 +294,28 @@ def make_environment(
         max_episode_steps=max_episode_steps,
         right_flipped_after=right_flipped_after,
         reference_engine=reference_engine,
+        env_kwargs=env_kwargs,
     )
     features = observation_transforms(angle_features)
-    if agent is None:  # the whole contract once, with a short rollout that draws no random numbers
-        check_goal_env(env, goal_indices=None if goal_indices is None else tuple(goal_indices))
-        return TransformedEnv(env, Compose(*features)) if features else env
-    transforms = [*features, agent.high_policy.make_primer(), agent.planner.make_primer()]
-    if goal_shifting is not None:
-        transforms.append(GoalShiftOnReset(FrontierGoalShifting(agent.planner, **goal_shifting)))
-    return TransformedEnv(env, Compose(*transforms))
+    steps = env.max_episode_steps  # the env's own attribute, which a TransformedEnv it is wrapped in would hide
+    if agent is None:  # the whole contract once, with a rollout that draws no random numbers
+        built_in = get_env_factory(env_name) is None and gymnasium_id(env_name) is None
+        check_goal_env(
+            env,
+            goal_indices=None if goal_indices is None else tuple(goal_indices),
+            # an env of its own: a whole episode and one step more, so that its truncation step is checked too
+            steps=2 if built_in else steps + 1,
+        )
+        if not features:
+            return env
+        out = TransformedEnv(env, Compose(*features))
+    else:
+        transforms = [*features, agent.high_policy.make_primer(), agent.planner.make_primer()]
+        if goal_shifting is not None:
+            transforms.append(GoalShiftOnReset(FrontierGoalShifting(agent.planner, **goal_shifting)))
+        out = TransformedEnv(env, Compose(*transforms))
+    out.max_episode_steps = steps
+    return out
 
 
 def make_collector(

@@ -31,6 +31,7 @@ always written in the directory layout.
 from __future__ import annotations
 
 import os
+import shutil
 from collections.abc import Collection, Mapping, MutableMapping
 from pathlib import Path
 from typing import Any
@@ -46,6 +47,8 @@ from torchrl.checkpoint import (
 from torchrl.checkpoint import CheckpointError as _TorchRLCheckpointError
 
 __all__ = [
+    "recover_checkpoint",
+    "holds_state",
     "CHECKPOINT_COMPONENTS",
     "CHECKPOINT_NAME",
     "CheckpointError",
@@ -335,6 +338,64 @@ def _load_state(checkpoint: Checkpoint, name: str, state: Any) -> None:
         component[:] = state
     else:
         component.load_state_dict(state)
+
+
+def recover_checkpoint(run_dir: str | os.PathLike) -> str | None:
+    """Completes a checkpoint swap that a crash interrupted, and removes what interrupted saves left behind.
+
+    :func:`save_checkpoint` stages the new checkpoint in ``.checkpoint.stage-*`` (its ``manifest.json`` written
+    last), renames the current one to ``.checkpoint.backup-*``, the staged one into place, and removes the
+    backup. A process killed between the two renames leaves no ``checkpoint``: the staged one is moved into
+    place when it is complete, else the backup is moved back. Incomplete stages and stale backups are removed.
+    Call it only while no save is running in ``run_dir`` (the recipe does at start-up).
+
+    Returns:
+        a one-line note when a checkpoint was moved into place, else ``None``.
+
+    Examples:
+        >>> import tempfile
+        >>> run = Path(tempfile.mkdtemp())
+        >>> (run / ".checkpoint.backup-1").mkdir()
+        >>> (run / ".checkpoint.backup-1" / "manifest.json").write_text("{}")
+        2
+        >>> recover_checkpoint(run)[:40], (run / "checkpoint" / "manifest.json").exists()
+        ('Recovered the checkpoint of an interrupt', True)
+    """
+    run_dir = Path(run_dir)
+    if not run_dir.is_dir():
+        return None
+    target = run_dir / CHECKPOINT_NAME
+    stages = sorted(run_dir.glob(f".{CHECKPOINT_NAME}.stage-*"), key=lambda p: p.stat().st_mtime, reverse=True)
+    backups = sorted(run_dir.glob(f".{CHECKPOINT_NAME}.backup-*"), key=lambda p: p.stat().st_mtime, reverse=True)
+    note = None
+    if not target.exists():
+        complete = [p for p in (*stages, *backups) if (p / "manifest.json").is_file()]
+        if complete:
+            os.replace(complete[0], target)
+            which = "new" if complete[0] in stages else "previous"
+            note = f"Recovered the checkpoint of an interrupted save in {run_dir} (the {which} one)."
+    for leftover in (*stages, *backups, *run_dir.glob(f".{CHECKPOINT_NAME}.archive-*")):
+        if leftover.is_dir():
+            shutil.rmtree(leftover, ignore_errors=True)
+        elif leftover.exists():
+            leftover.unlink()
+    return note
+
+
+def holds_state(state: Any) -> bool:
+    """Whether a ``state_dict`` holds anything (a value other than an empty container, at any depth): an env
+    whose ``state_dict`` holds nothing (e.g. ``{"worker0": {}, "worker1": {}}``) resumes from a fresh
+    simulation, not where it stopped.
+
+    Examples:
+        >>> holds_state({"worker0": {}, "worker1": {}}), holds_state({"qpos": [0.0]})
+        (False, True)
+    """
+    if isinstance(state, Mapping):
+        return any(holds_state(value) for value in state.values())
+    if isinstance(state, (list, tuple)):
+        return any(holds_state(value) for value in state)
+    return state is not None
 
 
 def checkpoint_file(path: str | os.PathLike) -> Path:

@@ -19,6 +19,7 @@ from .routing import check_components
 __all__ = [
     "BUILD_DTYPES",
     "CHOICES",
+    "GOAL_UNIT_KEYS",
     "ConfigError",
     "DISTANCES",
     "IMPLIED_WHEN_ABSENT",
@@ -29,11 +30,13 @@ __all__ = [
     "SWITCHES",
     "UPDATE_DTYPES",
     "check_known_keys",
+    "derive_goal_units",
     "check_resume_config",
     "describe_precisions",
     "resolve_device",
     "run_precisions",
     "validate_config",
+    "validate_env_name",
     "with_implied_keys",
 ]
 
@@ -114,6 +117,77 @@ SWITCHES = (
     "planner.enabled",
     "reference_engine",
 )
+
+
+#: Keys measured in goal-space units: the built-in env files size them for their tasks; ``null`` means "derived
+#: from the env's goal space" (:func:`derive_goal_units`, as ``env=gymnasium`` and ``env=custom`` do).
+GOAL_UNIT_KEYS = (
+    "high.subgoal_low",
+    "high.subgoal_high",
+    "high.subgoal_noise",
+    "low.reward_threshold",
+    "planner.reach_radius",
+    "fgs.noise",
+)
+
+
+def _round(value: float) -> float:
+    return float(f"{value:.4g}")
+
+
+def derive_goal_units(cfg: dict, env) -> list[str]:
+    """Fills the ``null`` keys of :data:`GOAL_UNIT_KEYS` and ``goal_indices=auto`` of ``cfg`` (in place) from
+    ``env``, an env of the goal-env contract, and returns one ``"key=value"`` note per derived key.
+
+    - the subgoal box: :func:`~torchrl_dhrl.envs.goal_extent` (the env's goals and a random walk's states);
+    - ``high.subgoal_noise`` and ``fgs.noise``: a 12th and an 8th of the box's largest side (AntMaze's 2 and 3
+      for its 24-unit box);
+    - ``low.reward_threshold``: the env's success radius (``env.success_radius``, a number or a method;
+      :meth:`~torchrl_dhrl.envs.GymnasiumGoalEnv.success_radius` reads it from ``compute_reward``);
+    - ``planner.reach_radius``: the reward threshold (as every built-in env);
+    - ``goal_indices=auto``: :func:`~torchrl_dhrl.envs.goal_indices_of` (``null`` when the goal is not in the
+      observation).
+
+    Raises:
+        ConfigError: naming the key when the env cannot tell it (no success radius).
+    """
+    from torchrl_dhrl.envs import goal_extent, goal_indices_of
+
+    notes = []
+
+    def put(path: str, value: Any) -> None:
+        group, key = path.split(".") if "." in path else (None, path)
+        (cfg[group] if group else cfg)[key] = value
+        notes.append(f"{path}={value}")
+
+    if cfg.get("goal_indices") == "auto":
+        put("goal_indices", goal_indices_of(env))
+    missing = [path for path in GOAL_UNIT_KEYS if _get(cfg, path) is None]
+    if not missing:
+        return notes
+    low, high = goal_extent(env)
+    extent = max(h - lo for lo, h in zip(low, high, strict=True))
+    radius = getattr(env, "success_radius", None)
+    radius = radius() if callable(radius) else radius
+    reward_threshold = _get(cfg, "low.reward_threshold")
+    if reward_threshold is None:
+        if radius is None:
+            raise ConfigError(
+                f"`low.reward_threshold` is null (derived from the env), but {type(env).__name__} does not tell its "
+                "success radius (no `success_radius`, no compute_reward to read it from); set low.reward_threshold."
+            )
+        reward_threshold = _round(radius)
+    derived = {
+        "high.subgoal_low": [_round(v) for v in low],
+        "high.subgoal_high": [_round(v) for v in high],
+        "high.subgoal_noise": _round(extent / 12),
+        "fgs.noise": _round(extent / 8),
+        "low.reward_threshold": reward_threshold,
+        "planner.reach_radius": reward_threshold,
+    }
+    for path in missing:
+        put(path, derived[path])
+    return notes
 
 
 class ConfigError(ValueError):
@@ -437,7 +511,7 @@ def check_known_keys(cfg: Mapping, schema: Mapping, *, source: str = "config.yam
         if complete:
             present = set(_flatten(cfg))
             for key in _flatten(schema):
-                if key not in present and not any(key.startswith(f"{p}.") for p in present):
+                if key not in present and not any(p.startswith(f"{key}.") for p in present):
                     raise ConfigError(f"Missing configuration key `{key}` (defined in {source}).")
         return
     known = list(_flatten(schema))
@@ -533,6 +607,30 @@ def check_resume_config(
     return allowed
 
 
+def validate_env_name(cfg: Mapping, env_names: tuple[str, ...] | None = None) -> str:
+    """``env_name``, checked: a built-in env, one registered with :func:`~torchrl_dhrl.envs.register_env` or
+    ``gymnasium:<id>`` (the id is checked when the env is built); or one of ``env_names`` when given.
+
+    Raises:
+        ConfigError: listing the valid names.
+    """
+    hint = ""
+    name = _get(cfg, "env_name")
+    if env_names is None:
+        from torchrl_dhrl.envs import ENV_NAMES, gymnasium_id, registered_env_names
+
+        if gymnasium_id(name):
+            return name
+        env_names = (*ENV_NAMES, *registered_env_names())
+        hint = (
+            " (or register your own env with torchrl_dhrl.envs.register_env, or name a Gymnasium goal env "
+            "gymnasium:<id>; see docs/goal_env.md)"
+        )
+    if name not in env_names:
+        raise ConfigError(f"Unknown env_name {name!r}; choose one of: {', '.join(env_names)}{hint}.")
+    return name
+
+
 def validate_config(cfg: Mapping, env_names: tuple[str, ...] | None = None) -> None:
     """Checks a training configuration and raises :class:`ConfigError` with a clear message.
 
@@ -548,15 +646,7 @@ def validate_config(cfg: Mapping, env_names: tuple[str, ...] | None = None) -> N
         ...     print(err)
         Unknown env_name 'AntMase'; choose one of: AntMaze.
     """
-    hint = ""
-    if env_names is None:
-        from torchrl_dhrl.envs import ENV_NAMES, registered_env_names
-
-        env_names = (*ENV_NAMES, *registered_env_names())
-        hint = " (or register your own env with torchrl_dhrl.envs.register_env, see docs/goal_env.md)"
-    name = _get(cfg, "env_name")
-    if name not in env_names:
-        raise ConfigError(f"Unknown env_name {name!r}; choose one of: {', '.join(env_names)}{hint}.")
+    name = validate_env_name(cfg, env_names)
     seed = _number(cfg, "seed", integer=True)
     if not 0 <= seed <= SEED_MAX:
         raise ConfigError(f"`seed` must be an integer in [0, 2**32 - 1] (NumPy's seed range), got {seed}.")

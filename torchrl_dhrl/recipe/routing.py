@@ -21,6 +21,7 @@ from dataclasses import dataclass, field
 from typing import Any
 
 from torchrl_dhrl.checks import argument_names, check_arguments
+from torchrl_dhrl.envs import GymnasiumGoalEnv
 from torchrl_dhrl.modules import (
     GaussianUniformExplorationModule,
     GoalConditionedCritic,
@@ -104,6 +105,7 @@ TARGETS: dict[str, dict[str, Target]] = {
         "oracle": Target(LineOfSightDistance),
     },
     "fgs": {"goal_shifting": Target(FrontierGoalShifting)},
+    "gymnasium": {"gymnasium_env": Target(GymnasiumGoalEnv)},
 }
 
 #: Keys named otherwise than the argument they set: ``group.key -> argument``.
@@ -128,7 +130,12 @@ RECIPE_KEYS = {
     "planner.candidates": "how many buffer states the recipe offers each graph rebuild",
     "planner.build_dtype": "resolved per device into LandmarkGraph's build_autocast_dtype",
     "fgs.enabled": "whether the recipe shifts goals at all",
+    "gymnasium.eval_reset_options": "the test episodes' GymnasiumGoalEnv reset_options",
 }
+
+
+#: Keys of :data:`RECIPE_KEYS` that hold the same kind of value as a target's argument, and are checked as it is.
+CHECKED_AS = {"gymnasium.eval_reset_options": ("gymnasium_env", "reset_options")}
 
 
 def _routes(group: str, key: str, value: Any) -> list[tuple[str, str, Any]]:
@@ -153,7 +160,7 @@ def _route(cfg: Mapping[str, Any]) -> tuple[dict[str, dict[str, Any]], dict[str,
     arguments: dict[str, dict[str, Any]] = {name: {} for group in TARGETS.values() for name in group}
     sources: dict[str, dict[str, str]] = {name: {"goal_indices": "goal_indices"} for name in arguments}
     for group in TARGETS:
-        for key, value in cfg[group].items():
+        for key, value in cfg.get(group, {}).items():  # (a checkpoint older than a group has none)
             if f"{group}.{key}" in RECIPE_KEYS:  # the recipe's, even where a constructor has an argument so named
                 continue
             routes = _routes(group, key, value)
@@ -210,6 +217,14 @@ def check_components(
                 check_arguments(target.build, given)
             except ValueError as err:
                 raise error(_name_keys(str(err), sources[name])) from err
+    for path, (name, argument) in CHECKED_AS.items():
+        group, key = path.split(".")
+        value = cfg.get(group, {}).get(key)
+        group_targets = TARGETS[group]
+        try:
+            check_arguments(group_targets[name].build, {argument: value})
+        except ValueError as err:
+            raise error(_name_keys(str(err), {argument: path})) from err
 
 
 def _name_keys(message: str, keys: Mapping[str, str]) -> str:

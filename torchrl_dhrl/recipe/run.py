@@ -26,7 +26,13 @@ import yaml
 
 from torchrl_dhrl.training import ModuleTimer, set_threads
 
-from .checkpoint import CHECKPOINT_COMPONENTS, CheckpointError, checkpoint_file, load_checkpoint
+from .checkpoint import (
+    CHECKPOINT_COMPONENTS,
+    CheckpointError,
+    checkpoint_file,
+    load_checkpoint,
+    recover_checkpoint,
+)
 from .config import (
     FORK_MUTABLE_KEYS,
     ConfigError,
@@ -211,6 +217,15 @@ def start_run(
     validate_config(cfg)
     device = resolve_device(cfg["device"])
     run_dir = Path(run_dir or cfg["run_dir"] or ".").expanduser().resolve()
+    # a save killed between its two renames leaves the checkpoint under another name: put it back first
+    directories = {run_dir}
+    if cfg["resume"] and cfg["resume"] != RESUME_AUTO:
+        resumed = Path(cfg["resume"]).expanduser().resolve()
+        directories.add(resumed if resumed.is_dir() and not (resumed / "manifest.json").exists() else resumed.parent)
+    for directory in sorted(directories):
+        note = recover_checkpoint(directory)
+        if note:
+            print(note)
     if cfg["resume"] == RESUME_AUTO:  # a sweep's job: continue its own run if it has one, else start it
         cfg["resume"] = str(run_dir) if checkpoint_file(run_dir).exists() else None
     resume = state = None

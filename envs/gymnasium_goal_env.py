@@ -1,0 +1,439 @@
+"""Any Gymnasium goal environment as a batched env of the goal-env contract: :class:`GymnasiumGoalEnv`.
+
+A Gymnasium goal env (a ``Dict`` observation with ``observation``, ``achieved_goal`` and ``desired_goal``, as
+gymnasium-robotics' mazes, Fetch and hand tasks) is wrapped so that every part of torchrl-dhrl reads it: float32
+tensors, ``is_success`` ``[B, 1]`` (from ``info["is_success"]`` or ``info["success"]``, or within a distance),
+``step_count``, truncation after the env's own ``TimeLimit`` (``max_episode_steps``), and the simulator's state
+in :meth:`~GymnasiumGoalEnv.state_dict` for exact resumes. ``make_env("gymnasium:<id>")`` builds one, so the
+recipe trains it with ``env=gymnasium env_name=gymnasium:<id>`` (``docs/goal_env.md``).
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Mapping, Sequence
+from typing import Any
+
+import numpy as np
+import torch
+from tensordict import TensorDict, TensorDictBase
+from torchrl.data import Bounded, Categorical, Composite, Unbounded
+from torchrl.envs import EnvBase
+
+from torchrl_dhrl.checks import ArgumentCheck, checked, integer, number
+
+from .goal_env import GoalEnvError
+
+__all__ = ["GYMNASIUM_PREFIX", "GymnasiumGoalEnv", "goal_extent", "goal_indices_of", "gymnasium_id"]
+
+#: ``make_env`` names of Gymnasium goal envs: ``"gymnasium:<id>"``.
+GYMNASIUM_PREFIX = "gymnasium:"
+_GOAL_KEYS = ("observation", "achieved_goal", "desired_goal")
+_SUCCESS_KEYS = ("is_success", "success")
+
+
+def gymnasium_id(name: str) -> str | None:
+    """The Gymnasium id a ``make_env`` name designates (``"gymnasium:PointMaze_UMaze-v3"`` ->
+    ``"PointMaze_UMaze-v3"``), or ``None`` for other names.
+
+    Examples:
+        >>> gymnasium_id("gymnasium:PointMaze_UMaze-v3"), gymnasium_id("AntMaze")
+        ('PointMaze_UMaze-v3', None)
+    """
+    if isinstance(name, str) and name.startswith(GYMNASIUM_PREFIX):
+        return name[len(GYMNASIUM_PREFIX) :]
+    return None
+
+
+def _import_gymnasium(env_id: str):
+    import gymnasium as gym
+
+    try:  # gymnasium-robotics registers its ids only once imported
+        import gymnasium_robotics
+
+        gym.register_envs(gymnasium_robotics)
+    except ImportError:
+        pass
+    if env_id not in gym.registry:
+        hint = " (gymnasium-robotics' envs need `pip install gymnasium-robotics`)" if "Maze" in env_id or "Fetch" in env_id else ""
+        raise GoalEnvError(f"No Gymnasium env {env_id!r} is registered{hint}.")
+    return gym
+
+
+# ---- the simulator's state, for exact resumes ------------------------------------------------------------------
+
+
+def _capture(obj: Any, depth: int = 2) -> dict[str, Any]:
+    """The mutable state of a Gymnasium env object: its arrays, numbers, random generators and MuJoCo data, and
+    those of the Gymnasium objects it holds (``depth`` levels)."""
+    import mujoco
+
+    state: dict[str, Any] = {}
+    for name, value in vars(obj).items():
+        if isinstance(value, np.ndarray):
+            state[name] = ("array", value.copy())
+        elif isinstance(value, np.random.Generator):
+            state[name] = ("generator", value.bit_generator.state)
+        elif isinstance(value, mujoco.MjData):
+            spec = mujoco.mjtState.mjSTATE_INTEGRATION
+            buffer = np.empty(mujoco.mj_stateSize(value.model, spec))
+            mujoco.mj_getState(value.model, value, buffer, spec)
+            state[name] = ("mujoco", buffer)
+        elif isinstance(value, (bool, int, float)) and not isinstance(value, np.generic):
+            state[name] = ("value", value)
+        elif depth > 0 and type(value).__module__.startswith(("gymnasium", "gymnasium_robotics")):
+            if hasattr(value, "__dict__") and not isinstance(value, type):
+                state[name] = ("object", _capture(value, depth - 1))
+    return state
+
+
+def _restore(obj: Any, state: Mapping[str, Any]) -> None:
+    import mujoco
+
+    for name, (kind, value) in state.items():
+        if kind == "array":
+            setattr(obj, name, np.array(value))
+        elif kind == "generator":
+            generator = getattr(obj, name, None)
+            if not isinstance(generator, np.random.Generator):
+                generator = np.random.default_rng()
+                setattr(obj, name, generator)
+            generator.bit_generator.state = value
+        elif kind == "mujoco":
+            data = getattr(obj, name)
+            mujoco.mj_setState(data.model, data, np.asarray(value), mujoco.mjtState.mjSTATE_INTEGRATION)
+            mujoco.mj_forward(data.model, data)
+        elif kind == "value":
+            setattr(obj, name, value)
+        elif kind == "object":
+            _restore(getattr(obj, name), value)
+
+
+def _options(value: Any) -> bool:
+    return isinstance(value, Mapping) or (
+        isinstance(value, Sequence) and not isinstance(value, str) and len(value) > 0
+        and all(isinstance(v, Mapping) for v in value)
+    )
+
+
+class GymnasiumGoalEnv(EnvBase):
+    """``num_envs`` copies of a Gymnasium goal env as one batched TorchRL env of the goal-env contract.
+
+    The copies step in turn (``gym.make(env_id, **make_kwargs)``, stepped through ``env.unwrapped``: the
+    adapter counts the steps and truncates every episode after exactly ``max_episode_steps``, the env's own
+    ``TimeLimit`` unless given). Observations, goals and actions are float32 tensors on ``device``;
+    ``is_success`` comes from ``info["is_success"]`` or ``info["success"]`` (whichever the env writes), or, with
+    ``success_threshold``, from the distance between the achieved and the desired goal. An env that ends an
+    episode itself (``terminated``) is refused with a message: the recipe's collector needs episodes of one
+    length (most goal envs have a continuing mode, e.g. the mazes' ``continuing_task=True``, their default).
+
+    Args:
+        env_id (str): a registered Gymnasium id (gymnasium-robotics' are registered on import), e.g.
+            ``"PointMaze_UMaze-v3"``.
+        num_envs (int): the batch size. Defaults to ``1``.
+
+    Keyword Args:
+        seed (int, optional): copy ``i`` is reset with seed ``seed + i`` the first time, then draws on. Defaults
+            to ``None`` (Gymnasium's own seeding).
+        device (torch.device, optional): where the tensors live. Defaults to the CPU.
+        max_episode_steps (int, optional): the episode length. Defaults to the env's ``TimeLimit``.
+        reset_options (dict or sequence of dict, optional): ``options`` of every reset (e.g. the mazes'
+            ``{"goal_cell": ..., "reset_cell": ...}`` for fixed test goals), or one per episode in turn.
+        success_threshold (float, optional): success is ``||achieved_goal - desired_goal|| <= threshold``;
+            needed only when the env writes no success entry into ``info``.
+        make_kwargs (dict, optional): keyword arguments of ``gymnasium.make``.
+
+    Attributes:
+        max_episode_steps (int): the episode length (the contract's attribute).
+        env_id (str): the Gymnasium id.
+
+    Examples:
+        >>> env = GymnasiumGoalEnv("PointMaze_UMaze-v3", num_envs=2, seed=0)  # doctest: +SKIP
+        >>> td = env.rollout(3)  # doctest: +SKIP
+        >>> td["next", "observation"].dtype, td["next", "is_success"].shape, env.max_episode_steps  # doctest: +SKIP
+        (torch.float32, torch.Size([2, 3, 1]), 300)
+    """
+
+    @checked(
+        num_envs=integer(1),
+        max_episode_steps=integer(1, optional=True),
+        reset_options=ArgumentCheck(_options, "a dict of reset options or a non-empty list of them", optional=True),
+        success_threshold=number(0.0, low_open=True, optional=True),
+        make_kwargs=ArgumentCheck(lambda v: isinstance(v, Mapping), "a dict of gymnasium.make arguments", optional=True),
+    )
+    def __init__(
+        self,
+        env_id: str,
+        num_envs: int = 1,
+        *,
+        seed: int | None = None,
+        device: torch.device | str | None = None,
+        max_episode_steps: int | None = None,
+        reset_options: Mapping[str, Any] | Sequence[Mapping[str, Any]] | None = None,
+        success_threshold: float | None = None,
+        make_kwargs: Mapping[str, Any] | None = None,
+    ) -> None:
+        gym = _import_gymnasium(env_id)
+        super().__init__(device=device or "cpu", batch_size=torch.Size([num_envs]))
+        self.env_id = env_id
+        self._envs = [gym.make(env_id, **dict(make_kwargs or {})) for _ in range(num_envs)]
+        first = self._envs[0]
+        space = first.observation_space
+        if not isinstance(space, gym.spaces.Dict) or any(k not in space.spaces for k in _GOAL_KEYS):
+            raise GoalEnvError(
+                f"{env_id}: its observation space is {type(space).__name__}"
+                f"{' with ' + str(sorted(space.spaces)) if isinstance(space, gym.spaces.Dict) else ''}; a goal env "
+                f"has a Dict observation with {list(_GOAL_KEYS)}."
+            )
+        action = first.action_space
+        if not isinstance(action, gym.spaces.Box) or not np.isfinite(action.low).all() or not np.isfinite(action.high).all():
+            raise GoalEnvError(f"{env_id}: its action space {action} is not a finite Box.")
+        steps = max_episode_steps or (first.spec.max_episode_steps if first.spec is not None else None)
+        if steps is None:
+            raise GoalEnvError(
+                f"{env_id} has no TimeLimit (spec.max_episode_steps is None); pass max_episode_steps."
+            )
+        self.max_episode_steps = int(steps)
+        self.success_threshold = None if success_threshold is None else float(success_threshold)
+        if isinstance(reset_options, Mapping):
+            reset_options = [reset_options]
+        self.reset_options = [dict(o) for o in reset_options] if reset_options else None
+        sizes = {key: int(np.prod(space.spaces[key].shape)) for key in _GOAL_KEYS}
+        if sizes["achieved_goal"] != sizes["desired_goal"]:
+            raise GoalEnvError(f"{env_id}: achieved_goal and desired_goal differ in size ({sizes}).")
+        batch = self.batch_size
+        self.observation_spec = Composite(
+            observation=Unbounded((*batch, sizes["observation"]), dtype=torch.float32, device=self.device),
+            achieved_goal=Unbounded((*batch, sizes["achieved_goal"]), dtype=torch.float32, device=self.device),
+            desired_goal=Unbounded((*batch, sizes["desired_goal"]), dtype=torch.float32, device=self.device),
+            is_success=Categorical(2, (*batch, 1), dtype=torch.bool, device=self.device),
+            step_count=Unbounded((*batch, 1), dtype=torch.int64, device=self.device),
+            shape=batch,
+            device=self.device,
+        )
+        self.action_spec = Bounded(
+            torch.as_tensor(action.low, dtype=torch.float32).expand(*batch, *action.shape),
+            torch.as_tensor(action.high, dtype=torch.float32).expand(*batch, *action.shape),
+            (*batch, *action.shape),
+            dtype=torch.float32,
+            device=self.device,
+        )
+        self.reward_spec = Unbounded((*batch, 1), dtype=torch.float32, device=self.device)
+        self.done_spec = Composite(
+            {k: Categorical(2, (*batch, 1), dtype=torch.bool, device=self.device) for k in ("done", "terminated", "truncated")},
+            shape=batch,
+            device=self.device,
+        )
+        self._seeds: list[int | None] = [None] * num_envs
+        self._steps = np.zeros(num_envs, dtype=np.int64)
+        self._episodes = np.zeros(num_envs, dtype=np.int64)
+        self._last: list[dict[str, np.ndarray] | None] = [None] * num_envs
+        self._success = np.zeros(num_envs, dtype=bool)
+        if seed is not None:
+            self.set_seed(seed)
+
+    # ---- seeding, reset and step ----------------------------------------------------------------------------
+
+    def _set_seed(self, seed: int | None) -> None:
+        self._seeds = [None if seed is None else int(seed) + i for i in range(self.batch_size[0])]
+
+    def _reset_one(self, i: int) -> None:
+        options = None
+        if self.reset_options:
+            options = self.reset_options[int(self._episodes[i]) % len(self.reset_options)]
+        obs, info = self._envs[i].unwrapped.reset(seed=self._seeds[i], options=options)
+        self._seeds[i] = None
+        self._episodes[i] += 1
+        self._steps[i] = 0
+        self._last[i] = obs
+        self._success[i] = self._is_success(obs, info)
+
+    def _is_success(self, obs: Mapping[str, np.ndarray], info: Mapping[str, Any]) -> bool:
+        if self.success_threshold is not None:
+            distance = np.linalg.norm(np.asarray(obs["achieved_goal"]) - np.asarray(obs["desired_goal"]))
+            return bool(distance <= self.success_threshold)
+        for key in _SUCCESS_KEYS:
+            if key in info:
+                return bool(np.asarray(info[key]).reshape(-1)[0])
+        return False
+
+    def _output(self) -> TensorDict:
+        def stack(key: str) -> torch.Tensor:
+            values = np.stack([np.asarray(last[key], dtype=np.float32).reshape(-1) for last in self._last])
+            return torch.as_tensor(values, device=self.device)
+
+        return TensorDict(
+            {key: stack(key) for key in _GOAL_KEYS}
+            | {
+                "is_success": torch.tensor(self._success, device=self.device).reshape(-1, 1),
+                "step_count": torch.tensor(self._steps, device=self.device).reshape(-1, 1),
+            },
+            batch_size=self.batch_size,
+            device=self.device,
+        )
+
+    def _reset(self, tensordict: TensorDictBase | None = None, **kwargs) -> TensorDictBase:
+        mask = None
+        if tensordict is not None and "_reset" in tensordict.keys():
+            mask = tensordict.get("_reset").reshape(-1).cpu().numpy()
+        for i in range(self.batch_size[0]):
+            if mask is None or mask[i] or self._last[i] is None:
+                self._reset_one(i)
+        out = self._output()
+        false = torch.zeros(*self.batch_size, 1, dtype=torch.bool, device=self.device)
+        return out.update({"done": false, "terminated": false.clone(), "truncated": false.clone()})
+
+    def _step(self, tensordict: TensorDictBase) -> TensorDictBase:
+        actions = tensordict.get("action").detach().cpu().numpy().astype(np.float64)
+        rewards = np.zeros(self.batch_size[0], dtype=np.float32)
+        for i, env in enumerate(self._envs):
+            obs, reward, terminated, _, info = env.unwrapped.step(actions[i])
+            if terminated:
+                raise GoalEnvError(
+                    f"{self.env_id} ended an episode itself (terminated) after {self._steps[i] + 1} of "
+                    f"{self.max_episode_steps} steps; the recipe needs episodes of one length: make the env "
+                    "continuing (e.g. make_kwargs={'continuing_task': True} for the mazes)."
+                )
+            self._steps[i] += 1
+            self._last[i] = obs
+            self._success[i] = self._is_success(obs, info)
+            rewards[i] = float(reward)
+        out = self._output()
+        truncated = torch.as_tensor(self._steps >= self.max_episode_steps, device=self.device).reshape(-1, 1)
+        return out.update(
+            {
+                "reward": torch.as_tensor(rewards, device=self.device).reshape(-1, 1),
+                "done": truncated.clone(),
+                "terminated": torch.zeros_like(truncated),
+                "truncated": truncated,
+            }
+        )
+
+    # ---- the goal space --------------------------------------------------------------------------------------
+
+    def success_radius(self, *, tolerance: float = 1e-6) -> float | None:
+        """The distance within which the env counts a goal as reached: ``success_threshold`` if given, else
+        found from the env's ``compute_reward`` (the largest offset of the achieved goal that still earns the
+        at-goal reward, by bisection); ``None`` when the env has no ``compute_reward`` or its reward does not
+        step at a distance."""
+        if self.success_threshold is not None:
+            return self.success_threshold
+        env = self._envs[0].unwrapped
+        compute = getattr(env, "compute_reward", None)
+        if compute is None:
+            return None
+        size = self.observation_spec["desired_goal"].shape[-1]
+        goal = np.zeros(size)
+        direction = np.eye(size)[0]
+
+        def reward(r: float) -> float:
+            return float(np.asarray(compute(goal + r * direction, goal, {})).reshape(-1)[0])
+
+        at_goal, low, high = reward(0.0), 0.0, 1.0
+        while reward(high) == at_goal:
+            high *= 2
+            if high > 1e6:
+                return None
+        while high - low > tolerance:
+            middle = (low + high) / 2
+            low, high = (middle, high) if reward(middle) == at_goal else (low, middle)
+        return low
+
+    # ---- state, for exact resumes ----------------------------------------------------------------------------
+
+    def state_dict(self, *args, **kwargs) -> dict[str, Any]:
+        """The simulators' state (arrays, random generators and MuJoCo integration state of each copy and of the
+        Gymnasium objects it holds), the step counts and the last observations: a resumed env steps on exactly
+        as the saved one where the env keeps its state in those (gymnasium-robotics' MuJoCo envs do)."""
+        return {
+            "exact": True,
+            "envs": [_capture(env.unwrapped) for env in self._envs],
+            "steps": self._steps.copy(),
+            "episodes": self._episodes.copy(),
+            "success": self._success.copy(),
+            "last": [None if last is None else {k: np.asarray(v).copy() for k, v in last.items()} for last in self._last],
+            "seeds": list(self._seeds),
+        }
+
+    def load_state_dict(self, state_dict: Mapping[str, Any], *args, **kwargs) -> None:
+        if len(state_dict["envs"]) != len(self._envs):
+            raise ValueError(
+                f"The state holds {len(state_dict['envs'])} envs; this {type(self).__name__} has {len(self._envs)}."
+            )
+        for env, state in zip(self._envs, state_dict["envs"], strict=True):
+            _restore(env.unwrapped, state)
+        self._steps = np.array(state_dict["steps"])
+        self._episodes = np.array(state_dict["episodes"])
+        self._success = np.array(state_dict["success"])
+        self._last = [None if last is None else dict(last) for last in state_dict["last"]]
+        self._seeds = list(state_dict["seeds"])
+
+    def close(self, *args, **kwargs) -> None:
+        for env in self._envs:
+            env.close()
+        super().close(*args, **kwargs)
+
+    def __repr__(self) -> str:
+        return f"{type(self).__name__}({self.env_id!r}, num_envs={self.batch_size[0]}, max_episode_steps={self.max_episode_steps})"
+
+
+def goal_extent(env: EnvBase, *, episodes: int = 32, seed: int = 0) -> tuple[list[float], list[float]]:
+    """The box of the goal space an env uses: the smallest box holding the desired goals of ``episodes``
+    resets and the achieved goals of their first steps under uniform random actions, widened by a tenth of its
+    size on every side (at least ``1e-3``).
+
+    Returns:
+        ``(low, high)``, lists of floats of the goal size.
+    """
+    generator = torch.Generator().manual_seed(seed)
+    spec = env.full_action_spec["action"]
+    points = []
+    with torch.random.fork_rng():
+        torch.manual_seed(seed)
+        env.set_seed(seed)
+        td = env.reset()
+        for _ in range(math.ceil(episodes / env.batch_size.numel())):
+            points += [td["desired_goal"].reshape(-1, td["desired_goal"].shape[-1]), td["achieved_goal"].reshape(-1, td["achieved_goal"].shape[-1])]
+            for _ in range(min(env.max_episode_steps, 50)):
+                low, high = spec.space.low, spec.space.high
+                action = low + (high - low) * torch.rand(low.shape, generator=generator)
+                td = env.step(td.set("action", action.to(td.device)))["next"]
+                points.append(td["achieved_goal"].reshape(-1, td["achieved_goal"].shape[-1]))
+            td = env.reset()
+    cloud = torch.cat(points).float()
+    low, high = cloud.min(0).values, cloud.max(0).values
+    pad = ((high - low) / 10).clamp_min(1e-3)
+    return (low - pad).tolist(), (high + pad).tolist()
+
+
+def goal_indices_of(env: EnvBase, *, steps: int = 20, seed: int = 0) -> list[int] | None:
+    """Where the achieved goal sits in the observation, read from a short random rollout: for each goal entry,
+    the first observation entry equal to it at every step; ``None`` when some goal entry has none.
+
+    Examples:
+        >>> from torchrl_dhrl.envs import make_env
+        >>> goal_indices_of(make_env("PointMaze", seed=0))
+        [0, 1]
+    """
+    generator = torch.Generator().manual_seed(seed)
+    box = env.full_action_spec["action"].space
+    with torch.random.fork_rng():
+        env.set_seed(seed)
+        td = env.reset()
+        observations, goals = [td["observation"]], [td["achieved_goal"]]
+        for _ in range(steps):
+            action = box.low + (box.high - box.low) * torch.rand(box.low.shape, generator=generator)
+            td = env.step(td.set("action", action.to(td.device)))["next"]
+            observations.append(td["observation"])
+            goals.append(td["achieved_goal"])
+            if td["done"].any():
+                td = env.reset()
+    obs = torch.stack(observations).reshape(-1, observations[0].shape[-1])
+    goal = torch.stack(goals).reshape(-1, goals[0].shape[-1])
+    indices = []
+    for j in range(goal.shape[-1]):
+        matches = [i for i in range(obs.shape[-1]) if i not in indices and torch.equal(obs[:, i], goal[:, j])]
+        if not matches:
+            return None
+        indices.append(matches[0])
+    return indices

@@ -1,0 +1,202 @@
+"""A newcomer's own env in the recipe: a registered env, a Gymnasium goal env by id, and what used to break late or
+silently (the runpy launcher, a hidden max_episode_steps, float64, a wrong episode length, a stateless env's
+resume, goal-unit keys inherited from AntMaze, a stray Hydra directory, config.yaml of a refused run)."""
+
+from __future__ import annotations
+
+import os
+import subprocess
+import sys
+
+import pytest
+import torch
+import yaml
+from _recipe import RECIPES, TIMING_COLUMNS, load_recipe, metrics_rows, recipe_config
+from tensordict import TensorDict
+from torchrl.data import Bounded, Categorical, Composite, Unbounded
+from torchrl.envs import Compose, EnvBase, TransformedEnv
+
+from torchrl_dhrl.envs import register_env, unregister_env
+from torchrl_dhrl.recipe import ConfigError
+
+recipe = load_recipe()
+SMOKE = ("preset=smoke", "device=cpu", "logger.backend=none", "plots.every_epochs=0", "threads=1")
+
+
+class PointSquare(EnvBase):
+    """A point in [-4, 4]^2 moving 0.3 per step; episodes of ``length`` steps. No ``max_episode_steps`` attribute
+    of its own (the factory sets it on a TransformedEnv around it) and no state in its ``state_dict``."""
+
+    success_radius = 0.5
+
+    def __init__(self, num_envs=1, *, seed=None, device=None, length=40, truncate_at=None, dtype=torch.float32):
+        super().__init__(device=device, batch_size=torch.Size([num_envs]))
+        self.length, self.truncate_at, self.rng = length, truncate_at or length, torch.Generator()
+        batch = self.batch_size
+        self.observation_spec = Composite(
+            observation=Unbounded((*batch, 2), dtype=dtype),
+            achieved_goal=Unbounded((*batch, 2), dtype=dtype),
+            desired_goal=Unbounded((*batch, 2), dtype=dtype),
+            is_success=Categorical(2, (*batch, 1), dtype=torch.bool),
+            step_count=Unbounded((*batch, 1), dtype=torch.int64),
+            shape=batch,
+        )
+        self.action_spec = Bounded(-1.0, 1.0, (*batch, 2))
+        self.reward_spec = Unbounded((*batch, 1))
+        self.done_spec = Composite(
+            {k: Categorical(2, (*batch, 1), dtype=torch.bool) for k in ("done", "terminated", "truncated")},
+            shape=batch,
+        )
+        self.dtype = dtype
+        self.pos, self.goal = torch.zeros(*batch, 2), torch.zeros(*batch, 2)
+        self.steps = torch.zeros(*batch, 1, dtype=torch.int64)
+        if seed is not None:
+            self.set_seed(seed)
+
+    def _set_seed(self, seed):
+        self.rng.manual_seed(seed)
+
+    def _out(self, **extra):
+        success = (self.pos - self.goal).norm(dim=-1, keepdim=True) <= 0.5
+        return TensorDict(
+            observation=self.pos.clone().to(self.dtype),
+            achieved_goal=self.pos.clone().to(self.dtype),
+            desired_goal=self.goal.clone().to(self.dtype),
+            is_success=success,
+            step_count=self.steps.clone(),
+            **extra,
+            batch_size=self.batch_size,
+        )
+
+    def _reset(self, td=None, **kwargs):
+        reset = td.get("_reset").reshape(-1) if td is not None and "_reset" in td.keys() else None
+        mask = torch.ones(self.batch_size, dtype=torch.bool) if reset is None else reset
+        n = int(mask.sum())
+        self.pos[mask], self.goal[mask], self.steps[mask] = 0.0, torch.rand(n, 2, generator=self.rng) * 8 - 4, 0
+        done = torch.zeros(*self.batch_size, 1, dtype=torch.bool)
+        return self._out(done=done, terminated=done.clone(), truncated=done.clone())
+
+    def _step(self, td):
+        self.pos = (self.pos + 0.3 * td["action"].clamp(-1, 1)).clamp(-4, 4)
+        self.steps += 1
+        truncated = self.steps >= self.truncate_at
+        out = self._out(done=truncated.clone(), terminated=torch.zeros_like(truncated), truncated=truncated)
+        return out.set("reward", out["is_success"].float() - 1.0)
+
+
+def _factory(**options):
+    def make(*, num_envs, seed, device, eval, max_episode_steps):  # noqa: A002
+        claim = options.get("claim")
+        length = max_episode_steps or options.get("length", 40)
+        env_options = {k: v for k, v in options.items() if k != "claim"}
+        inner = PointSquare(num_envs, seed=seed, device=device, **{**env_options, "length": length})
+        env = TransformedEnv(inner, Compose())  # the docs' tip: the length on the wrapper, not on the env
+        env.max_episode_steps = claim or length
+        return env
+
+    return make
+
+
+@pytest.fixture
+def user_env():
+    names = []
+
+    def register(name, **options):
+        register_env(name, _factory(**options), overwrite=True)
+        names.append(name)
+        return name
+
+    yield register
+    for name in names:
+        unregister_env(name)
+
+
+CUSTOM = ("env=custom", "high.c_h=10")
+
+
+@pytest.mark.recipe
+def test_a_registered_env_trains_with_derived_goal_units_and_its_length_on_a_wrapper(user_env, tmp_path, capsys):
+    name = user_env("PointSquareT")
+    out = recipe.train(recipe_config(*CUSTOM, f"env_name={name}", *SMOKE), run_dir=tmp_path / "run")
+    assert out["env_steps"] == 480
+    printed = capsys.readouterr().out
+    assert f"Derived from {name}: goal_indices=[0, 1]" in printed and "low.reward_threshold=0.5" in printed
+    saved = yaml.safe_load((tmp_path / "run" / "config.yaml").read_text())
+    assert saved["low"]["reward_threshold"] == 0.5 and saved["planner"]["reach_radius"] == 0.5
+    low, high = saved["high"]["subgoal_low"], saved["high"]["subgoal_high"]
+    assert all(-4.9 < v < -3.0 for v in low) and all(3.0 < v < 4.9 for v in high)  # the square, with a margin
+
+
+@pytest.mark.recipe
+def test_a_stateless_env_resumes_with_a_warning(user_env, tmp_path):
+    name = user_env("PointSquareW")
+    cfg = recipe_config(*CUSTOM, f"env_name={name}", *SMOKE, "total_steps=240")
+    recipe.train(cfg, run_dir=tmp_path / "run")
+    cfg = recipe_config(*CUSTOM, f"env_name={name}", *SMOKE, f"resume={tmp_path / 'run'}")
+    with pytest.warns(UserWarning, match=r"training env \(PointSquare\) keeps no state"):
+        recipe.train(cfg, run_dir=tmp_path / "run")
+
+
+@pytest.mark.parametrize(
+    "options, match",
+    [
+        ({"claim": 60}, r"max_episode_steps is 60, but the env truncated at step 40"),
+        ({"dtype": torch.float64}, r"float64; expected torch.float32"),
+    ],
+)
+def test_a_user_env_that_breaks_the_contract_is_refused_before_anything_is_written(user_env, tmp_path, options, match):
+    name = user_env("PointSquareBad", **options)
+    overrides = (*CUSTOM, f"env_name={name}", *SMOKE, "low.reward_threshold=0.5")
+    with pytest.raises(ConfigError, match=match):
+        recipe.train(recipe_config(*overrides, "goal_indices=[0,1]", "high.subgoal_low=[-4,-4]",
+                                   "high.subgoal_high=[4,4]", "high.subgoal_noise=0.5", "planner.reach_radius=0.5",
+                                   "fgs.noise=1.0"), run_dir=tmp_path / "run")
+    assert not (tmp_path / "run").exists()
+
+
+def test_a_user_env_with_antmaze_goal_units_is_refused(user_env, tmp_path):
+    name = user_env("PointSquareA")
+    with pytest.raises(ConfigError, match=r"default env file's values in goal units.*env=custom"):
+        recipe.train(recipe_config(f"env_name={name}", "goal_indices=[0,1]", *SMOKE), run_dir=tmp_path / "run")
+    assert not (tmp_path / "run").exists()
+
+
+def test_a_user_env_whose_subgoal_box_misses_the_goal_size_names_the_key(user_env, tmp_path):
+    name = user_env("PointSquareB")
+    cfg = recipe_config(*CUSTOM, f"env_name={name}", *SMOKE, "high.subgoal_low=[-4,-4,-4]", "high.subgoal_high=[4,4,4]")
+    with pytest.raises(ConfigError, match=r"`high.subgoal_low` must have 2 entries"):
+        recipe.train(cfg, run_dir=tmp_path / "run")
+    assert not (tmp_path / "run").exists()  # no config.yaml of a refused run
+
+
+def _cli(*args, cwd):
+    return subprocess.run(
+        [sys.executable, str(RECIPES / "dhrl_antmaze.py"), *args],
+        capture_output=True,
+        text=True,
+        timeout=600,
+        cwd=cwd,
+        env={**os.environ, "OMP_NUM_THREADS": "1"},
+    )
+
+
+def test_the_documented_runpy_launcher_finds_the_recipe_helpers(tmp_path):
+    code = f"import runpy; ns = runpy.run_path({str(RECIPES / 'dhrl_antmaze.py')!r}); print(callable(ns['train']))"
+    env = {k: v for k, v in os.environ.items() if k != "PYTHONPATH"}
+    result = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, cwd=tmp_path, env=env)
+    assert result.returncode == 0 and result.stdout.strip() == "True", result.stderr[-2000:]
+
+
+@pytest.mark.recipe
+def test_the_gymnasium_command_of_the_docs_trains_and_leaves_no_stray_hydra_directory(tmp_path):
+    pytest.importorskip("gymnasium_robotics")
+    run_dir = tmp_path / "umaze"
+    result = _cli(
+        "env=gymnasium", "env_name=gymnasium:PointMaze_UMaze-v3", "preset=smoke", f"run_dir={run_dir}", cwd=tmp_path
+    )
+    assert result.returncode == 0, result.stderr[-3000:]
+    assert "Derived from gymnasium:PointMaze_UMaze-v3: goal_indices=[0, 1]" in result.stdout
+    assert "low.reward_threshold=0.45" in result.stdout
+    assert len(metrics_rows(run_dir, TIMING_COLUMNS)) >= 2
+    assert (run_dir / ".hydra" / "overrides.yaml").exists()  # Hydra's record of the job, moved into the run
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["umaze"]  # no outputs/<date>/<time>
