@@ -7,7 +7,6 @@ import pytest
 import torch
 from torchrl.envs import TransformedEnv
 from torchrl.envs.utils import check_env_specs
-
 from torchrl_dhrl.envs import (
     GoalEnvError,
     GymnasiumGoalEnv,

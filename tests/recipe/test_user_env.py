@@ -15,8 +15,8 @@ from _recipe import RECIPES, TIMING_COLUMNS, load_recipe, metrics_rows, recipe_c
 from tensordict import TensorDict
 from torchrl.data import Bounded, Categorical, Composite, Unbounded
 from torchrl.envs import Compose, EnvBase, TransformedEnv
-
 from torchrl_dhrl.envs import register_env, unregister_env
+
 from torchrl_dhrl.recipe import ConfigError
 
 recipe = load_recipe()
