@@ -45,6 +45,22 @@ _KINDS = {
 }
 
 
+#: What to add for each missing key.
+_GYMNASIUM = "a Gymnasium goal env: wrap it with torchrl_dhrl.envs.GymnasiumGoalEnv (make_env('gymnasium:<id>')), which provides every key"
+_MISSING_HINTS = {
+    "observation": f"the state the policies read, float32 [*B, obs_dim] ({_GYMNASIUM})",
+    "achieved_goal": f"the point of goal space the state reaches, float32 [*B, goal_dim] ({_GYMNASIUM})",
+    "desired_goal": f"the episode's goal, float32 [*B, goal_dim] ({_GYMNASIUM})",
+    "is_success": f"a bool [*B, 1] success flag, e.g. a transform renaming the env's own ({_GYMNASIUM})",
+    "step_count": "add torchrl's StepCounter(max_steps=T) transform (and set max_episode_steps = T)",
+    "action": "a Bounded float32 action spec under 'action'",
+    "reward": "any float reward [*B, 1] (the library recomputes its own)",
+    "done": "add torchrl's StepCounter(max_steps=T) transform for the truncation flags",
+    "terminated": "add torchrl's StepCounter(max_steps=T) transform for the truncation flags",
+    "truncated": "add torchrl's StepCounter(max_steps=T) transform, which writes it",
+}
+
+
 class GoalEnvError(ValueError):
     """An environment that does not meet the goal-env contract; the message names the key and what is accepted."""
 
@@ -72,7 +88,7 @@ def _check_spec(env: EnvBase, key: str, specs: dict, sizes: dict[str, int]) -> N
     batch = env.batch_size
     if key not in composite.keys():
         listed = sorted(map(str, composite.keys(True, True)))
-        _fail(env, f"its {where}_spec has no {key!r} entry (it holds {listed})")
+        _fail(env, f"its {where}_spec has no {key!r} entry (it holds {listed}); {_MISSING_HINTS[key]}")
     spec = composite[key]
     shape = tuple(spec.shape)
     if len(shape) != len(batch) + len(feature) or shape[: len(batch)] != tuple(batch):
@@ -250,7 +266,7 @@ def check_goal_env(env: EnvBase, *, goal_indices: Sequence[int] | None = None, s
         ...     check_goal_env(ContinuousActionVecMockEnv())
         ... except GoalEnvError as err:
         ...     print(err)
-        ContinuousActionVecMockEnv: its observation_spec has no 'achieved_goal' entry (it holds ['observation', 'observation_orig']) (see docs/goal_env.md).
+        ContinuousActionVecMockEnv: its observation_spec has no 'achieved_goal' entry (it holds ['observation', 'observation_orig']); the point of goal space the state reaches, float32 [*B, goal_dim] (a Gymnasium goal env: wrap it with torchrl_dhrl.envs.GymnasiumGoalEnv (make_env('gymnasium:<id>')), which provides every key) (see docs/goal_env.md).
     """
     if not isinstance(env, EnvBase):
         raise TypeError(f"check_goal_env needs a TorchRL EnvBase, got {type(env).__name__}.")

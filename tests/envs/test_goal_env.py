@@ -294,3 +294,15 @@ def test_recipe_stops_on_a_registered_env_that_breaks_the_contract(registered, t
     with pytest.raises(ConfigError, match=r"env_name=PointSquare: _FloatSuccess: a rollout's 'is_success'"):
         recipe.train(recipe_config(*smoke), run_dir=tmp_path)
     assert not (tmp_path / "metrics.csv").exists() and not (tmp_path / "checkpoint").exists()
+
+
+def test_a_missing_key_says_what_to_add():
+    from torchrl.envs import TransformedEnv
+    from torchrl.envs.transforms import ExcludeTransform
+    from torchrl.testing.mocking_classes import ContinuousActionVecMockEnv
+
+    with pytest.raises(GoalEnvError, match=r"no 'achieved_goal' entry.*GymnasiumGoalEnv"):
+        check_goal_env(ContinuousActionVecMockEnv(), steps=0)
+    env = TransformedEnv(make_env("PointMaze", seed=0), ExcludeTransform("step_count"))
+    with pytest.raises(GoalEnvError, match=r"no 'step_count' entry.*StepCounter\(max_steps=T\)"):
+        check_goal_env(env, steps=0)
