@@ -200,3 +200,33 @@ def test_the_gymnasium_command_of_the_docs_trains_and_leaves_no_stray_hydra_dire
     assert len(metrics_rows(run_dir, TIMING_COLUMNS)) >= 2
     assert (run_dir / ".hydra" / "overrides.yaml").exists()  # Hydra's record of the job, moved into the run
     assert sorted(p.name for p in tmp_path.iterdir()) == ["umaze"]  # no outputs/<date>/<time>
+
+
+def test_goal_units_the_env_cannot_tell_are_named(user_env):
+    from torchrl_dhrl.envs import make_env
+
+    from torchrl_dhrl.recipe import derive_goal_units
+
+    cfg = recipe_config("env=custom", "env_name=PointMaze")
+    with pytest.raises(ConfigError, match=r"`low.reward_threshold` is null .* set low.reward_threshold"):
+        derive_goal_units(cfg, make_env("PointMaze", seed=0))  # the built-in env has no success_radius
+    cfg["low"]["reward_threshold"] = 0.5
+    notes = derive_goal_units(cfg, make_env("PointMaze", seed=0))
+    assert cfg["goal_indices"] == [0, 1] and cfg["planner"]["reach_radius"] == 0.5
+    assert cfg["fgs"]["noise"] == pytest.approx(1.5 * cfg["high"]["subgoal_noise"], rel=1e-3)  # extent/8, /12
+    assert [note.split("=")[0] for note in notes] == [
+        "goal_indices", "high.subgoal_low", "high.subgoal_high", "high.subgoal_noise", "planner.reach_radius",
+        "fgs.noise",
+    ]
+
+
+def test_a_resumed_run_writes_where_it_wrote(tmp_path):
+    from dhrl_utils import resumed_run_dir
+
+    (tmp_path / "run" / "checkpoint").mkdir(parents=True)
+    (tmp_path / "run" / "checkpoint" / "manifest.json").write_text("{}")
+    assert resumed_run_dir({"resume": str(tmp_path / "run")}) == (tmp_path / "run").resolve()
+    assert resumed_run_dir({"resume": str(tmp_path / "run" / "checkpoint")}) == (tmp_path / "run").resolve()
+    assert resumed_run_dir({"resume": "auto"}) is None and resumed_run_dir({"resume": None}) is None
+    assert resumed_run_dir({"resume": str(tmp_path / "run"), "fork": "x"}) is None  # a fork is a new run
+    assert resumed_run_dir({"resume": str(tmp_path / "nothing")}) is None

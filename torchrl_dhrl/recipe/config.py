@@ -160,10 +160,11 @@ def derive_goal_units(cfg: dict, env) -> list[str]:
         (cfg[group] if group else cfg)[key] = value
         notes.append(f"{path}={value}")
 
-    if cfg.get("goal_indices") == "auto":
-        put("goal_indices", goal_indices_of(env))
     missing = [path for path in GOAL_UNIT_KEYS if _get(cfg, path) is None]
+    indices = goal_indices_of(env) if cfg.get("goal_indices") == "auto" else None
     if not missing:
+        if cfg.get("goal_indices") == "auto":
+            put("goal_indices", indices)
         return notes
     low, high = goal_extent(env)
     extent = max(h - lo for lo, h in zip(low, high, strict=True))
@@ -177,6 +178,8 @@ def derive_goal_units(cfg: dict, env) -> list[str]:
                 "success radius (no `success_radius`, no compute_reward to read it from); set low.reward_threshold."
             )
         reward_threshold = _round(radius)
+    if cfg.get("goal_indices") == "auto":  # nothing is changed before every value is known
+        put("goal_indices", indices)
     derived = {
         "high.subgoal_low": [_round(v) for v in low],
         "high.subgoal_high": [_round(v) for v in high],
