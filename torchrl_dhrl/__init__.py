@@ -4,13 +4,13 @@ Layout mirrors the algorithm's levels and TorchRL's kinds of parts:
 ``modules`` (actors, exploration, critics), ``objectives`` (SQGC and high-level losses),
 ``planner`` (temporal distances, landmark graph and edge rules, shortest paths, ``GraphPlanner`` transform,
 FGS), ``data`` (relabelling for both replay buffers) and ``envs`` (the paper's MuJoCo tasks, the goal-env
-contract ``check_goal_env``, ``register_env`` for user environments, ``plot_env`` and the ``AngleFeatures``
+contract ``check_goal_env``, ``register_env`` for user environments, ``GymnasiumGoalEnv`` for Gymnasium goal envs, ``plot_env`` and the ``AngleFeatures``
 transform); from ``training`` (the recipe's machinery) the update step ``LossUpdater`` and ``evaluate``.
 """
 
 from torchrl_dhrl.data import *  # noqa: F403
 from torchrl_dhrl.data import __all__ as _data_all
-from torchrl_dhrl.envs import check_goal_env, make_env, plot_env, register_env
+from torchrl_dhrl.envs import GymnasiumGoalEnv, check_goal_env, make_env, plot_env, register_env
 from torchrl_dhrl.envs.transforms import AngleFeatures
 from torchrl_dhrl.modules import *  # noqa: F403
 from torchrl_dhrl.modules import __all__ as _modules_all
@@ -24,6 +24,7 @@ __version__ = "0.3.0"
 
 __all__ = [
     "AngleFeatures",
+    "GymnasiumGoalEnv",
     "LossUpdater",
     "NonFiniteLossError",
     "check_goal_env",
