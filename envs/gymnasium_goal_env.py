@@ -109,6 +109,14 @@ def _restore(obj: Any, state: Mapping[str, Any]) -> None:
             _restore(getattr(obj, name), value)
 
 
+def _goal_list(value: Any) -> bool:
+    try:
+        array = np.asarray(value, dtype=np.float64)
+    except (TypeError, ValueError):
+        return False
+    return array.size > 0 and array.ndim in (1, 2) and np.isfinite(array).all()
+
+
 def _options(value: Any) -> bool:
     return isinstance(value, Mapping) or (
         isinstance(value, Sequence) and not isinstance(value, str) and len(value) > 0
@@ -141,6 +149,10 @@ class GymnasiumGoalEnv(EnvBase):
             ``{"goal_cell": ..., "reset_cell": ...}`` for fixed test goals), or one per episode in turn.
         success_threshold (float, optional): success is ``||achieved_goal - desired_goal|| <= threshold``;
             needed only when the env writes no success entry into ``info``.
+        goals (goal or list of goals, optional): fixed goals, one per episode in turn (e.g. the test goals): after
+            each reset the env's ``goal`` attribute (where gymnasium-robotics' envs keep it, and read it for their
+            rewards and observations) and the observed ``desired_goal`` are set to it. Defaults to ``None`` (the
+            env's own goals).
         make_kwargs (dict, optional): keyword arguments of ``gymnasium.make``.
 
     Attributes:
@@ -159,6 +171,7 @@ class GymnasiumGoalEnv(EnvBase):
         max_episode_steps=integer(1, optional=True),
         reset_options=ArgumentCheck(_options, "a dict of reset options or a non-empty list of them", optional=True),
         success_threshold=number(0.0, low_open=True, optional=True),
+        goals=ArgumentCheck(_goal_list, "a goal (a list of numbers) or a non-empty list of goals", optional=True),
         make_kwargs=ArgumentCheck(lambda v: isinstance(v, Mapping), "a dict of gymnasium.make arguments", optional=True),
     )
     def __init__(
@@ -171,6 +184,7 @@ class GymnasiumGoalEnv(EnvBase):
         max_episode_steps: int | None = None,
         reset_options: Mapping[str, Any] | Sequence[Mapping[str, Any]] | None = None,
         success_threshold: float | None = None,
+        goals: Sequence[float] | Sequence[Sequence[float]] | None = None,
         make_kwargs: Mapping[str, Any] | None = None,
     ) -> None:
         gym = _import_gymnasium(env_id)
@@ -195,6 +209,11 @@ class GymnasiumGoalEnv(EnvBase):
             )
         self.max_episode_steps = int(steps)
         self.success_threshold = None if success_threshold is None else float(success_threshold)
+        if goals is not None:
+            goals = np.asarray(goals, dtype=np.float64).reshape(-1, space.spaces["desired_goal"].shape[-1])
+            if not hasattr(first.unwrapped, "goal") and not hasattr(first.unwrapped, "reset"):
+                raise GoalEnvError(f"{env_id} keeps no `goal` attribute to set fixed goals on.")
+        self.goals = goals
         if isinstance(reset_options, Mapping):
             reset_options = [reset_options]
         self.reset_options = [dict(o) for o in reset_options] if reset_options else None
@@ -241,7 +260,17 @@ class GymnasiumGoalEnv(EnvBase):
         options = None
         if self.reset_options:
             options = self.reset_options[int(self._episodes[i]) % len(self.reset_options)]
-        obs, info = self._envs[i].unwrapped.reset(seed=self._seeds[i], options=options)
+        env = self._envs[i].unwrapped
+        obs, info = env.reset(seed=self._seeds[i], options=options)
+        if self.goals is not None:  # a fixed goal: where the env reads it, and in what it observed
+            if not hasattr(env, "goal"):
+                raise GoalEnvError(f"{self.env_id} keeps no `goal` attribute to set fixed goals on.")
+            goal = self.goals[int(self._episodes[i]) % len(self.goals)]
+            env.goal = goal.astype(np.asarray(env.goal).dtype).reshape(np.shape(env.goal))
+            obs = {**obs, "desired_goal": env.goal.copy()}
+            radius = self.success_radius()  # the env's info was about its own goal
+            distance = np.linalg.norm(np.asarray(obs["achieved_goal"]) - np.asarray(obs["desired_goal"]))
+            info = {"is_success": radius is not None and bool(distance <= radius)}
         self._seeds[i] = None
         self._episodes[i] += 1
         self._steps[i] = 0
@@ -318,6 +347,8 @@ class GymnasiumGoalEnv(EnvBase):
         step at a distance."""
         if self.success_threshold is not None:
             return self.success_threshold
+        if getattr(self, "_radius", None) is not None:
+            return self._radius
         env = self._envs[0].unwrapped
         compute = getattr(env, "compute_reward", None)
         if compute is None:
@@ -337,6 +368,7 @@ class GymnasiumGoalEnv(EnvBase):
         while high - low > tolerance:
             middle = (low + high) / 2
             low, high = (middle, high) if reward(middle) == at_goal else (low, middle)
+        self._radius = low
         return low
 
     # ---- state, for exact resumes ----------------------------------------------------------------------------

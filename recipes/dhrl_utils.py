@@ -272,12 +272,13 @@ def build_environment(cfg: dict, device: torch.device, *, eval: bool = False, ag
 
 def gymnasium_kwargs(cfg: dict, *, eval: bool = False) -> dict[str, Any] | None:  # noqa: A002
     """The :class:`~torchrl_dhrl.envs.GymnasiumGoalEnv` arguments of ``env_name=gymnasium:<id>`` (``gymnasium.*``;
-    the test envs reset with ``eval_reset_options``), ``None`` for any other env."""
+    the test envs reset with ``eval_reset_options`` and take ``eval_goals``), ``None`` for any other env."""
     if gymnasium_id(cfg["env_name"]) is None:
         return None
     args = dict(component_arguments(cfg)["gymnasium_env"])
     if eval:
         args["reset_options"] = cfg["gymnasium"]["eval_reset_options"]
+        args["goals"] = cfg["gymnasium"].get("eval_goals")
     return args
 
 

@@ -112,3 +112,30 @@ def test_check_goal_env_wants_float32_and_the_true_episode_length():
     truthful = TransformedEnv(make_env("PointMaze", num_envs=1, seed=0, max_episode_steps=5))
     truthful.max_episode_steps = 5
     check_goal_env(truthful, steps=12)
+
+
+def test_fixed_goals_replace_the_env_goals_in_turn_for_rewards_and_success():
+    env = GymnasiumGoalEnv(UMAZE, 2, seed=0, goals=[[1.0, 1.0], [-1.0, -1.0]], reset_options={"reset_cell": [3, 1]})
+    first, second = env.reset(), env.reset()
+    assert first["desired_goal"].tolist() == [[1.0, 1.0]] * 2 and second["desired_goal"].tolist() == [[-1.0, -1.0]] * 2
+    # the second goal is in the start cell: success within 0.45, as the env itself judges it after a step
+    distance = (second["achieved_goal"] - second["desired_goal"]).norm(dim=-1, keepdim=True)
+    assert torch.equal(second["is_success"], distance <= 0.45)
+    td = env.step(second.set("action", torch.zeros(2, 2)))["next"]
+    distance = (td["achieved_goal"] - td["desired_goal"]).norm(dim=-1, keepdim=True)
+    assert torch.equal(td["is_success"], distance <= 0.45) and td["desired_goal"].tolist() == [[-1.0, -1.0]] * 2
+    with pytest.raises(ValueError, match="`goals` must be None or a goal"):
+        GymnasiumGoalEnv(UMAZE, goals="north")
+
+
+def test_the_recipe_names_a_bad_test_goal_key():
+    from _recipe import recipe_config
+
+    from torchrl_dhrl.recipe import ConfigError
+    from torchrl_dhrl.recipe.routing import check_components
+
+    cfg = recipe_config(f"env_name=gymnasium:{UMAZE}", "gymnasium.eval_goals=[[1.0,1.0],[-1.0,1.0]]")
+    check_components(cfg, goal_dim=2, error=ConfigError)
+    cfg["gymnasium"]["eval_goals"] = "north"
+    with pytest.raises(ConfigError, match=r"^`gymnasium.eval_goals` must be None or a goal"):
+        check_components(cfg, goal_dim=2, error=ConfigError)

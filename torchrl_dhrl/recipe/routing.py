@@ -131,11 +131,15 @@ RECIPE_KEYS = {
     "planner.build_dtype": "resolved per device into LandmarkGraph's build_autocast_dtype",
     "fgs.enabled": "whether the recipe shifts goals at all",
     "gymnasium.eval_reset_options": "the test episodes' GymnasiumGoalEnv reset_options",
+    "gymnasium.eval_goals": "the test episodes' GymnasiumGoalEnv goals",
 }
 
 
 #: Keys of :data:`RECIPE_KEYS` that hold the same kind of value as a target's argument, and are checked as it is.
-CHECKED_AS = {"gymnasium.eval_reset_options": ("gymnasium_env", "reset_options")}
+CHECKED_AS = {
+    "gymnasium.eval_reset_options": ("gymnasium_env", "reset_options"),
+    "gymnasium.eval_goals": ("gymnasium_env", "goals"),
+}
 
 
 def _routes(group: str, key: str, value: Any) -> list[tuple[str, str, Any]]:
