@@ -230,3 +230,13 @@ def test_a_resumed_run_writes_where_it_wrote(tmp_path):
     assert resumed_run_dir({"resume": "auto"}) is None and resumed_run_dir({"resume": None}) is None
     assert resumed_run_dir({"resume": str(tmp_path / "run"), "fork": "x"}) is None  # a fork is a new run
     assert resumed_run_dir({"resume": str(tmp_path / "nothing")}) is None
+
+
+@pytest.mark.recipe
+def test_a_gymnasium_run_resumes_exactly(tmp_path):
+    pytest.importorskip("gymnasium_robotics")
+    gym = ("env=gymnasium", "env_name=gymnasium:PointMaze_UMaze-v3", *SMOKE)
+    recipe.train(recipe_config(*gym), run_dir=tmp_path / "straight")
+    recipe.train(recipe_config(*gym, "total_steps=240"), run_dir=tmp_path / "resumed")
+    recipe.train(recipe_config(*gym, f"resume={tmp_path / 'resumed'}"), run_dir=tmp_path / "resumed")
+    assert metrics_rows(tmp_path / "resumed", TIMING_COLUMNS) == metrics_rows(tmp_path / "straight", TIMING_COLUMNS)
