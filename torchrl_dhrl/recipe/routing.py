@@ -1,6 +1,6 @@
 """The one path from the recipe's configuration to the constructors: a key reaches an argument of the same name.
 
-The keys of the groups ``low``, ``high``, ``planner`` and ``fgs`` (``recipes/config/config.yaml``) are the
+The keys of the groups ``low``, ``high``, ``planner``, ``fgs`` and ``gymnasium`` (``recipes/config/config.yaml``) are the
 keyword arguments of the components the group builds, listed in :data:`TARGETS`: a key reaches every target of
 its group whose constructor takes an argument of its name, so that a new hyperparameter is a key in the
 schema and an argument (with its :func:`~torchrl_dhrl.checks.checked` range) in the component, and nothing in
