@@ -11,10 +11,9 @@ import sys
 import pytest
 import torch
 import yaml
+from _point_square import PointSquare
 from _recipe import RECIPES, TIMING_COLUMNS, load_recipe, metrics_rows, recipe_config
-from tensordict import TensorDict
-from torchrl.data import Bounded, Categorical, Composite, Unbounded
-from torchrl.envs import Compose, EnvBase, TransformedEnv
+from torchrl.envs import Compose, TransformedEnv
 from torchrl_dhrl.envs import register_env, unregister_env
 
 from torchrl_dhrl.recipe import ConfigError
@@ -23,73 +22,23 @@ recipe = load_recipe()
 SMOKE = ("preset=smoke", "device=cpu", "logger.backend=none", "plots.every_epochs=0", "threads=1")
 
 
-class PointSquare(EnvBase):
-    """A point in [-4, 4]^2 moving 0.3 per step; episodes of ``length`` steps. No ``max_episode_steps`` attribute
-    of its own (the factory sets it on a TransformedEnv around it) and no state in its ``state_dict``."""
+class HiddenLength(PointSquare):
+    """The tests' point square with a success radius, and without a ``max_episode_steps`` attribute of its own: the
+    factory sets it on a TransformedEnv around it (the docs' tip), where the recipe must read it."""
 
     success_radius = 0.5
 
-    def __init__(self, num_envs=1, *, seed=None, device=None, length=40, truncate_at=None, dtype=torch.float32):
-        super().__init__(device=device, batch_size=torch.Size([num_envs]))
-        self.length, self.truncate_at, self.rng = length, truncate_at or length, torch.Generator()
-        batch = self.batch_size
-        self.observation_spec = Composite(
-            observation=Unbounded((*batch, 2), dtype=dtype),
-            achieved_goal=Unbounded((*batch, 2), dtype=dtype),
-            desired_goal=Unbounded((*batch, 2), dtype=dtype),
-            is_success=Categorical(2, (*batch, 1), dtype=torch.bool),
-            step_count=Unbounded((*batch, 1), dtype=torch.int64),
-            shape=batch,
-        )
-        self.action_spec = Bounded(-1.0, 1.0, (*batch, 2))
-        self.reward_spec = Unbounded((*batch, 1))
-        self.done_spec = Composite(
-            {k: Categorical(2, (*batch, 1), dtype=torch.bool) for k in ("done", "terminated", "truncated")},
-            shape=batch,
-        )
-        self.dtype = dtype
-        self.pos, self.goal = torch.zeros(*batch, 2), torch.zeros(*batch, 2)
-        self.steps = torch.zeros(*batch, 1, dtype=torch.int64)
-        if seed is not None:
-            self.set_seed(seed)
-
-    def _set_seed(self, seed):
-        self.rng.manual_seed(seed)
-
-    def _out(self, **extra):
-        success = (self.pos - self.goal).norm(dim=-1, keepdim=True) <= 0.5
-        return TensorDict(
-            observation=self.pos.clone().to(self.dtype),
-            achieved_goal=self.pos.clone().to(self.dtype),
-            desired_goal=self.goal.clone().to(self.dtype),
-            is_success=success,
-            step_count=self.steps.clone(),
-            **extra,
-            batch_size=self.batch_size,
-        )
-
-    def _reset(self, td=None, **kwargs):
-        reset = td.get("_reset").reshape(-1) if td is not None and "_reset" in td.keys() else None
-        mask = torch.ones(self.batch_size, dtype=torch.bool) if reset is None else reset
-        n = int(mask.sum())
-        self.pos[mask], self.goal[mask], self.steps[mask] = 0.0, torch.rand(n, 2, generator=self.rng) * 8 - 4, 0
-        done = torch.zeros(*self.batch_size, 1, dtype=torch.bool)
-        return self._out(done=done, terminated=done.clone(), truncated=done.clone())
-
-    def _step(self, td):
-        self.pos = (self.pos + 0.3 * td["action"].clamp(-1, 1)).clamp(-4, 4)
-        self.steps += 1
-        truncated = self.steps >= self.truncate_at
-        out = self._out(done=truncated.clone(), terminated=torch.zeros_like(truncated), truncated=truncated)
-        return out.set("reward", out["is_success"].float() - 1.0)
+    def __init__(self, *args, **kwargs):
+        super().__init__(*args, **kwargs)
+        del self.max_episode_steps
 
 
 def _factory(**options):
     def make(*, num_envs, seed, device, eval, max_episode_steps):  # noqa: A002
         claim = options.get("claim")
-        length = max_episode_steps or options.get("length", 40)
-        env_options = {k: v for k, v in options.items() if k != "claim"}
-        inner = PointSquare(num_envs, seed=seed, device=device, **{**env_options, "length": length})
+        length = max_episode_steps or 40
+        dtype = options.get("dtype", torch.float32)
+        inner = HiddenLength(num_envs, seed=seed, device=device, eval=eval, max_episode_steps=length, dtype=dtype)
         env = TransformedEnv(inner, Compose())  # the docs' tip: the length on the wrapper, not on the env
         env.max_episode_steps = claim or length
         return env
@@ -133,7 +82,7 @@ def test_a_stateless_env_resumes_with_a_warning(user_env, tmp_path):
     cfg = recipe_config(*CUSTOM, f"env_name={name}", *SMOKE, "total_steps=240")
     recipe.train(cfg, run_dir=tmp_path / "run")
     cfg = recipe_config(*CUSTOM, f"env_name={name}", *SMOKE, f"resume={tmp_path / 'run'}")
-    with pytest.warns(UserWarning, match=r"training env \(PointSquare\) keeps no state"):
+    with pytest.warns(UserWarning, match=r"training env \(HiddenLength\) keeps no state"):
         recipe.train(cfg, run_dir=tmp_path / "run")
 
 
