@@ -21,8 +21,12 @@ Run::
     python benchmarks/bench_train.py --baseline HEAD --variants "" "compile=true"       # PointMaze quick
     python benchmarks/bench_train.py --env AntMazeSmall --steps 30000 --baseline 82e65d3
     python benchmarks/bench_train.py --env AntMaze --preset paper --steps 6000 --variants "update_dtype=bfloat16"
+    python benchmarks/bench_train.py --threads default --competitors 0 1 --variants "" "threads=2"
 
-Threads: ``--threads`` (default 1) is passed to every run (``threads=`` and ``OMP_NUM_THREADS``).
+Threads: ``--threads`` (default 1) is passed to every run (``threads=`` and ``OMP_NUM_THREADS``); ``--threads
+default`` passes neither, so each run uses the recipe's default (``threads=null``: every core this process may
+use, fewer while other processes keep some busy). ``--competitors 0 1`` runs every variant alone and next to
+one CPU-bound busy loop (started with the run, stopped after it), and prints each variant's slowdown.
 """
 
 from __future__ import annotations
@@ -75,25 +79,44 @@ def remove_baseline(workdir: Path) -> None:
     )
 
 
-def run_recipe(recipe: Path, env_add: dict, overrides: list[str], run_dir: Path, threads: int) -> dict:
-    """Runs the recipe once; returns its loop rate and timings from ``metrics.csv``."""
-    env = {**os.environ, **env_add, "OMP_NUM_THREADS": str(threads), "MKL_NUM_THREADS": str(threads)}
+def run_recipe(
+    recipe: Path,
+    env_add: dict,
+    overrides: list[str],
+    run_dir: Path,
+    threads: int | None,
+    competitors: int = 0,
+) -> dict:
+    """Runs the recipe once (``threads=None``: its default), next to ``competitors`` busy loops; returns its
+    loop rate and timings from ``metrics.csv``."""
+    env = {**os.environ, **env_add}
+    if threads is None:
+        env.pop("OMP_NUM_THREADS", None)
+        env.pop("MKL_NUM_THREADS", None)
+    else:
+        env.update(OMP_NUM_THREADS=str(threads), MKL_NUM_THREADS=str(threads))
     if "PYTHONPATH" not in env_add:  # the working tree: its own editable install, not a baseline's copy
         env.pop("PYTHONPATH", None)
     cmd = [
         sys.executable,
         str(recipe),
+        *([] if threads is None else [f"threads={threads}"]),
         *overrides,
-        f"threads={threads}",
         f"run_dir={run_dir}",
         f"hydra.run.dir={run_dir}/hydra",
         "logger.backend=none",
         "plots.every_epochs=0",
         "progress=false",
     ]
-    start = time.perf_counter()
-    proc = subprocess.run(cmd, env=env, cwd=recipe.parents[1], capture_output=True, text=True)
-    wall = time.perf_counter() - start
+    burners = [subprocess.Popen([sys.executable, "-c", "while True: pass"]) for _ in range(competitors)]
+    try:
+        start = time.perf_counter()
+        proc = subprocess.run(cmd, env=env, cwd=recipe.parents[1], capture_output=True, text=True)
+        wall = time.perf_counter() - start
+    finally:
+        for burner in burners:
+            burner.kill()
+            burner.wait()
     if proc.returncode != 0:
         raise RuntimeError(f"{shlex.join(cmd)} failed:\n{proc.stderr[-3000:]}")
     rows = list(csv.DictReader(open(run_dir / "metrics.csv")))
@@ -125,8 +148,9 @@ def loop_rate(rows: list[dict], warmup_steps: int) -> dict[str, float]:
     }
 
 
-def parts_rate(overrides: list[str], threads: int) -> float:
+def parts_rate(overrides: list[str], threads: int | None) -> float:
     """The env steps/s that ``profile_train.py`` (every phase alone) predicts for the working tree."""
+    threads = threads or (len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else 1)
     env = {**os.environ, "OMP_NUM_THREADS": str(threads)}
     out = subprocess.run(
         [
@@ -163,7 +187,19 @@ def main() -> None:
     parser.add_argument(
         "--repeats", type=int, default=2, help="interleaved rounds (median and best reported)"
     )
-    parser.add_argument("--threads", type=int, default=1)
+    parser.add_argument(
+        "--threads",
+        type=lambda v: None if v == "default" else int(v),
+        default=1,
+        help="threads of every run, or 'default' for the recipe's own choice (default: 1)",
+    )
+    parser.add_argument(
+        "--competitors",
+        type=int,
+        nargs="+",
+        default=[0],
+        help="run every variant next to each of these numbers of busy-loop processes (default: 0)",
+    )
     parser.add_argument("--parts", action="store_true", help="also run profile_train.py (sum of the parts)")
     parser.add_argument("--keep", default=None, help="folder to keep the runs' directories in")
     parser.add_argument("overrides", nargs="*", help="recipe overrides for every variant (key=value)")
@@ -203,12 +239,17 @@ def main() -> None:
     for text in args.variants:
         name = f"tree {text}".strip()
         variants[name] = (ROOT / "recipes" / "dhrl_antmaze.py", {}, shlex.split(text))
-    results: dict[str, list[dict]] = {name: [] for name in variants}
+    cells = {  # every variant next to each number of competitors
+        (f"{name} +{n} busy" if n else name): (*variant, n)
+        for name, variant in variants.items()
+        for n in args.competitors
+    }
+    results: dict[str, list[dict]] = {name: [] for name in cells}
     try:
         for round_ in range(args.repeats):
-            for i, (name, (recipe, env_add, extra)) in enumerate(variants.items()):
+            for i, (name, (recipe, env_add, extra, competitors)) in enumerate(cells.items()):
                 run_dir = work / f"r{round_}_v{i}"
-                out = run_recipe(recipe, env_add, [*common, *extra], run_dir, args.threads)
+                out = run_recipe(recipe, env_add, [*common, *extra], run_dir, args.threads, competitors)
                 rows = out["rows"]
                 warmup_steps = warmup_episodes * float(rows[0]["env_steps"]) / float(rows[0]["episodes"])
                 rate = loop_rate(rows, warmup_steps) | {"process_s": out["process_s"]}
@@ -225,11 +266,11 @@ def main() -> None:
 
     print(
         f"\nenv={args.env} preset={args.preset} {' '.join(args.overrides)}: {args.steps} env steps per run, "
-        f"{args.threads} thread(s), {args.epoch_episodes}-episode epochs, rates over the epochs after the "
+        f"{'the default' if args.threads is None else args.threads} thread(s), {args.epoch_episodes}-episode epochs, rates over the epochs after the "
         f"{warmup_episodes}-episode warm-up, "
         f"median (best) of {args.repeats} interleaved rounds"
     )
-    names = list(variants)
+    names = list(cells)
     ref = names[0]
     header = f"{'variant':<32} {'env steps/s':>16} {'ratio':>6} {'update ms/step':>15} {'collect ms/step':>16} {'wall steps/s':>13} {'process s':>10}"
     print(header)
@@ -244,6 +285,10 @@ def main() -> None:
             f"{statistics.median(r['wall_steps_per_s'] for r in rs):>13.2f} "
             f"{statistics.median(r['process_s'] for r in rs):>10.1f}"
         )
+    for name, (_, _, _, n) in cells.items():
+        alone = name.removesuffix(f" +{n} busy")
+        if n and alone in med:
+            print(f"{alone}: {med[alone] / med[name]:.2f}x slower next to {n} busy process(es)")
     if parts is not None:
         tree = next(n for n in names if n.startswith("tree"))
         print(

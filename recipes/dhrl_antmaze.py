@@ -61,6 +61,7 @@ from pathlib import Path
 
 import cloudpickle
 import hydra
+import torch
 import tqdm
 from omegaconf import DictConfig
 
@@ -199,6 +200,8 @@ def train(cfg: DictConfig | dict, run_dir: str | Path | None = None) -> dict:
                     n_high = trained_steps // schedule["high_update_interval"] - high_updater.num_updates
                     high_out = high_updater.run(n_high) if len(high_rb) else None
                     timer.lap("update")
+                    if start.threads is not None:  # threads=null: as many as the other processes leave free
+                        start.threads.poll()
                     report_capture(run, capture_reported)
                     bar.update(batch.numel())
                     # ---- phase (l.10-13): random warm-up, then the policies
@@ -307,6 +310,7 @@ def end_epoch(
     counters.epochs = epoch
     metrics = {"epoch": epoch, "env_steps": counters.env_steps, "episodes": counters.episodes}
     metrics["time/wall_s"] = counters.wall_s  # since the start of the run, resumes included
+    metrics["time/threads"] = torch.get_num_threads()  # intra-op, at the epoch's end
     graph_start = schedule["warmup_episodes"] + schedule["graph_start_epoch"] * schedule["epoch_episodes"]
     graph_due = counters.episodes >= graph_start and (epoch - 1) % schedule["graph_rebuild_epochs"] == 0
     if cfg["planner"]["enabled"] and graph_due:

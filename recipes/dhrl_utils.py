@@ -89,7 +89,7 @@ def start_up(cfg: DictConfig | dict, run_dir: str | Path | None = None, *, write
     the schema: every check before anything is built or written, then the run directory.
 
     Returns:
-        ``(cfg, device, run_dir, resume, state)``, a :class:`~torchrl_dhrl.training.RunStart`.
+        ``(cfg, device, run_dir, resume, state, threads)``, a :class:`~torchrl_dhrl.recipe.RunStart`.
 
     Raises:
         ConfigError: naming the key, the value and what is accepted.

@@ -274,11 +274,13 @@ def test_resume_with_another_configuration_says_which_keys(run, tmp_path):
 @pytest.mark.recipe
 def test_resume_allows_the_mutable_keys(run, tmp_path, capsys):
     cfg = recipe_config(*SMOKE, "total_steps=160", "threads=1", "progress=true", f"resume={run}")
-    cfg, device, run_dir, resume, state = recipe.start_up(cfg, run_dir=tmp_path / "continued")
+    start = recipe.start_up(cfg, run_dir=tmp_path / "continued")
     out = capsys.readouterr().out
     assert "Threads: 1 intra-op" in out and "threads=1 in the configuration" in out
+    assert start.threads is None  # a fixed count: nothing to adapt
     assert "Resuming" in out and "total_steps: 80 -> 160" in out and "threads: None -> 1" in out
-    assert resume == run / "checkpoint" and state["counters"]["env_steps"] == 80 and run_dir.is_dir()
+    assert start.resume == run / "checkpoint" and start.state["counters"]["env_steps"] == 80
+    assert start.run_dir.is_dir()
 
 
 # ---- run directory ------------------------------------------------------------------------------------------

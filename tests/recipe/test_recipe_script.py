@@ -15,6 +15,7 @@ from tensordict import TensorDict
 from torchrl_dhrl.envs import ENV_NAMES
 
 from torchrl_dhrl.recipe import ConfigError, load_checkpoint
+from torchrl_dhrl.training import AdaptiveThreads
 
 pytestmark = pytest.mark.recipe
 
@@ -50,6 +51,28 @@ def test_smoke_every_phase(env, tmp_path):
     state = load_checkpoint(tmp_path / "checkpoint")
     assert state["counters"]["env_steps"] == 480 and state["counters"]["graph_builds"] == 5
     assert len(state["low_rb"]["_storage"]["_storage"]["observation"]) > 0
+
+
+def test_default_threads_follow_the_load(tmp_path, monkeypatch):
+    """``threads=null``: the loop polls :class:`AdaptiveThreads` after each training batch's updates, and
+    ``time/threads`` logs the count it keeps."""
+    monkeypatch.delenv("OMP_NUM_THREADS", raising=False)
+    polls = []
+
+    def poll(self):
+        polls.append(self)
+        self.threads = 1  # as if another process had taken a core
+        torch.set_num_threads(1)
+        return 1
+
+    monkeypatch.setattr(AdaptiveThreads, "poll", poll)
+    before = torch.get_num_threads()
+    try:
+        recipe.train(recipe_config("env=PointMaze", *SMOKE, "plots.every_epochs=0"), run_dir=tmp_path)
+    finally:
+        torch.set_num_threads(before)
+    assert len(polls) == 6 and len({id(p) for p in polls}) == 1  # 6 batches, one policy for the run
+    assert [r["time/threads"] for r in metrics_rows(tmp_path)] == ["1"] * 6
 
 
 def _flat(state, prefix=""):

@@ -24,7 +24,7 @@ from typing import Any, NamedTuple
 import torch
 import yaml
 
-from torchrl_dhrl.training import ModuleTimer, set_threads
+from torchrl_dhrl.training import AdaptiveThreads, ModuleTimer, start_threads
 
 from .checkpoint import (
     CHECKPOINT_COMPONENTS,
@@ -144,6 +144,8 @@ class RunStart(NamedTuple):
         resume (Path or None): the checkpoint to restore, checked: the run's own (``resume``) or the one it
             is forked from (``fork``, see :attr:`forking`).
         state (dict or None): its ``config`` and ``counters`` (:func:`~torchrl_dhrl.training.load_checkpoint`).
+        threads (AdaptiveThreads or None): the thread count to poll in the loop (``threads=null``), ``None``
+            when the count is fixed.
     """
 
     config: dict
@@ -151,6 +153,7 @@ class RunStart(NamedTuple):
     run_dir: Path
     resume: Path | None
     state: dict | None
+    threads: AdaptiveThreads | None = None
 
     @property
     def forking(self) -> bool:
@@ -270,7 +273,8 @@ def start_run(
     _check_run_dir(run_dir, None if forking else resume)
     if cfg["plots"]["video"]:
         _check_offscreen_rendering()
-    print(set_threads(cfg["threads"]))
+    threads_line, adaptive_threads = start_threads(cfg["threads"])
+    print(threads_line)
     print(describe_precisions(cfg, device))
     if cfg.get("compile_policy", False):
         print(
@@ -285,7 +289,7 @@ def start_run(
         )
     elif notes:
         print(f"Resuming {resume} with: {'; '.join(notes)}.")
-    start = RunStart(cfg, device, run_dir, resume, state)
+    start = RunStart(cfg, device, run_dir, resume, state, adaptive_threads)
     if write:
         write_run_dir(start)
     return start

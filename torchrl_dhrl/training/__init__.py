@@ -17,9 +17,12 @@ from .precision import (
     resolve_precision,
 )
 from .threads import (
+    AdaptiveThreads,
     available_cpus,
+    cpu_busy_seconds,
     resolve_threads,
     set_threads,
+    start_threads,
 )
 from .updates import (
     AUTOCAST_DTYPES,
@@ -30,6 +33,7 @@ from .updates import (
 
 __all__ = [
     "AUTOCAST_DTYPES",
+    "AdaptiveThreads",
     "EvaluationResult",
     "LossUpdater",
     "ModuleTimer",
@@ -37,6 +41,7 @@ __all__ = [
     "PRECISIONS",
     "available_cpus",
     "compile_available",
+    "cpu_busy_seconds",
     "evaluate",
     "goal_as_subgoal",
     "goal_as_waypoint",
@@ -45,4 +50,5 @@ __all__ = [
     "resolve_precision",
     "resolve_threads",
     "set_threads",
+    "start_threads",
 ]
