@@ -40,6 +40,7 @@ from torchrl_dhrl.recipe import (
     make_high_level_buffer,
     make_logger,
     make_low_level_buffer,
+    resolve_speed,
     run_precisions,
     start_run,
     validate_env_name,
@@ -337,7 +338,9 @@ def build_replay_buffers(cfg: dict, agent: DHRLAgent, device: torch.device):
 
 
 def build_updaters(cfg: dict, agent: DHRLAgent, low_rb, high_rb) -> tuple[LossUpdater, LossUpdater]:
-    """The low-level (SQGC) and high-level updaters of the configuration."""
+    """The low-level (SQGC) and high-level updaters of the configuration; the speed switches left at null take
+    their value for the networks' device (``resolve_speed``; :func:`start_up` has resolved them already)."""
+    cfg = resolve_speed(cfg, next(agent.sqgc_loss.parameters()).device)[0]
     args = component_arguments(cfg)
     out = []
     for level, loss, rb in (("low", agent.sqgc_loss, low_rb), ("high", agent.high_loss, high_rb)):
@@ -347,7 +350,8 @@ def build_updaters(cfg: dict, agent: DHRLAgent, low_rb, high_rb) -> tuple[LossUp
                 rb,
                 make_optimizers(loss, **args[f"{level}_optimizers"]),
                 **args[f"{level}_updater"],
-                cudagraphs=cfg.get("cudagraphs", False),
+                cudagraphs=cfg["cudagraphs"],
+                updates_per_graph=cfg.get("updates_per_graph", 1),
                 compile=cfg.get("compile", False),
                 # the high-level buffer has no capture-safe sampler (its gradual penalty queries the graph)
                 capture_sampling=cfg.get("capture_sampling") if level == "low" else None,

@@ -362,6 +362,23 @@ def test_compiled_cudagraph_updates_match_eager_updates():
     )
 
 
+def test_updates_captured_together_on_cuda():
+    """``updates_per_graph=5``: five updates per replay (sampling and the Polyak step inside), four patterns over
+    20 updates; the losses follow single-update graphs' (statistics: the graphs' Philox draws are arranged
+    differently, so the batches differ)."""
+    from tests.training.test_updates import _capture_run, _loss
+
+    chunk_loss, chunk, chunk_outs = _capture_run(graphs=True, steps=20, device=CUDA, updates_per_graph=5)
+    _, single, single_outs = _capture_run(graphs=True, steps=20, device=CUDA)
+    assert len(chunk._chunk_graphs) == 4 and chunk.num_updates == single.num_updates == 20
+    for chunk_means, single_means in zip(chunk_outs, single_outs, strict=True):
+        for key in ("loss_policy_qvalue", "loss_graph_qvalue"):
+            assert torch.isfinite(chunk_means[key])
+            torch.testing.assert_close(chunk_means[key], single_means[key], rtol=0.5, atol=0.05, msg=key)
+    start = _loss().to(CUDA).state_dict()
+    assert sum(not torch.equal(v, start[k]) for k, v in chunk_loss.state_dict().items()) > 4
+
+
 @pytest.mark.recipe
 def test_recipe_with_cudagraphs(tmp_path, capsys):
     summary = recipe.train(
@@ -372,7 +389,14 @@ def test_recipe_with_cudagraphs(tmp_path, capsys):
     assert "Sampling, low level: sampling and relabelling captured." in printed
     assert "Sampling, high level: capturable_sampler: the relabel step HindsightSubgoalRelabel" in printed
     recipe.train(
-        recipe_config(*SMOKE, "device=cuda", "cudagraphs=true", "total_steps=480", f"resume={tmp_path}"),
+        recipe_config(  # resumed with ten low-level updates per replay
+            *SMOKE,
+            "device=cuda",
+            "cudagraphs=true",
+            "updates_per_graph=10",
+            "total_steps=480",
+            f"resume={tmp_path}",
+        ),
         run_dir=tmp_path,
     )
     assert load_checkpoint(tmp_path)["counters"]["env_steps"] == 480

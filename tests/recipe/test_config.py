@@ -18,12 +18,15 @@ from dhrl_utils import config_schema
 from torchrl_dhrl.envs import ENV_NAMES
 
 from torchrl_dhrl.recipe import (
+    FAST_PATH,
     IMPLIED_WHEN_ABSENT,
+    REFERENCE_PATH,
     RESUME_MUTABLE_KEYS,
     ConfigError,
     check_known_keys,
     check_resume_config,
     resolve_device,
+    resolve_speed,
     validate_config,
     with_implied_keys,
 )
@@ -57,6 +60,8 @@ def _snapshot(path):
         ("seed=4294967296", r"`seed` .*\[0, 2\*\*32 - 1\]"),
         ("threads=0", "`threads` must be null .* or an integer >= 1"),
         ("threads=two", "`threads`"),
+        ("updates_per_graph=0", "`updates_per_graph` must be >= 1"),
+        ("updates_per_graph=4", "`updates_per_graph` 4 > 1 needs cudagraphs=true"),
         ("low.hidden=64", "`low.hidden` must be a non-empty list"),
         ("high.subgoal_low=[a,b]", "`high.subgoal_low` must be a list of numbers"),
         (
@@ -502,3 +507,61 @@ def test_env_dependent_keys_are_checked_against_the_env(key, env, value, ok):
     else:
         with pytest.raises(ConfigError, match=key):
             validate_config(cfg)
+
+
+# ---- speed: the fast path by default, fast=false for the eager float32 reference path ---------------------------
+
+
+@pytest.mark.parametrize("device", ["cpu", "cuda", "meta"])
+@pytest.mark.parametrize("fast", [True, False])
+def test_resolve_speed(device, fast):
+    """The switches at null take FAST_PATH's values for the device type (REFERENCE_PATH with fast=false or an
+    unlisted device); explicit values are kept; resolving twice changes nothing."""
+    cfg = {"fast": fast, "cudagraphs": None, "update_dtype": None, "compile": False}
+    resolved, line = resolve_speed(cfg, device)
+    table = FAST_PATH.get(device, REFERENCE_PATH) if fast else REFERENCE_PATH
+    assert resolved == {**cfg, **table} and cfg["cudagraphs"] is None  # a copy
+    assert line.startswith("Speed: cudagraphs=") and ("fast=false: the eager float32 reference path" in line)
+    assert resolve_speed(resolved, device) == (
+        resolved,
+        "Speed: every speed switch set in the configuration.",
+    )
+    kept, _ = resolve_speed({**cfg, "cudagraphs": False, "update_dtype": "bfloat16"}, device)
+    assert kept["cudagraphs"] is False and kept["update_dtype"] == "bfloat16"
+    assert REFERENCE_PATH == {"cudagraphs": False, "update_dtype": "float32"}
+    assert (
+        FAST_PATH["cuda"] == {"cudagraphs": True, "update_dtype": "auto"}
+        and FAST_PATH["cpu"] == REFERENCE_PATH
+    )
+
+
+def test_the_default_speed_on_this_cpu(tmp_path, capsys):
+    """On a CPU the defaults resolve to eager float32 (the run prints why), and the run directory's config.yaml holds
+    the resolved values; fast=false says it is the reference path."""
+    cfg = recipe_config(*SMOKE, "total_steps=80")
+    assert cfg["fast"] is True and cfg["cudagraphs"] is None and cfg["update_dtype"] is None
+    start = recipe.start_up(cfg, run_dir=tmp_path)
+    out = capsys.readouterr().out
+    assert (
+        "Speed: cudagraphs=false, update_dtype=float32 (fast=true on cpu: eager; fast=false: the eager" in out
+    )
+    assert "Precision: updates float32, graph builds float32." in out
+    assert start.config["cudagraphs"] is False and start.config["update_dtype"] == "float32"
+    written = (tmp_path / "config.yaml").read_text()
+    assert "cudagraphs: false" in written and "update_dtype: float32" in written
+    recipe.start_up(recipe_config(*SMOKE, "fast=false"), run_dir=tmp_path / "reference")
+    assert "(fast=false: the eager float32 reference path)." in capsys.readouterr().out
+
+
+@pytest.mark.parametrize(
+    "override, match",
+    [
+        ("fast=maybe", "`fast` must be true or false"),
+        ("cudagraphs=maybe", "`cudagraphs` must be null .*, true or false"),
+        ("update_dtype=float16", r"`update_dtype` must be null \(fast path\) or one of"),
+        ("cudagraphs=true", "`cudagraphs=true` needs a CUDA device"),
+    ],
+)
+def test_speed_keys_refused(override, match):
+    with pytest.raises(ConfigError, match=match):
+        recipe.start_up(recipe_config(*SMOKE, override), write=False)

@@ -89,7 +89,7 @@ def test_auto_is_accepted_by_the_config_check_and_bad_values_are_named():
     validate_config(
         recipe_config("env=PointMaze", "device=cpu", "update_dtype=auto", "planner.build_dtype=auto")
     )
-    with pytest.raises(ConfigError, match=r"`update_dtype` must be one of \('float32', 'bfloat16', 'auto'\)"):
+    with pytest.raises(ConfigError, match=r"`update_dtype` must be null \(fast path\) or one of \('float32', 'bfloat16', 'auto'\)"):
         validate_config(recipe_config("env=PointMaze", "device=cpu", "update_dtype=float16"))
     with pytest.raises(ConfigError, match="`planner.build_dtype` must be one of"):
         validate_config(recipe_config("env=PointMaze", "device=cpu", "planner.build_dtype=bf16"))

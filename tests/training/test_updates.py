@@ -401,6 +401,7 @@ def _capture_run(
     capture_sampling: bool | None = True,
     actor_after_critic_step: bool = False,
     device="cpu",
+    updates_per_graph: int = 1,
 ):
     """``steps`` updates of a fresh SQGC updater on a fresh low-level buffer, with new rows written halfway."""
     loss = _loss().to(device)
@@ -414,6 +415,7 @@ def _capture_run(
         compile=compile_,
         capture_sampling=capture_sampling,
         actor_after_critic_step=actor_after_critic_step,
+        updates_per_graph=updates_per_graph,
     )
     torch.manual_seed(11)
     outs = [updater.run(steps // 2)]
@@ -443,6 +445,65 @@ def test_updater_with_captured_sampling_trains_as_an_eager_updater(graphs_on_cpu
             assert torch.equal(got[key], expected[key]), key
     moved = sum(not torch.equal(v, _loss().state_dict()[k]) for k, v in eager_loss.state_dict().items())
     assert moved > 4
+
+
+@pytest.mark.parametrize("actor_after_critic_step", [False, True])
+@pytest.mark.parametrize("per_graph, steps, patterns", [(4, 12, 1), (5, 20, 4), (12, 12, 0)])
+def test_updates_captured_together_equal_single_updates(
+    graphs_on_cpu, actor_after_critic_step, per_graph, steps, patterns
+):
+    """``updates_per_graph=N``: N updates per replay (sampling and Polyak averaging inside), the remainder one by
+    one, give the parameters and per-call losses of single-update graphs and of an eager updater, bit for bit."""
+    kwargs = {"steps": steps, "capture_sampling": None, "actor_after_critic_step": actor_after_critic_step}
+    chunk_loss, chunk, chunk_outs = _capture_run(graphs=True, updates_per_graph=per_graph, **kwargs)
+    single_loss, single, single_outs = _capture_run(graphs=True, **kwargs)
+    eager_loss, _, eager_outs = _capture_run(
+        graphs=False, steps=steps, actor_after_critic_step=actor_after_critic_step
+    )
+    # two run() calls of steps/2: N=4 -> 4 + 2 singles each (one pattern: updates 1-4 and 7-10 match under
+    # actor interval 2 and target interval 3); N=5 of 10 -> 5 + 5 (starts 1, 6, 11, 16: four phases of the
+    # 6-update period); N=12 > 6 -> singles only
+    assert len(chunk._chunk_graphs) == patterns and chunk.num_updates == single.num_updates == steps
+    for pattern in chunk._chunk_graphs:
+        assert len(pattern) == per_graph and any(target for _, target in pattern)
+    for key, value in eager_loss.state_dict().items():
+        assert torch.equal(chunk_loss.state_dict()[key], value), key
+        assert torch.equal(single_loss.state_dict()[key], value), key
+    for got, single_out, expected in zip(chunk_outs, single_outs, eager_outs, strict=True):
+        assert set(got.keys()) == set(expected.keys())
+        for key in expected.keys():
+            assert torch.equal(got[key], expected[key]) and torch.equal(single_out[key], expected[key]), key
+
+
+def test_updates_per_graph_needs_graphs_and_a_capture_safe_sampler(graphs_on_cpu):
+    """Above 1 without ``cudagraphs`` is refused; a buffer sampled on the host (the high level's) keeps one update
+    per replay, with the same results as ``updates_per_graph=1``."""
+    loss = _loss()
+    rb, _ = _relabelled_low_buffer()
+    with pytest.raises(ValueError, match="`updates_per_graph` 4 > 1 needs cudagraphs=True"):
+        LossUpdater(loss, rb, make_optimizers(loss), updates_per_graph=4)
+    with pytest.raises(ValueError, match="updates_per_graph"):
+        LossUpdater(loss, rb, make_optimizers(loss), cudagraphs=True, updates_per_graph=0)
+    results = []
+    for per_graph in (1, 3):
+        torch.manual_seed(0)
+        loss = _loss()
+        rb, _ = _relabelled_low_buffer()
+        updater = LossUpdater(
+            loss,
+            rb,
+            make_optimizers(loss),
+            cudagraphs=True,
+            capture_sampling=False,
+            updates_per_graph=per_graph,
+        )
+        torch.manual_seed(1)
+        out = updater.run(7)
+        assert not updater._chunk_graphs and updater.num_updates == 7
+        results.append((loss.state_dict(), out))
+    for key, value in results[0][0].items():
+        assert torch.equal(results[1][0][key], value), key
+    assert all(torch.equal(results[1][1][k], v) for k, v in results[0][1].items())
 
 
 @pytest.mark.slow

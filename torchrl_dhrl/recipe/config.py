@@ -19,6 +19,7 @@ from .routing import check_components
 __all__ = [
     "BUILD_DTYPES",
     "CHOICES",
+    "FAST_PATH",
     "GOAL_UNIT_KEYS",
     "ConfigError",
     "DISTANCES",
@@ -28,12 +29,14 @@ __all__ = [
     "RESUME_MUTABLE_KEYS",
     "SEED_MAX",
     "SWITCHES",
+    "REFERENCE_PATH",
     "UPDATE_DTYPES",
     "check_known_keys",
     "derive_goal_units",
     "check_resume_config",
     "describe_precisions",
     "resolve_device",
+    "resolve_speed",
     "run_precisions",
     "validate_config",
     "validate_env_name",
@@ -45,6 +48,15 @@ __all__ = [
 BUILD_DTYPES = ("float32", "bfloat16", "float16", "auto")
 #: Precisions of the networks' updates (``update_dtype``; ``auto`` as for ``BUILD_DTYPES``).
 UPDATE_DTYPES = ("float32", "bfloat16", "auto")
+#: What the speed switches left at ``null`` become (:func:`resolve_speed`): with ``fast=true`` the fastest
+#: combination measured safe on the device type (CUDA: the updates replayed as CUDA graphs, in bfloat16 where the
+#: GPU has it natively, the low level's sampling captured in the graphs through ``capture_sampling=null``; a CPU:
+#: eager float32, see docs/training.md), with ``fast=false`` the eager float32 reference path everywhere.
+FAST_PATH = {
+    "cuda": {"cudagraphs": True, "update_dtype": "auto"},
+    "cpu": {"cudagraphs": False, "update_dtype": "float32"},
+}
+REFERENCE_PATH = {"cudagraphs": False, "update_dtype": "float32"}
 #: Graph distances the recipe can plan with.
 DISTANCES = ("learned", "oracle")
 #: Logger back ends (``none`` logs nothing but the progress bar).
@@ -64,7 +76,9 @@ RESUME_MUTABLE_KEYS = (
     "resume",
     "device",
     "threads",
+    "fast",
     "cudagraphs",
+    "updates_per_graph",
     "compile",
     "capture_sampling",
     "compile_policy",
@@ -228,7 +242,7 @@ def _check_run_keys(cfg: Mapping) -> None:
         value = _get(cfg, path)
         if value is not None and (not isinstance(value, str) or not value):
             raise ConfigError(f"`{path}` must be null or a path, got {value!r}.")
-    optional = tuple(key for key in ("cudagraphs", "compile", "compile_policy") if key in cfg)
+    optional = tuple(key for key in ("compile", "compile_policy") if key in cfg)
     for path in ("progress", "plots.video") + optional:
         if not isinstance(_get(cfg, path), bool):
             raise ConfigError(f"`{path}` must be true or false, got {_get(cfg, path)!r}.")
@@ -390,6 +404,41 @@ def resolve_device(device: str | torch.device | None) -> torch.device:
     return resolved
 
 
+def resolve_speed(cfg: Mapping, device: str | torch.device) -> tuple[dict, str]:
+    """The configuration with its speed switches left at ``null`` resolved for ``device``, and a start-up line.
+
+    ``cudagraphs`` and ``update_dtype`` at ``null`` take the value of :data:`FAST_PATH` for the device's type when
+    ``fast`` is true (the default), of :data:`REFERENCE_PATH` when it is false; a value set explicitly is kept.
+    Idempotent: a resolved configuration comes back unchanged (and the line says so).
+
+    Examples:
+        >>> cfg = {"fast": True, "cudagraphs": None, "update_dtype": None}
+        >>> resolve_speed(cfg, "cuda")[0]
+        {'fast': True, 'cudagraphs': True, 'update_dtype': 'auto'}
+        >>> resolve_speed({**cfg, "fast": False}, "cuda")[0]
+        {'fast': False, 'cudagraphs': False, 'update_dtype': 'float32'}
+        >>> resolve_speed({**cfg, "update_dtype": "bfloat16"}, "cpu")[1]
+        'Speed: cudagraphs=false (fast=true on cpu: eager; fast=false: the eager float32 reference path).'
+    """
+    device = torch.device(device)
+    fast = bool(cfg.get("fast", True))
+    table = FAST_PATH.get(device.type, REFERENCE_PATH) if fast else REFERENCE_PATH
+    resolved, chosen = dict(cfg), []
+    for key, value in table.items():
+        if resolved.get(key) is None:
+            resolved[key] = value
+            chosen.append(f"{key}={str(value).lower()}")
+    if not chosen:
+        return resolved, "Speed: every speed switch set in the configuration."
+    why = (
+        f"fast=true on {device.type}: {'the fast path' if device.type == 'cuda' else 'eager'}; fast=false: the eager "
+        "float32 reference path"
+        if fast
+        else "fast=false: the eager float32 reference path"
+    )
+    return resolved, f"Speed: {', '.join(chosen)} ({why})."
+
+
 def run_precisions(cfg: Mapping, device: str | torch.device) -> tuple[torch.dtype | None, torch.dtype | None]:
     """The autocast dtypes of a configuration's updates and graph builds on ``device`` (``None``: float32).
 
@@ -401,7 +450,12 @@ def run_precisions(cfg: Mapping, device: str | torch.device) -> tuple[torch.dtyp
         >>> run_precisions({"update_dtype": "bfloat16", "planner": {"build_dtype": "float32"}}, "cpu")
         (torch.bfloat16, None)
     """
-    update = resolve_precision(cfg.get("update_dtype", "float32"), device, choices=UPDATE_DTYPES)
+    update_dtype = (
+        resolve_speed(cfg, device)[0]["update_dtype"]
+        if cfg.get("update_dtype") is None
+        else cfg["update_dtype"]
+    )
+    update = resolve_precision(update_dtype, device, choices=UPDATE_DTYPES)
     build = resolve_precision(_get(cfg, "planner.build_dtype"), device, choices=BUILD_DTYPES)
     return update, build
 
@@ -415,7 +469,7 @@ def describe_precisions(cfg: Mapping, device: str | torch.device) -> str:
     """
     update, build = run_precisions(cfg, device)
     line = f"Precision: updates {_dtype_name(update)}, graph builds {_dtype_name(build)}"
-    if "auto" in (cfg.get("update_dtype", "float32"), _get(cfg, "planner.build_dtype")):
+    if "auto" in (cfg.get("update_dtype"), _get(cfg, "planner.build_dtype")):
         has = "has" if native_bfloat16(device) else "has no"
         line += f" (auto: {torch.device(device).type} {has} native bfloat16)"
     return line + "."
@@ -476,7 +530,9 @@ def _unknown_keys(cfg: Mapping, schema: Mapping, prefix: str = "") -> list[str]:
     return unknown
 
 
-def check_known_keys(cfg: Mapping, schema: Mapping, *, source: str = "config.yaml", complete: bool = False) -> None:
+def check_known_keys(
+    cfg: Mapping, schema: Mapping, *, source: str = "config.yaml", complete: bool = False
+) -> None:
     """Rejects configuration keys that the schema does not define, nested ones included (and, with
     ``complete``, keys of the schema that the configuration lacks).
 
@@ -655,15 +711,31 @@ def validate_config(cfg: Mapping, env_names: tuple[str, ...] | None = None) -> N
         raise ConfigError(f"`seed` must be an integer in [0, 2**32 - 1] (NumPy's seed range), got {seed}.")
     _check_run_keys(cfg)
     device = resolve_device(_get(cfg, "device"))
-    if cfg.get("cudagraphs", False) and device.type != "cuda":
+    if not isinstance(cfg.get("fast", True), bool):
+        raise ConfigError(f"`fast` must be true or false, got {cfg.get('fast')!r}.")
+    if cfg.get("cudagraphs") not in (None, True, False):
+        raise ConfigError(
+            f"`cudagraphs` must be null (fast path), true or false, got {cfg.get('cudagraphs')!r}."
+        )
+    if cfg.get("cudagraphs") and device.type != "cuda":
         raise ConfigError(f"`cudagraphs=true` needs a CUDA device, but `device` resolves to {device}.")
-    update_dtype = cfg.get("update_dtype", "float32")
-    if update_dtype not in UPDATE_DTYPES:
-        raise ConfigError(f"`update_dtype` must be one of {tuple(UPDATE_DTYPES)}, got {update_dtype!r}.")
+    update_dtype = cfg.get("update_dtype")
+    if update_dtype is not None and update_dtype not in UPDATE_DTYPES:
+        raise ConfigError(
+            f"`update_dtype` must be null (fast path) or one of {tuple(UPDATE_DTYPES)}, got {update_dtype!r}."
+        )
+    speed = resolve_speed(cfg, device)[0]
     if cfg.get("capture_sampling") not in (None, True, False):
         raise ConfigError(
             f"`capture_sampling` must be null (auto), true or false, got {cfg.get('capture_sampling')!r}."
         )
+    if "updates_per_graph" in cfg:
+        per_graph = _number(cfg, "updates_per_graph", low=1, integer=True)
+        if per_graph > 1 and not speed["cudagraphs"]:
+            raise ConfigError(
+                f"`updates_per_graph` {per_graph} > 1 needs cudagraphs=true (the updates one CUDA-graph replay "
+                "runs); leave it at 1 without graphs."
+            )
     _number(cfg, "total_steps", low=0, strict=True, integer=True)
     _number(cfg, "num_envs", low=1, integer=True)
     length = _get(cfg, "episode_length")
@@ -709,7 +781,10 @@ def validate_config(cfg: Mapping, env_names: tuple[str, ...] | None = None) -> N
             f"planner.distance=oracle needs the achieved goal inside the observation (goal_indices), "
             f"which {name} does not provide."
         )
-    landmarks, candidates = _get(cfg, "planner.max_landmarks"), _number(cfg, "planner.candidates", integer=True)
+    landmarks, candidates = (
+        _get(cfg, "planner.max_landmarks"),
+        _number(cfg, "planner.candidates", integer=True),
+    )
     if candidates < landmarks:
         raise ConfigError(
             f"`planner.candidates` ({candidates}) must be >= `planner.max_landmarks` ({landmarks})."

@@ -40,6 +40,7 @@ from .config import (
     check_resume_config,
     describe_precisions,
     resolve_device,
+    resolve_speed,
     validate_config,
 )
 
@@ -219,6 +220,7 @@ def start_run(
         check_known_keys(cfg, schema, source=schema_source, complete=True)
     validate_config(cfg)
     device = resolve_device(cfg["device"])
+    cfg, speed_line = resolve_speed(cfg, device)  # the speed switches left at null, for this device
     run_dir = Path(run_dir or cfg["run_dir"] or ".").expanduser().resolve()
     # a save killed between its two renames leaves the checkpoint under another name: put it back first
     directories = {run_dir}
@@ -275,6 +277,7 @@ def start_run(
         _check_offscreen_rendering()
     threads_line, adaptive_threads = start_threads(cfg["threads"])
     print(threads_line)
+    print(speed_line)
     print(describe_precisions(cfg, device))
     if cfg.get("compile_policy", False):
         print(

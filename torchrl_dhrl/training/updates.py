@@ -93,6 +93,16 @@ class LossUpdater:
     per :meth:`run`): the parameters have already taken the steps of that call when it raises (the recipe
     stops without saving them, keeping its last good checkpoint).
 
+    With ``updates_per_graph=N`` (and ``cudagraphs=True``) :meth:`run` replays ``N`` consecutive updates as one
+    graph: each samples itself (the capture-safe sampler, inside the graph), takes its loss, backward pass and Adam
+    steps, and the Polyak averaging due after it runs inside the graph too, so ``N`` updates cost one replay and
+    no host work between them. The pattern of delayed-actor and target updates over the ``N`` updates is decided
+    on the host from :attr:`num_updates`; each pattern is its own graph (at most
+    ``lcm(actor_update_interval, target_update_interval)`` of them). The updates are the same, in the same order,
+    as ``N`` single ones (tested through CudaGraphModule's CPU pass-through). A call's remainder (fewer than ``N``
+    updates left), :meth:`step`, and a buffer without a capture-safe sampler (whose batches are sampled on the
+    host) take one update per replay.
+
     With ``autocast_dtype=torch.bfloat16`` the loss's forward pass runs under ``torch.autocast``
     on the loss's device (mixed precision): the hidden layers of every actor and critic multiply
     in bfloat16, their output layers, the TD targets, the losses, the backward pass's accumulated
@@ -145,6 +155,8 @@ class LossUpdater:
             if it cannot); ``False``: never. :attr:`sampling_captured` and :attr:`sampling_note` say what
             was chosen, once the first update ran. It draws other batches than ``sample()`` from the same
             seed (the same distribution: uniform over the written records).
+        updates_per_graph (int): consecutive updates per CUDA-graph replay (see above; needs
+            ``cudagraphs=True`` when above 1). Defaults to ``1``.
 
     Examples:
         >>> import torch
@@ -178,6 +190,7 @@ class LossUpdater:
         actor_after_critic_step=flag(),
         compile=flag(),
         capture_sampling=flag(optional=True),
+        updates_per_graph=integer(1, what="the updates per CUDA-graph replay"),
     )
     def __init__(
         self,
@@ -193,7 +206,13 @@ class LossUpdater:
         actor_after_critic_step: bool = False,
         compile: bool = False,  # noqa: A002 - the flag's name in TorchRL's recipes
         capture_sampling: bool | None = None,
+        updates_per_graph: int = 1,
     ) -> None:
+        if updates_per_graph > 1 and not cudagraphs:
+            raise ValueError(
+                f"`updates_per_graph` {updates_per_graph} > 1 needs cudagraphs=True (it sets how many updates one "
+                "CUDA-graph replay runs); without graphs, updates run one by one."
+            )
         if set(optimizers) != {"actor", "critic"}:
             raise ValueError(f"`optimizers` must have keys 'actor' and 'critic', got {sorted(optimizers)}.")
         if autocast_dtype not in AUTOCAST_DTYPES:
@@ -223,6 +242,9 @@ class LossUpdater:
         self.sampling_note = ""
         self._captured_sample: Callable[[], TensorDictBase] | None = None
         self._graphs: dict[bool, CudaGraphModule] = {}
+        self.updates_per_graph = int(updates_per_graph)
+        #: graphs of ``updates_per_graph`` updates, by their pattern of (actor due, target due) per update
+        self._chunk_graphs: dict[tuple[tuple[bool, bool], ...], CudaGraphModule] = {}
         self.compile = bool(compile)
         if self.compile and (reason := compile_available()) is not None:
             warnings.warn(
@@ -270,6 +292,13 @@ class LossUpdater:
     def actor_update_due(self) -> bool:
         """Whether the next update (number ``num_updates + 1``) trains the actor (a host-side decision)."""
         return (self.num_updates + 1) % self.actor_update_interval == 0
+
+    def _pattern(self, count: int) -> tuple[tuple[bool, bool], ...]:
+        """(actor due, target update due) of the next ``count`` updates."""
+        return tuple(
+            (k % self.actor_update_interval == 0, k % self.target_update_interval == 0)
+            for k in range(self.num_updates + 1, self.num_updates + count + 1)
+        )
 
     def _loss_terms(self, sample: TensorDictBase, update_actor: bool) -> TensorDictBase:
         return self._terms_fn(sample, update_actor)
@@ -348,14 +377,41 @@ class LossUpdater:
         def update(sample: TensorDictBase) -> TensorDictBase:
             if self._captured_sample is not None:  # the input is empty: the graph samples itself
                 sample = self._captured_sample()
-            if self.actor_after_critic_step:
-                return self._sequential_update(sample, update_actor, check=False).detach()
-            with self._autocast(cache_enabled=False):
-                out = self._loss_terms(sample, update_actor)
-            self._optimise(out, update_actor)
-            return out.detach()
+            return self._captured_update(sample, update_actor)
 
         return update
+
+    def _captured_update(self, sample: TensorDictBase, update_actor: bool) -> TensorDictBase:
+        if self.actor_after_critic_step:
+            return self._sequential_update(sample, update_actor, check=False).detach()
+        with self._autocast(cache_enabled=False):
+            out = self._loss_terms(sample, update_actor)
+        self._optimise(out, update_actor)
+        return out.detach()
+
+    def _graph_chunk(self, pattern: tuple[tuple[bool, bool], ...]):
+        """The captured part of ``len(pattern)`` consecutive updates that sample themselves, Polyak included."""
+
+        def updates(_: TensorDictBase) -> TensorDictBase:
+            outs = []
+            for update_actor, update_target in pattern:
+                outs.append(self._captured_update(self._captured_sample(), update_actor))
+                if update_target:
+                    self.target_updater.step()
+            return torch.stack(outs)
+
+        return updates
+
+    def _chunk_step(self) -> list[TensorDictBase]:
+        """``updates_per_graph`` updates in one replay (the graphs sample themselves)."""
+        pattern = self._pattern(self.updates_per_graph)
+        if pattern not in self._chunk_graphs:
+            self._chunk_graphs[pattern] = CudaGraphModule(
+                self._graph_chunk(pattern), warmup=3, in_keys=[], out_keys=[]
+            )
+        out = self._chunk_graphs[pattern](TensorDict()).clone()  # its buffers are reused by the next replay
+        self.num_updates += len(pattern)
+        return list(out.unbind(0))
 
     def _setup_sampling(self) -> None:
         """Decides (once, again after a restore) whether the capture-safe sampler is used, and builds it."""
@@ -418,8 +474,13 @@ class LossUpdater:
         if not self.cudagraphs:
             outputs = [self.step() for _ in range(num_updates)]
         else:  # checked once for the whole call: no host synchronisation between replays
-            first = self.num_updates + 1
-            outputs = [self._step() for _ in range(num_updates)]
+            first, outputs = self.num_updates + 1, []
+            if self.updates_per_graph > 1 and self.sampling_captured is None:
+                self._setup_sampling()
+            if self.updates_per_graph > 1 and self.sampling_captured:
+                for _ in range(num_updates // self.updates_per_graph):
+                    outputs += self._chunk_step()
+            outputs += [self._step() for _ in range(num_updates - len(outputs))]
             self._check_finite(outputs, first_update=first)
         stacked = torch.stack([o.select(*(k for k, v in o.items() if v.numel() == 1)) for o in outputs])
         return TensorDict({key: value.float().mean() for key, value in stacked.items()}, batch_size=[])
@@ -442,4 +503,5 @@ class LossUpdater:
                         if "step" in state:
                             state["step"] = state["step"].to(param.device, torch.float32)
         self._graphs = {}  # captured graphs point at the replaced optimiser state: capture again
+        self._chunk_graphs = {}
         self.sampling_captured = None  # and the sampler at storage that a restore may have reallocated
