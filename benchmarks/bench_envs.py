@@ -8,11 +8,14 @@ For each environment, prints env steps per second (summed over the batch) of
   random actions, ``env.step`` + ``step_mdp`` with automatic resets (``step_and_maybe_reset``);
 
 and the cost per env step relative to raw physics (``ratio`` = TorchRL time / raw time per env step).
-The target is a ratio of at most 2 at ``num_envs=16`` for the ant mazes.
+The target is a ratio of at most 2 at ``num_envs=16`` for the ant mazes. With ``--step-threads 2 4``, the 16
+envs are also stepped by that many threads (``make_env(..., step_threads=k)``; MuJoCo integrates without the
+GIL), and the speed-up over one thread is printed.
 
 Usage::
 
     OMP_NUM_THREADS=1 python benchmarks/bench_envs.py [--steps 2000] [--envs AntMaze Reacher3D UR3Obstacle]
+    OMP_NUM_THREADS=1 python benchmarks/bench_envs.py --envs AntMaze --step-threads 2
 """
 
 from __future__ import annotations
@@ -44,9 +47,11 @@ def raw_steps_per_second(name: str, steps: int, seed: int = 0) -> float:
     return steps / (time.perf_counter() - start)
 
 
-def torchrl_steps_per_second(name: str, num_envs: int, steps: int, seed: int = 0) -> float:
+def torchrl_steps_per_second(
+    name: str, num_envs: int, steps: int, seed: int = 0, step_threads: int = 1
+) -> float:
     """Env steps/s (summed over the batch) of ``GoalEnv`` stepped with ``step_and_maybe_reset``."""
-    env = make_env(name, num_envs=num_envs, seed=seed)
+    env = make_env(name, num_envs=num_envs, seed=seed, step_threads=step_threads)
     torch.manual_seed(seed)
     batched_steps = max(1, steps // num_envs)
     actions = env.action_spec.rand((batched_steps,))
@@ -71,19 +76,31 @@ def main(argv: list[str] | None = None) -> None:
     parser.add_argument(
         "--envs", "--mazes", dest="envs", nargs="+", default=list(ENV_NAMES), choices=list(ENV_NAMES)
     )
+    parser.add_argument(
+        "--step-threads",
+        type=int,
+        nargs="*",
+        default=[],
+        help="also step the 16 envs with these thread counts",
+    )
     args = parser.parse_args(argv)
     torch.set_num_threads(1)
 
-    header = f"{'env':<18} {'raw':>9} {'N=1':>9} {'ratio':>6} {'N=16':>9} {'ratio':>6}   (env steps/s)"
+    threaded = "".join(f" {f'N=16 {k}thr':>11} {'x1thr':>6}" for k in args.step_threads)
+    header = (
+        f"{'env':<18} {'raw':>9} {'N=1':>9} {'ratio':>6} {'N=16':>9} {'ratio':>6}{threaded}   (env steps/s)"
+    )
     print(header)
     print("-" * len(header))
     for name in args.envs:
         raw = raw_steps_per_second(name, args.steps)
         single = torchrl_steps_per_second(name, 1, args.steps // 2)
         batched = torchrl_steps_per_second(name, 16, args.steps)
-        print(
-            f"{name:<18} {raw:>9.0f} {single:>9.0f} {raw / single:>6.2f} {batched:>9.0f} {raw / batched:>6.2f}"
-        )
+        line = f"{name:<18} {raw:>9.0f} {single:>9.0f} {raw / single:>6.2f} {batched:>9.0f} {raw / batched:>6.2f}"
+        for k in args.step_threads:
+            rate = torchrl_steps_per_second(name, 16, args.steps, step_threads=k)
+            line += f" {rate:>11.0f} {rate / batched:>6.2f}"
+        print(line)
 
 
 if __name__ == "__main__":

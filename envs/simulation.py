@@ -10,6 +10,7 @@ goal sampling, observation, achieved goal, reward, success, time limit) lives he
 from __future__ import annotations
 
 import dataclasses
+from concurrent.futures import ThreadPoolExecutor
 
 import mujoco
 import numpy as np
@@ -114,6 +115,10 @@ class GoalSimulation:
             0.01 margin per contact and MuJoCo 2.0's capsule masses and inertias; see
             :class:`~torchrl_dhrl.envs.AntAgent` and :func:`reference_engine_spec`). Defaults to ``False``:
             the spec's own agent (MuJoCo 3's sum of margins, exact capsules).
+        step_threads (int): threads that step the envs in :meth:`step`, each a contiguous group of them
+            (MuJoCo releases the GIL while it integrates, so the groups run on several cores). Every env has its
+            own ``MjData``, observation row and random stream, so the transitions are those of stepping them one
+            by one, bit for bit. At most ``num_envs`` are used. Defaults to ``1`` (no thread pool).
 
     Examples:
         >>> import numpy as np
@@ -141,7 +146,10 @@ class GoalSimulation:
         seed: int | None = None,
         right_flipped_after: int | None = None,
         reference_engine: bool = False,
+        step_threads: int = 1,
     ) -> None:
+        if isinstance(step_threads, bool) or not isinstance(step_threads, (int, np.integer)) or step_threads < 1:
+            raise ValueError(f"step_threads must be a positive integer, got {step_threads!r}.")
         if not isinstance(reference_engine, (bool, np.bool_)):
             raise ValueError(f"reference_engine must be True or False, got {reference_engine!r}.")
         self.spec = spec = reference_engine_spec(task) if reference_engine else get_env_spec(task)
@@ -168,6 +176,10 @@ class GoalSimulation:
             right_flipped_after = int(right_flipped_after)
         self.right_flipped_after = right_flipped_after
         self.num_envs = num_envs
+        #: threads stepping the envs (see ``step_threads``); the pool itself starts at the first step
+        self.step_threads = min(int(step_threads), num_envs)
+        self._groups = [g.tolist() for g in np.array_split(np.arange(num_envs), self.step_threads)]
+        self._pool: ThreadPoolExecutor | None = None
         self.max_episode_steps = max_episode_steps
         self.eval_goals = bool(eval_goals)
         self.agent = spec.agent
@@ -440,11 +452,22 @@ class GoalSimulation:
         actions = self.check_actions(actions)
         command = self.agent.command(actions, self.observation[:, self._qpos_slice])
         field = self.agent.control_field
-        model, nstep, observe = self.model, self.agent.frame_skip, self._observe
-        for i, data in enumerate(self.datas):
-            getattr(data, field)[:] = command[i]
-            mujoco.mj_step(model, data, nstep)
-            observe(i, data)
+        model, nstep, observe, datas = self.model, self.agent.frame_skip, self._observe, self.datas
+
+        def advance(indices) -> None:  # each env's own MjData and rows: groups may run at once
+            for i in indices:
+                data = datas[i]
+                getattr(data, field)[:] = command[i]
+                mujoco.mj_step(model, data, nstep)
+                observe(i, data)
+
+        if self.step_threads == 1:
+            advance(range(self.num_envs))
+        else:
+            if self._pool is None:
+                self._pool = ThreadPoolExecutor(self.step_threads, thread_name_prefix="mujoco-step")
+            for done in self._pool.map(advance, self._groups):  # re-raises a group's error here
+                del done
         self.step_count += 1
         if self.right_flipped_after is not None:
             self._right_flipped()
@@ -528,7 +551,15 @@ class GoalSimulation:
         return self._renderer.render()
 
     def close(self) -> None:
-        """Frees the renderer, if any."""
+        """Frees the renderer and stops the stepping threads, if any (a later step starts them again)."""
         if self._renderer is not None:
             self._renderer.close()
             self._renderer = None
+        if self._pool is not None:
+            self._pool.shutdown()
+            self._pool = None
+
+    def __getstate__(self) -> dict:
+        state = dict(self.__dict__)
+        state["_pool"] = None  # threads do not travel: a copy starts its own at its first step
+        return state

@@ -74,6 +74,8 @@ class GoalEnv(EnvBase):
         reference_engine (bool): ant mazes only: emulate MuJoCo 2.0 where MuJoCo 3 differs (0.01 margin per
             contact, MuJoCo 2.0's capsule masses and inertias; see :class:`~torchrl_dhrl.envs.AntAgent`).
             Defaults to ``False``.
+        step_threads (int): threads stepping the envs in groups (MuJoCo releases the GIL); the same transitions
+            as one thread (see :class:`~torchrl_dhrl.envs.GoalSimulation`). Defaults to ``1``.
 
     Examples:
         >>> import torch
@@ -106,6 +108,7 @@ class GoalEnv(EnvBase):
         seed: int | None = None,
         right_flipped_after: int | None = None,
         reference_engine: bool = False,
+        step_threads: int = 1,
     ) -> None:
         spec = get_env_spec(task)
         sim = GoalSimulation(
@@ -115,6 +118,7 @@ class GoalEnv(EnvBase):
             eval_goals=eval_goals,
             right_flipped_after=right_flipped_after,
             reference_engine=reference_engine,
+            step_threads=step_threads,
         )
         super().__init__(device=device, batch_size=torch.Size([num_envs]))
         self._sim = sim
@@ -293,6 +297,7 @@ def make_env(
     max_episode_steps: int | None = None,
     right_flipped_after: int | None = None,
     reference_engine: bool = False,
+    step_threads: int = 1,
     env_kwargs: Mapping[str, Any] | None = None,
 ) -> EnvBase:
     """Builds a DHRL environment as a native batched TorchRL environment.
@@ -321,6 +326,8 @@ def make_env(
             the larger of the two margins where MuJoCo 3 adds them) and the leg capsules MuJoCo 2.0's masses and
             inertias (a cylinder ``radius`` longer; the ant weighs 0.879 instead of 0.911). The env is built from
             the spec with ``agent=dataclasses.replace(agent, reference_engine=True)``. Defaults to ``False``.
+        step_threads (int): built-in envs only: threads stepping the envs in groups, the same transitions as
+            one thread (:class:`~torchrl_dhrl.envs.GoalSimulation`). Defaults to ``1``.
         env_kwargs (dict, optional): ``"gymnasium:<id>"`` only: keyword arguments of
             :class:`~torchrl_dhrl.envs.GymnasiumGoalEnv` (``reset_options``, ``success_threshold``,
             ``make_kwargs``). Defaults to ``None``.
@@ -339,6 +346,8 @@ def make_env(
         torch.Size([1, 3, 3])
     """
     env_id = gymnasium_id(name)
+    if step_threads != 1 and (env_id is not None or get_env_factory(name) is not None):
+        raise ValueError(f"step_threads is an option of the built-in envs, not of {name!r}; leave it at 1.")
     if env_kwargs and env_id is None:
         raise ValueError(f"env_kwargs are options of the Gymnasium goal envs (gymnasium:<id>), not of {name!r}.")
     if env_id is not None:
@@ -382,4 +391,5 @@ def make_env(
         seed=seed,
         right_flipped_after=right_flipped_after,
         reference_engine=reference_engine,
+        step_threads=step_threads,
     )

@@ -265,6 +265,7 @@ def build_environment(cfg: dict, device: torch.device, *, eval: bool = False, ag
             goal_shifting=component_arguments(cfg)["goal_shifting"] if cfg["fgs"]["enabled"] and not eval else None,
             right_flipped_after=cfg.get("right_flipped_after"),
             reference_engine=cfg.get("reference_engine", False),
+            step_threads=cfg.get("step_threads", 1),
             env_kwargs=gymnasium_kwargs(cfg, eval=eval),
         )
     except GoalEnvError as err:

@@ -3,10 +3,11 @@
 ``right_flipped_after``: an env switch (off by default, as the reference) that puts a flipped ant back on its feet.
 Checked against scipy's rotations (upside-down test, heading), MuJoCo's own contact list (no wall overlap after
 righting), a state round trip, and the recipe's configuration checks and wiring. MuJoCo offscreen rendering
-(where OpenGL exists)."""
+(where OpenGL exists). ``step_threads``: envs stepped in threads give the transitions of one thread, bit for bit."""
 
 from __future__ import annotations
 
+import copy
 import os
 
 import numpy as np
@@ -246,3 +247,68 @@ def test_offscreen_rendering():
     assert gym_env.render().shape == (80, 80, 3)
     gym_env.close()
     env.close()
+
+
+# ---- stepping the envs in threads -------------------------------------------------------------------------------
+
+
+@pytest.mark.parametrize("task", ["PointMaze", "AntMazeSmall", "Reacher3D", "UR3Obstacle"])
+@pytest.mark.parametrize("threads", [2, 3, 8])
+def test_threaded_steps_equal_sequential_steps(task, threads):
+    """``step_threads``: 5 envs stepped by 2, 3 or 8 (capped at 5) threads give the states, observations, rewards
+    and successes of one thread, bit for bit, over random actions and partial resets."""
+    sims = [GoalSimulation(task, 5, seed=3, step_threads=n, max_episode_steps=12) for n in (1, threads)]
+    assert sims[1].step_threads == min(threads, 5) and sum(len(g) for g in sims[1]._groups) == 5
+    rng = np.random.default_rng(0)
+    for sim in sims:
+        sim.reset()
+    for t in range(30):
+        actions = rng.uniform(-1.5, 1.5, size=(5, sims[0].action_dim)) * sims[0].agent.action_high
+        outs = [sim.step(actions) for sim in sims]
+        for a, b in zip(outs[0], outs[1], strict=True):
+            np.testing.assert_array_equal(a, b)
+        for name in ("observation", "achieved_goal", "desired_goal", "step_count"):
+            np.testing.assert_array_equal(getattr(sims[0], name), getattr(sims[1], name), err_msg=name)
+        if t % 7 == 6:
+            mask = rng.random(5) < 0.5
+            for sim in sims:
+                sim.reset(mask)
+    for i in range(5):
+        np.testing.assert_array_equal(sims[0].datas[i].qpos, sims[1].datas[i].qpos)
+        np.testing.assert_array_equal(sims[0].datas[i].qvel, sims[1].datas[i].qvel)
+    for sim in sims:
+        sim.close()
+
+
+def test_threaded_steps_copy_close_and_refuse_bad_counts():
+    """A copy of a simulation with running threads starts its own; ``close`` stops them and a later step restarts
+    them; a bad count is refused, and ``make_env`` keeps the option to the built-in envs."""
+    sim = GoalSimulation("AntMazeSmall", 4, seed=0, step_threads=2)
+    sim.reset()
+    sim.step(np.zeros((4, 8)))
+    assert sim._pool is not None
+    twin = copy.deepcopy(sim)
+    assert twin._pool is None
+    np.testing.assert_array_equal(twin.step(np.ones((4, 8)))[0], sim.step(np.ones((4, 8)))[0])
+    sim.close()
+    assert sim._pool is None
+    sim.step(np.zeros((4, 8)))
+    assert sim._pool is not None
+    for bad in (0, -1, 1.5, True):
+        with pytest.raises(ValueError, match="step_threads must be a positive integer"):
+            GoalSimulation("PointMaze", 2, step_threads=bad)
+    with pytest.raises(ValueError, match="step_threads is an option of the built-in envs"):
+        make_env("gymnasium:PointMaze_UMaze-v3", step_threads=2)
+    env = make_env("PointMaze", num_envs=3, seed=0, step_threads=2)
+    assert env._sim.step_threads == 2
+    env.close()
+
+
+def test_step_threads_key_reaches_the_training_and_test_envs():
+    from dhrl_utils import build_environment
+
+    cfg = with_implied_keys(recipe_config("env=AntMazeSmall", "preset=smoke", "num_envs=2", "step_threads=2"))
+    for eval_ in (False, True):
+        env = build_environment(cfg, torch.device("cpu"), eval=eval_)
+        assert env.simulation.step_threads == 2
+        env.close()

@@ -61,6 +61,7 @@ def _snapshot(path):
         ("threads=0", "`threads` must be null .* or an integer >= 1"),
         ("threads=two", "`threads`"),
         ("updates_per_graph=0", "`updates_per_graph` must be >= 1"),
+        ("step_threads=0", "`step_threads` must be >= 1"),
         ("updates_per_graph=4", "`updates_per_graph` 4 > 1 needs cudagraphs=true"),
         ("low.hidden=64", "`low.hidden` must be a non-empty list"),
         ("high.subgoal_low=[a,b]", "`high.subgoal_low` must be a list of numbers"),

@@ -48,6 +48,7 @@ IGNORED_KEYS = (
     "progress",
     "threads",
     "device",
+    "step_threads",
     "fast",
     "cudagraphs",
     "updates_per_graph",

@@ -263,6 +263,7 @@ def make_environment(
     goal_shifting: Mapping[str, Any] | None = None,
     right_flipped_after: int | None = None,
     reference_engine: bool = False,
+    step_threads: int = 1,
     env_kwargs: Mapping[str, Any] | None = None,
 ) -> EnvBase:
     """A batched env of :func:`~torchrl_dhrl.envs.make_env` (``eval``: on the test goals), with the agent's primers.
@@ -274,8 +275,8 @@ def make_environment(
     exists). With ``agent``, the subgoal scheduler's and the planner's primers are appended, and
     ``goal_shifting`` (the keyword arguments of :class:`~torchrl_dhrl.planner.FrontierGoalShifting`:
     ``noise``, ``weighting``, ``trigger``) adds frontier-based goal shifting at every reset.
-    ``right_flipped_after``, ``reference_engine`` (ant mazes) and ``env_kwargs`` (``gymnasium:<id>``) are passed
-    to :func:`~torchrl_dhrl.envs.make_env`.
+    ``right_flipped_after``, ``reference_engine`` (ant mazes), ``step_threads`` (built-in envs) and ``env_kwargs``
+    (``gymnasium:<id>``) are passed to :func:`~torchrl_dhrl.envs.make_env`.
 
     Raises:
         GoalEnvError: when the env does not meet the contract.
@@ -294,6 +295,7 @@ def make_environment(
         max_episode_steps=max_episode_steps,
         right_flipped_after=right_flipped_after,
         reference_engine=reference_engine,
+        step_threads=step_threads,
         env_kwargs=env_kwargs,
     )
     features = observation_transforms(angle_features)

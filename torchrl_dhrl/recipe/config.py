@@ -76,6 +76,7 @@ RESUME_MUTABLE_KEYS = (
     "resume",
     "device",
     "threads",
+    "step_threads",
     "fast",
     "cudagraphs",
     "updates_per_graph",
@@ -738,6 +739,8 @@ def validate_config(cfg: Mapping, env_names: tuple[str, ...] | None = None) -> N
             )
     _number(cfg, "total_steps", low=0, strict=True, integer=True)
     _number(cfg, "num_envs", low=1, integer=True)
+    if "step_threads" in cfg:
+        _number(cfg, "step_threads", low=1, integer=True)
     length = _get(cfg, "episode_length")
     if length is not None:
         _number(cfg, "episode_length", low=1, integer=True)
