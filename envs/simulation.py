@@ -466,8 +466,7 @@ class GoalSimulation:
         else:
             if self._pool is None:
                 self._pool = ThreadPoolExecutor(self.step_threads, thread_name_prefix="mujoco-step")
-            for done in self._pool.map(advance, self._groups):  # re-raises a group's error here
-                del done
+            list(self._pool.map(advance, self._groups))  # waits for every group; re-raises a group's error
         self.step_count += 1
         if self.right_flipped_after is not None:
             self._right_flipped()
