@@ -12,7 +12,11 @@ Times one call of the acting policy ``TensorDictSequential(high_policy, planner,
   planning inside a ``torch.cond``), what the recipe's ``compile_policy=true`` runs in the collector; its compile
   time is printed apart;
 - ``... every call``: the capturable planner with ``plan_on_demand=False``: every env planned at every call
-  (static control flow, the variant for a policy captured whole in a CUDA graph).
+  (static control flow, the variant for a policy captured whole in a CUDA graph);
+- ``captured (cudagraph_policy)`` (CUDA only): the capturable policy captured whole as one CUDA graph with
+  :class:`tensordict.nn.CudaGraphModule`, what the recipe's ``cudagraph_policy=true`` runs in the collector
+  (inputs copied in, one replay, outputs copied out; the planner plans every env in a replay); the warm-up and
+  capture time is printed apart.
 
 The graph is built once from random states of the maze's box with the agent's (untrained) learned distance,
 so its landmarks and the distance network have the recipe's sizes (``--landmarks``, ``--hidden``).
@@ -28,6 +32,7 @@ import statistics
 import time
 
 import torch
+from tensordict.nn import CudaGraphModule
 from torchrl.envs.utils import step_mdp
 
 from torchrl_dhrl.recipe import make_agent, make_environment
@@ -112,10 +117,16 @@ def main():
             ("compiled capturable", True, True, True),
             ("eager capturable, every call", True, False, False),
             ("compiled capturable, every call", True, True, False),
+            *([("captured (cudagraph_policy)", True, "cudagraph", True)] if cuda else []),
         ):
             agent, env = build(args, num_envs, capturable, on_demand)
             policy, compile_s = agent.policy, float("nan")
-            if compiled:
+            if compiled == "cudagraph":
+                policy = CudaGraphModule(agent.policy, warmup=2, device=torch.device(args.device))
+                start = time.perf_counter()
+                time_policy(policy, env, 4, synchronize)  # two eager warm-up calls, the capture, a replay
+                compile_s = time.perf_counter() - start
+            elif compiled:
                 torch._dynamo.reset()
                 policy = torch.compile(agent.policy, fullgraph=True)
                 start = time.perf_counter()

@@ -27,12 +27,22 @@ Threads: ``--threads`` (default 1) is passed to every run (``threads=`` and ``OM
 default`` passes neither, so each run uses the recipe's default (``threads=null``: every core this process may
 use, fewer while other processes keep some busy). ``--competitors 0 1`` runs every variant alone and next to
 one CPU-bound busy loop (started with the run, stopped after it), and prints each variant's slowdown.
+
+Several seeds at once: ``--seeds-at-once 1 4`` runs every variant as one process (seed 0) and as 4 processes
+started together (seeds 0-3, each with ``--threads``; on one GPU they share it), and prints the aggregate env
+steps/s (the sum of the processes' rates), its ratio to one run's, and whether seed 0's metrics (every
+non-timing column) are identical to its run alone::
+
+    python benchmarks/bench_train.py --seeds-at-once 1 2 --threads 1 --repeats 1          # 2 cores: 2 seeds
+    python benchmarks/bench_train.py --env AntMaze --preset paper --steps 6000 --threads 4 --seeds-at-once 1 4 \
+        --variants "device=cuda"                                                             # 4 seeds on one GPU
 """
 
 from __future__ import annotations
 
 import argparse
 import csv
+import math
 import os
 import shlex
 import statistics
@@ -43,6 +53,8 @@ import time
 from pathlib import Path
 
 ROOT = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(ROOT / "tests"))
+from _recipe import TIMING_COLUMNS, recipe_config  # noqa: E402 - the tests' helpers: config, timing columns
 
 
 def prepare_baseline(ref: str, workdir: Path) -> tuple[Path, dict[str, str]]:
@@ -79,6 +91,37 @@ def remove_baseline(workdir: Path) -> None:
     )
 
 
+def untimed_rows(rows: list[dict]) -> list[dict]:
+    """A run's metrics rows without the columns that measure time (what must not differ between equal runs)."""
+    return [{k: v for k, v in row.items() if not k.startswith(TIMING_COLUMNS)} for row in rows]
+
+
+def compare_rows(rows: list[dict], alone: list[dict]) -> str:
+    """How a run's untimed metrics compare with the same seed's run alone: identical, equal to float round-off
+    (reductions split over another number of threads, e.g. ``threads=null`` adapting to the other seeds), or
+    different (the first row and columns that differ)."""
+    if rows == alone:
+        return "identical"
+    if len(rows) != len(alone) or any(a.keys() != b.keys() for a, b in zip(rows, alone, strict=True)):
+        return f"DIFFERENT ({len(rows)} rows against {len(alone)})"
+    worst, columns, far = 0.0, set(), False
+    for a, b in zip(rows, alone, strict=True):
+        for key in a:
+            if a[key] == b[key]:
+                continue
+            try:
+                x, y = float(a[key]), float(b[key])
+            except ValueError:
+                return f"DIFFERENT ({key} at {a.get('env_steps')} env steps)"
+            worst = max(worst, abs(x - y))
+            columns.add(key)
+            # round-off: relative to the value, or absolute near 0 (e.g. a speed from two close positions)
+            far |= not math.isclose(x, y, rel_tol=1e-5, abs_tol=1e-6)
+    named = ", ".join(sorted(columns)[:4]) + (", ..." if len(columns) > 4 else "")
+    what = f"absolute difference up to {worst:.1e} in {len(columns)} column(s): {named}"
+    return f"DIFFERENT ({what})" if far else f"equal to float round-off ({what})"
+
+
 def run_recipe(
     recipe: Path,
     env_add: dict,
@@ -86,9 +129,11 @@ def run_recipe(
     run_dir: Path,
     threads: int | None,
     competitors: int = 0,
-) -> dict:
-    """Runs the recipe once (``threads=None``: its default), next to ``competitors`` busy loops; returns its
-    loop rate and timings from ``metrics.csv``."""
+    seeds: list[int] | None = None,
+) -> list[dict]:
+    """Runs the recipe (``threads=None``: its default) next to ``competitors`` busy loops, once, or once per seed
+    of ``seeds`` as processes started together (``run_dir/seed_<k>``); returns each run's metrics rows and wall
+    clock."""
     env = {**os.environ, **env_add}
     if threads is None:
         env.pop("OMP_NUM_THREADS", None)
@@ -97,30 +142,52 @@ def run_recipe(
         env.update(OMP_NUM_THREADS=str(threads), MKL_NUM_THREADS=str(threads))
     if "PYTHONPATH" not in env_add:  # the working tree: its own editable install, not a baseline's copy
         env.pop("PYTHONPATH", None)
-    cmd = [
-        sys.executable,
-        str(recipe),
-        *([] if threads is None else [f"threads={threads}"]),
-        *overrides,
-        f"run_dir={run_dir}",
-        f"hydra.run.dir={run_dir}/hydra",
-        "logger.backend=none",
-        "plots.every_epochs=0",
-        "progress=false",
+    dirs = [run_dir] if seeds is None else [run_dir / f"seed_{seed}" for seed in seeds]
+    seeds = seeds or [None]
+    commands = [
+        [
+            sys.executable,
+            str(recipe),
+            *([] if threads is None else [f"threads={threads}"]),
+            *overrides,
+            *([] if seed is None else [f"seed={seed}"]),
+            f"run_dir={folder}",
+            f"hydra.run.dir={folder}/hydra",
+            "logger.backend=none",
+            "plots.every_epochs=0",
+            "progress=false",
+        ]
+        for seed, folder in zip(seeds, dirs, strict=True)
     ]
     burners = [subprocess.Popen([sys.executable, "-c", "while True: pass"]) for _ in range(competitors)]
+    logs = [tempfile.TemporaryFile(mode="w+") for _ in commands]
     try:
         start = time.perf_counter()
-        proc = subprocess.run(cmd, env=env, cwd=recipe.parents[1], capture_output=True, text=True)
-        wall = time.perf_counter() - start
+        procs = [
+            subprocess.Popen(
+                cmd, env=env, cwd=recipe.parents[1], stdout=subprocess.DEVNULL, stderr=log, text=True
+            )
+            for cmd, log in zip(commands, logs, strict=True)
+        ]
+        walls: list[float | None] = [None] * len(procs)
+        while None in walls:
+            for i, proc in enumerate(procs):
+                if walls[i] is None and proc.poll() is not None:
+                    walls[i] = time.perf_counter() - start
+            time.sleep(0.05)
     finally:
         for burner in burners:
             burner.kill()
             burner.wait()
-    if proc.returncode != 0:
-        raise RuntimeError(f"{shlex.join(cmd)} failed:\n{proc.stderr[-3000:]}")
-    rows = list(csv.DictReader(open(run_dir / "metrics.csv")))
-    return {"rows": rows, "process_s": wall}
+    for cmd, proc, log in zip(commands, procs, logs, strict=True):
+        log.seek(0)
+        if proc.returncode != 0:
+            raise RuntimeError(f"{shlex.join(cmd)} failed:\n{log.read()[-3000:]}")
+        log.close()
+    return [
+        {"rows": list(csv.DictReader(open(folder / "metrics.csv"))), "process_s": wall}
+        for folder, wall in zip(dirs, walls, strict=True)
+    ]
 
 
 def loop_rate(rows: list[dict], warmup_steps: int) -> dict[str, float]:
@@ -169,6 +236,25 @@ def parts_rate(overrides: list[str], threads: int | None) -> float:
     return float(last.split("->")[-1].split()[0])
 
 
+def cell_name(variant: str, competitors: int, seeds: int) -> str:
+    """A table row's name: the variant, the busy loops beside it and the seeds run at once."""
+    return (
+        variant + (f" x{seeds} seeds" if seeds > 1 else "") + (f" +{competitors} busy" if competitors else "")
+    )
+
+
+def combine(rates: list[dict]) -> dict[str, float]:
+    """Several runs at once as one row: their rates summed (aggregate throughput), their per-step costs
+    averaged (what one run paid), the longest process."""
+    return {
+        "env_steps_per_s": sum(r["env_steps_per_s"] for r in rates),
+        "wall_steps_per_s": sum(r["wall_steps_per_s"] for r in rates),
+        "update_ms_per_step": statistics.mean(r["update_ms_per_step"] for r in rates),
+        "collect_ms_per_step": statistics.mean(r["collect_ms_per_step"] for r in rates),
+        "process_s": max(r["process_s"] for r in rates),
+    }
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(
         description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter
@@ -200,6 +286,13 @@ def main() -> None:
         default=[0],
         help="run every variant next to each of these numbers of busy-loop processes (default: 0)",
     )
+    parser.add_argument(
+        "--seeds-at-once",
+        type=int,
+        nargs="+",
+        default=[1],
+        help="run every variant as each of these numbers of seeds started together (default: 1)",
+    )
     parser.add_argument("--parts", action="store_true", help="also run profile_train.py (sum of the parts)")
     parser.add_argument("--keep", default=None, help="folder to keep the runs' directories in")
     parser.add_argument("overrides", nargs="*", help="recipe overrides for every variant (key=value)")
@@ -211,9 +304,6 @@ def main() -> None:
         f"schedule.epoch_episodes={args.epoch_episodes}",
         *args.overrides,
     ]
-
-    sys.path.insert(0, str(ROOT / "tests"))
-    from _recipe import recipe_config  # noqa: PLC0415 - the composed config gives the warm-up length
 
     cfg = recipe_config(*common)
     warmup_episodes = cfg["schedule"]["warmup_episodes"]
@@ -239,22 +329,42 @@ def main() -> None:
     for text in args.variants:
         name = f"tree {text}".strip()
         variants[name] = (ROOT / "recipes" / "dhrl_antmaze.py", {}, shlex.split(text))
-    cells = {  # every variant next to each number of competitors
-        (f"{name} +{n} busy" if n else name): (*variant, n)
+    base_seed = int(cfg["seed"])
+    cells = {  # every variant next to each number of competitors, as each number of seeds at once
+        cell_name(name, n, k): (name, *variant, n, k)
         for name, variant in variants.items()
         for n in args.competitors
+        for k in args.seeds_at_once
     }
     results: dict[str, list[dict]] = {name: [] for name in cells}
+    identical: dict[str, list[str]] = {name: [] for name in cells}
     try:
         for round_ in range(args.repeats):
-            for i, (name, (recipe, env_add, extra, competitors)) in enumerate(cells.items()):
+            alone_rows: dict[str, list[dict]] = {}  # seed 0's metrics run alone, per variant and competitors
+            for i, (name, (variant, recipe, env_add, extra, competitors, k)) in enumerate(cells.items()):
                 run_dir = work / f"r{round_}_v{i}"
-                out = run_recipe(recipe, env_add, [*common, *extra], run_dir, args.threads, competitors)
-                rows = out["rows"]
-                warmup_steps = warmup_episodes * float(rows[0]["env_steps"]) / float(rows[0]["episodes"])
-                rate = loop_rate(rows, warmup_steps) | {"process_s": out["process_s"]}
+                seeds = list(range(base_seed, base_seed + k))
+                outs = run_recipe(
+                    recipe, env_add, [*common, *extra], run_dir, args.threads, competitors, seeds
+                )
+                rates = []
+                for out in outs:
+                    rows = out["rows"]
+                    warmup_steps = warmup_episodes * float(rows[0]["env_steps"]) / float(rows[0]["episodes"])
+                    rates.append(loop_rate(rows, warmup_steps) | {"process_s": out["process_s"]})
+                rate = combine(rates)
                 results[name].append(rate)
-                print(f"round {round_ + 1} {name:<32} {rate['env_steps_per_s']:7.2f} env steps/s", flush=True)
+                alone = cell_name(variant, competitors, 1)
+                first = untimed_rows(outs[0]["rows"])
+                if k == 1:
+                    alone_rows[alone] = first
+                elif alone in alone_rows:
+                    identical[name].append(compare_rows(first, alone_rows[alone]))
+                print(
+                    f"round {round_ + 1} {name:<40} {rate['env_steps_per_s']:7.2f} env steps/s"
+                    + (f" (sum of {k} seeds)" if k > 1 else ""),
+                    flush=True,
+                )
     finally:
         if args.baseline:
             remove_baseline(work / "baseline")
@@ -272,23 +382,31 @@ def main() -> None:
     )
     names = list(cells)
     ref = names[0]
-    header = f"{'variant':<32} {'env steps/s':>16} {'ratio':>6} {'update ms/step':>15} {'collect ms/step':>16} {'wall steps/s':>13} {'process s':>10}"
+    header = f"{'variant':<40} {'env steps/s':>16} {'ratio':>6} {'update ms/step':>15} {'collect ms/step':>16} {'wall steps/s':>13} {'process s':>10}"
     print(header)
     med = {n: statistics.median(r["env_steps_per_s"] for r in results[n]) for n in names}
     for n in names:
         rs = results[n]
         best = max(r["env_steps_per_s"] for r in rs)
         print(
-            f"{n:<32} {med[n]:>8.2f} ({best:6.2f}) {med[n] / med[ref]:>6.2f} "
+            f"{n:<40} {med[n]:>8.2f} ({best:6.2f}) {med[n] / med[ref]:>6.2f} "
             f"{statistics.median(r['update_ms_per_step'] for r in rs):>15.2f} "
             f"{statistics.median(r['collect_ms_per_step'] for r in rs):>16.2f} "
             f"{statistics.median(r['wall_steps_per_s'] for r in rs):>13.2f} "
             f"{statistics.median(r['process_s'] for r in rs):>10.1f}"
         )
-    for name, (_, _, _, n) in cells.items():
-        alone = name.removesuffix(f" +{n} busy")
-        if n and alone in med:
+    for name, (variant, _, _, _, n, k) in cells.items():
+        if n and cell_name(variant, 0, k) in med:
+            alone = cell_name(variant, 0, k)
             print(f"{alone}: {med[alone] / med[name]:.2f}x slower next to {n} busy process(es)")
+        one = cell_name(variant, n, 1)
+        if k > 1 and one in med:
+            verdicts = identical[name]
+            verdict = "; ".join(sorted(set(verdicts))) if verdicts else "not compared (no single run)"
+            print(
+                f"{name}: {med[name] / med[one]:.2f}x the env steps/s of one run ({med[name]:.2f} against "
+                f"{med[one]:.2f}); seed {base_seed}'s metrics against its run alone: {verdict}"
+            )
     if parts is not None:
         tree = next(n for n in names if n.startswith("tree"))
         print(

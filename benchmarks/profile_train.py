@@ -24,7 +24,15 @@ an epoch. Run::
     python benchmarks/profile_train.py env=AntMaze preset=paper update_dtype=bfloat16 --threads 2
     python benchmarks/profile_train.py compile=true             # the compiled updates
 
-Arguments after the options are recipe overrides (``key=value``), as on the recipe's command line.
+Arguments after the options are recipe overrides (``key=value``), as on the recipe's command line. On CUDA
+every timed part ends with a device synchronisation, so a figure is the part's device time, not its launch time.
+
+``--kernels`` also counts what one update runs, over ``--kernel-updates`` updates of each level under
+:mod:`torch.profiler`: operator calls (``aten::`` ops, nested ones included; on a CPU the closest thing to a
+kernel count) and, on CUDA, the kernels the device ran, the kernel launches the host issued and the CUDA-graph
+replays. A captured update (``cudagraphs=true``) shows one graph replay and no kernel launch of its own::
+
+    python benchmarks/profile_train.py --kernels env=AntMaze preset=paper device=cuda cudagraphs=true
 """
 
 from __future__ import annotations
@@ -51,6 +59,19 @@ def recipe_config(overrides: list[str]) -> dict:
     return OmegaConf.to_container(cfg, resolve=True)
 
 
+def _no_sync() -> None:
+    pass
+
+
+#: waits for the device's queued work before a clock is read (``torch.cuda.synchronize`` on CUDA, see main)
+_sync = _no_sync
+
+
+def _now() -> float:
+    _sync()
+    return time.perf_counter()
+
+
 class _Clock:
     """Seconds accumulated per phase by forward hooks (pre/post) and by explicit wrappers."""
 
@@ -60,10 +81,10 @@ class _Clock:
 
     def hook(self, module: torch.nn.Module, name: str) -> None:
         def before(*_):
-            self._start[name] = time.perf_counter()
+            self._start[name] = _now()
 
         def after(*_):
-            self.add(name, time.perf_counter() - self._start[name])
+            self.add(name, _now() - self._start[name])
 
         module.register_forward_pre_hook(before)
         module.register_forward_hook(after)
@@ -72,11 +93,11 @@ class _Clock:
         fn = getattr(owner, attr)
 
         def timed(*args, **kwargs):
-            start = time.perf_counter()
+            start = _now()
             try:
                 return fn(*args, **kwargs)
             finally:
-                self.add(name, time.perf_counter() - start)
+                self.add(name, _now() - start)
 
         setattr(owner, attr, timed)
 
@@ -99,10 +120,35 @@ def _no_relabel(rb):
 
 
 def _timed(fn, repeats: int = 1) -> float:
-    start = time.perf_counter()
+    start = _now()
     for _ in range(repeats):
         fn()
-    return (time.perf_counter() - start) / repeats
+    return (_now() - start) / repeats
+
+
+def count_kernels(fn, calls: int, cuda: bool) -> dict[str, float]:
+    """Per call of ``fn`` under :mod:`torch.profiler`: ``aten::`` operator calls (nested included) and, on CUDA,
+    kernels run on the device, kernel launches from the host and CUDA-graph replays."""
+    from torch.autograd import DeviceType
+    from torch.profiler import ProfilerActivity, profile
+
+    activities = [ProfilerActivity.CPU] + ([ProfilerActivity.CUDA] if cuda else [])
+    _sync()
+    with profile(activities=activities) as prof:
+        for _ in range(calls):
+            fn()
+        _sync()
+    events = prof.events()
+    counts = {"aten ops": sum(event.name.startswith("aten::") for event in events)}
+    if cuda:
+        counts["device kernels"] = sum(event.device_type == DeviceType.CUDA for event in events)
+        counts["kernel launches"] = sum(event.name in _LAUNCHES for event in events)
+        counts["graph replays"] = sum(event.name == "cudaGraphLaunch" for event in events)
+    return {name: count / calls for name, count in counts.items()}
+
+
+#: the CUDA runtime and driver calls that launch one kernel
+_LAUNCHES = frozenset({"cudaLaunchKernel", "cudaLaunchKernelExC", "cuLaunchKernel", "cuLaunchKernelEx"})
 
 
 def profile_low_update(updater) -> dict[str, float]:
@@ -114,27 +160,27 @@ def profile_low_update(updater) -> dict[str, float]:
     out["low: sample + relabel"] = _timed(rb.sample)
     sample = rb.sample()
     autocast = updater._autocast
-    t0 = time.perf_counter()
+    t0 = _now()
     with autocast():
         terms = updater._loss_terms(sample, False)  # compiled with compile=true
     total = torch.stack([v for k, v in terms.items() if k.startswith("loss_")]).sum()
-    t1 = time.perf_counter()
+    t1 = _now()
     for o in opt.values():
         o.zero_grad(set_to_none=True)
     total.backward()
-    t2 = time.perf_counter()
+    t2 = _now()
     opt["critic"].step()
-    t3 = time.perf_counter()
+    t3 = _now()
     with autocast():
         actor = updater._actor_fn(sample)[0]
-    t4 = time.perf_counter()
+    t4 = _now()
     opt["actor"].zero_grad(set_to_none=True)
     actor.backward()
-    t5 = time.perf_counter()
+    t5 = _now()
     opt["actor"].step()
-    t6 = time.perf_counter()
+    t6 = _now()
     updater.target_updater.step()
-    t7 = time.perf_counter()
+    t7 = _now()
     interval = updater.actor_update_interval
     out |= {
         "low: critic forward": t1 - t0,
@@ -166,6 +212,10 @@ def main() -> None:
     parser.add_argument("--episodes", type=int, default=40, help="episodes collected before timing")
     parser.add_argument("--repeats", type=int, default=5, help="interleaved timing rounds (minimum reported)")
     parser.add_argument("--threads", type=int, default=1)
+    parser.add_argument("--kernels", action="store_true", help="also count operators and kernels per update")
+    parser.add_argument(
+        "--kernel-updates", type=int, default=20, help="updates of each level counted (--kernels)"
+    )
     parser.add_argument("overrides", nargs="*", help="recipe overrides, e.g. env=AntMaze preset=paper")
     args = parser.parse_args()
     warnings.filterwarnings("ignore")
@@ -177,8 +227,13 @@ def main() -> None:
 
     cfg = recipe_config(overrides)
     device = resolve_device(cfg["device"])
+    if device.type == "cuda":
+        global _sync
+        _sync = torch.cuda.synchronize
     torch.manual_seed(cfg["seed"])
-    agent, train_env, eval_env, low_rb, high_rb, low_updater, high_updater, collector = build_run(cfg, device)
+    agent, train_env, eval_env, low_rb, high_rb, low_updater, high_updater, collector, eval_policy = build_run(
+        cfg, device
+    )
     episode_length = train_env.base_env.max_episode_steps
     schedule = cfg["schedule"]
 
@@ -211,9 +266,9 @@ def main() -> None:
     rounds: list[dict[str, float]] = []
     for _ in range(args.repeats):
         r: dict[str, float] = {}
-        start = time.perf_counter()
+        start = _now()
         batch = next(iterator)
-        collect = time.perf_counter() - start
+        collect = _now() - start
         steps = batch.numel()
         parts = clock.pop()
         r["collect: whole (per env step)"] = collect / steps
@@ -225,11 +280,19 @@ def main() -> None:
         r["epoch: graph rebuild"] = rebuild_graph(agent.planner, low_rb, cfg["planner"]["candidates"])[
             "graph/build_s"
         ]
-        start = time.perf_counter()
-        evaluate_epoch(agent, eval_env, episode_length, **evaluation_kwargs(cfg))
-        r["epoch: evaluation"] = time.perf_counter() - start
+        start = _now()
+        evaluate_epoch(agent, eval_env, episode_length, policy=eval_policy, **evaluation_kwargs(cfg))
+        r["epoch: evaluation"] = _now() - start
         clock.pop()
         rounds.append(r)
+    kernels = (
+        {
+            level: count_kernels(updater.step, args.kernel_updates, device.type == "cuda")
+            for level, updater in (("low", low_updater), ("high", high_updater))
+        }
+        if args.kernels
+        else {}
+    )
     collector.shutdown()
     best = {k: min(r[k] for r in rounds) for k in rounds[0]}
 
@@ -266,6 +329,14 @@ def main() -> None:
     print(
         f"{'total (whole phases)':<36} {'':>12} {1e3 * total:>16.3f} {'100.0%':>7}  -> {1 / total:.1f} env steps/s"
     )
+    if kernels:
+        names = list(kernels["low"])
+        print(
+            f"\nper LossUpdater.step() (mean of {args.kernel_updates} updates of each level, torch.profiler)"
+        )
+        print(f"{'level':<8}" + "".join(f"{name:>18}" for name in names))
+        for level, counts in kernels.items():
+            print(f"{level:<8}" + "".join(f"{counts[name]:>18.1f}" for name in names))
 
 
 if __name__ == "__main__":

@@ -84,6 +84,7 @@ from torchrl_dhrl.recipe import (
     make_checkpoint,
     plot_epoch,
     plot_success_curve,
+    policy_captured,
     rebuild_graph,
     restore_checkpoint,
     save_checkpoint,
@@ -172,9 +173,7 @@ def train(cfg: DictConfig | dict, run_dir: str | Path | None = None) -> dict:
         # timers cover this process only (a resumed run starts them again), hence the steps at the start (the
         # planner's share of acting is timed with forward hooks: not in a compiled policy, whose graph they would
         # break at the planner; time/planner_ms_per_call is then left out)
-        timer = LoopTimer(
-            None if cfg.get("compile_policy", False) else agent.planner, env_steps=counters.env_steps
-        )
+        timer = LoopTimer(None if policy_captured(cfg) else agent.planner, env_steps=counters.env_steps)
         wall_start, wall_before = time.perf_counter(), counters.wall_s
         capture_reported: set[str] = set()
         with GracefulStop() as stop, frozen_gc():
@@ -321,7 +320,9 @@ def end_epoch(
     counters.train_episodes = episode_log.state_dict()
     if epoch % schedule["eval_every_epochs"] == 0:
         episode_length = run.train_env.max_episode_steps
-        evaluation, result = evaluate_epoch(run.agent, run.eval_env, episode_length, **evaluation_kwargs(cfg))
+        evaluation, result = evaluate_epoch(
+            run.agent, run.eval_env, episode_length, policy=run.eval_policy, **evaluation_kwargs(cfg)
+        )
         metrics.update(evaluation)
         every = cfg["plots"]["every_epochs"]
         if every and (epoch // schedule["eval_every_epochs"]) % every == 0:

@@ -37,9 +37,11 @@ from torchrl_dhrl.recipe import (
     make_agent,
     make_collector,
     make_environment,
+    make_eval_policy,
     make_high_level_buffer,
     make_logger,
     make_low_level_buffer,
+    policy_captured,
     resolve_speed,
     run_precisions,
     start_run,
@@ -298,7 +300,7 @@ def build_agent(cfg: dict, device: torch.device) -> DHRLAgent:
         **{part: args[part] for part in AGENT_PARTS},
         graph={**args["graph"], "build_autocast_dtype": run_precisions(cfg, device)[1]},
         distance=oracle_distance(cfg) if cfg["planner"]["distance"] == "oracle" else args["distance"],
-        capturable_planner=bool(cfg.get("compile_policy", False)),
+        capturable_planner=policy_captured(cfg),
     )
 
 
@@ -373,6 +375,7 @@ class RunParts(NamedTuple):
     low_updater: LossUpdater
     high_updater: LossUpdater
     collector: Any
+    eval_policy: Any  # the policy of the test episodes: agent.policy, or captured (cudagraph_policy)
 
 
 def build_run(cfg: dict, device: torch.device) -> RunParts:
@@ -388,8 +391,10 @@ def build_run(cfg: dict, device: torch.device) -> RunParts:
         agent,
         train_env.max_episode_steps,
         compile_policy=bool(cfg.get("compile_policy", False)),
+        cudagraph_policy=bool(cfg.get("cudagraph_policy", False)),
     )
-    return RunParts(agent, train_env, eval_env, low_rb, high_rb, low_updater, high_updater, collector)
+    eval_policy = make_eval_policy(agent, cudagraph_policy=bool(cfg.get("cudagraph_policy", False)))
+    return RunParts(agent, train_env, eval_env, low_rb, high_rb, low_updater, high_updater, collector, eval_policy)
 
 
 def build_logger(cfg: dict, run_dir: Path):

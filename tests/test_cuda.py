@@ -144,6 +144,89 @@ def test_capturable_planner_replayed_as_a_cuda_graph_tracks_like_the_planner(fix
         _assert_same_tracking(out.clone(), theirs, planner, exact=False)
 
 
+def _cuda_agent(capturable_planner):
+    from torchrl_dhrl.recipe import make_agent, make_environment
+
+    torch.manual_seed(0)
+    env = make_environment("PointMaze", CUDA, num_envs=4, seed=0, max_episode_steps=30)
+    agent = make_agent(
+        env,
+        CUDA,
+        goal_indices=[0, 1],
+        high_policy={
+            "subgoal_low": [-2.0, -2.0],
+            "subgoal_high": [10.0, 10.0],
+            "interval": 5,
+            "num_cells": (32,),
+        },
+        high_critic={"num_cells": (32,)},
+        low_actor={"num_cells": (32,)},
+        low_critic={"num_cells": (32,)},
+        capturable_planner=capturable_planner,
+    )
+    return agent, make_environment("PointMaze", CUDA, num_envs=4, seed=0, max_episode_steps=30, agent=agent)
+
+
+def test_cudagraph_policy_collects_what_the_eager_policy_does():
+    """The collector's ``cudagraph_policy``: the acting policy captured before the graph has landmarks (a reserved
+    fixed-size graph) replays the eager policy's plans and actions (exploration off) over three episodes, with
+    the graph built after the first and rebuilt after the second (read in place by the captured graph)."""
+    from torchrl.envs.utils import ExplorationType
+
+    from torchrl_dhrl.recipe import make_collector
+
+    batches = {}
+    for captured in (False, True):
+        agent, env = _cuda_agent(True)
+        collector = make_collector(env, agent, 30, cudagraph_policy={"warmup": 2} if captured else False)
+        collector.exploration_type = ExplorationType.DETERMINISTIC
+        gen = torch.Generator().manual_seed(3)
+        out = []
+        for i, batch in enumerate(collector):
+            out.append(batch.clone())
+            if i == 2:
+                break
+            points = (torch.rand(40 + 10 * i, 4, generator=gen) * 12 - 2).to(CUDA)
+            agent.planner.build(points, points[:, :2])
+        collector.shutdown()
+        batches[captured] = torch.cat(out, 1)
+        if captured:
+            assert agent.planner.graph.num_landmarks > 0
+    for key in (("next", "observation"), "action", "waypoint", "subgoal", ("planner", "path")):
+        expected = batches[False][key]
+        if expected.is_floating_point():
+            torch.testing.assert_close(batches[True][key], expected, rtol=1e-4, atol=1e-4, msg=str(key))
+        else:
+            assert torch.equal(batches[True][key], expected), key
+
+
+def test_captured_eval_policy_evaluates_like_the_eager_policy():
+    """``make_eval_policy(cudagraph_policy=True)``: the test episodes acted by the policy captured in the first
+    evaluation are those of the eager policy, before the graph has landmarks, after its first build and after a
+    rebuild (each evaluation from the same env state)."""
+    from torchrl_dhrl.recipe import make_environment, make_eval_policy
+    from torchrl_dhrl.training import evaluate
+
+    agent, _ = _cuda_agent(True)
+    eval_env = make_environment("PointMaze", CUDA, num_envs=3, eval=True, max_episode_steps=30, agent=agent)
+    captured = make_eval_policy(agent, cudagraph_policy=True)
+    assert captured is not agent.policy
+    gen = torch.Generator().manual_seed(4)
+    for i in range(3):
+        if i:
+            points = (torch.rand(30 + 20 * i, 4, generator=gen) * 12 - 2).to(CUDA)
+            agent.planner.build(points, points[:, :2])
+        state = eval_env.base_env.state_dict()
+        eager = evaluate(eval_env, agent.policy, 30)
+        eval_env.base_env.load_state_dict(state)
+        replayed = evaluate(eval_env, captured, 30)
+        assert replayed.success == eager.success and replayed.any_success == eager.any_success
+        for key in (("next", "observation"), "action", "waypoint", "subgoal"):
+            torch.testing.assert_close(
+                replayed.rollout[key], eager.rollout[key], rtol=1e-4, atol=1e-4, msg=f"{key} ({i})"
+            )
+
+
 def _low_nets():
     torch.manual_seed(0)
     actor = LowLevelActor(6, 2, action_max=2.0, action_dim=3, num_cells=(64, 64))
@@ -389,17 +472,19 @@ def test_recipe_with_cudagraphs(tmp_path, capsys):
     assert "Sampling, low level: sampling and relabelling captured." in printed
     assert "Sampling, high level: capturable_sampler: the relabel step HindsightSubgoalRelabel" in printed
     recipe.train(
-        recipe_config(  # resumed with ten low-level updates per replay
+        recipe_config(  # resumed with ten low-level updates per replay and the acting policy captured
             *SMOKE,
             "device=cuda",
             "cudagraphs=true",
             "updates_per_graph=10",
+            "cudagraph_policy=true",
             "total_steps=480",
             f"resume={tmp_path}",
         ),
         run_dir=tmp_path,
     )
     assert load_checkpoint(tmp_path)["counters"]["env_steps"] == 480
+    assert "Acting: the policy captured as CUDA graphs" in capsys.readouterr().out
 
 
 def test_future_goal_relabel_on_a_cuda_buffer():

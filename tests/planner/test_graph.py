@@ -547,6 +547,65 @@ def test_fixed_size_storage_is_updated_in_place_and_not_checkpointed():
         LandmarkGraph(fixed_size=1)
 
 
+@pytest.mark.parametrize("name", sorted(DISTANCES))
+def test_reserved_graph_plans_like_no_graph_and_its_builds_keep_the_storage(name):
+    """``reserve`` before the first build: capturable plans on the all-padding copies equal the plans of a graph
+    without landmarks (random queries, three path widths); every later build, clear and load writes into the
+    storage reserved (what a policy captured before the first build reads)."""
+    distance = DISTANCES[name]
+    gen = torch.Generator().manual_seed(300 + len(name))
+    graph = LandmarkGraph(cutoff=3.0, max_landmarks=30, fixed_size=True)
+    assert graph.reserve(4, 2) is graph and graph.num_landmarks == 0 and graph.planning_tensors() is None
+    tensors = graph.planning_tensors(capturable=True)
+    assert tensors.valid.tolist() == [False] * 30 and int(tensors.version) == int(graph.version) == 0
+    assert tensors.states.shape == (30, 4) and tensors.goals.shape == (30, 2)
+    empty = LandmarkGraph(cutoff=3.0, max_landmarks=30)
+    for _ in range(10):
+        states, subgoals = random_queries(int(torch.randint(1, 24, (), generator=gen)), gen)
+        for max_path_length in (1, 3, 32):
+            expected = empty.plan(states, subgoals, distance, max_path_length)
+            assert_same_plan(
+                graph.plan(states, subgoals, distance, max_path_length, capturable=True), expected
+            )
+            assert_same_plan(graph.plan(states, subgoals, distance, max_path_length), expected)
+    pointers = [t.data_ptr() for t in tensors]
+    for num in (12, 0, 30, 5):
+        _set_random_landmarks(graph, distance, gen, num) if num else graph.clear()
+        now = graph.planning_tensors(capturable=True)
+        assert [t.data_ptr() for t in now] == pointers and now.valid.tolist() == [True] * num + [False] * (
+            30 - num
+        )
+        assert int(now.version) == int(graph.version)
+    assert graph.reserve(4, 2) is graph and graph.num_landmarks == 5  # landmarks kept
+    fresh = LandmarkGraph(cutoff=3.0, max_landmarks=30, fixed_size=True).reserve(4, 2)
+    reserved = [t.data_ptr() for t in fresh.planning_tensors(capturable=True)]
+    fresh.load_state_dict(graph.state_dict())  # a resumed run: the checkpoint's graph in the reserved storage
+    assert [t.data_ptr() for t in fresh.planning_tensors(capturable=True)] == reserved
+    states, subgoals = random_queries(16, gen)
+    assert_same_plan(
+        fresh.plan(states, subgoals, distance, 4, capturable=True), graph.plan(states, subgoals, distance, 4)
+    )
+
+
+def test_reserve_refusals_and_reallocation():
+    with pytest.raises(ValueError, match="fixed_size=True; this graph has fixed_size=False"):
+        LandmarkGraph().reserve(4, 2)
+    for dims, name in (((0, 2), "obs_dim"), ((4, 2.0), "goal_dim"), ((True, 2), "obs_dim")):
+        with pytest.raises(ValueError, match=f"`{name}` must be a positive int"):
+            LandmarkGraph(fixed_size=True).reserve(*dims)
+    graph = LandmarkGraph(cutoff=3.0, max_landmarks=20, fixed_size=True)
+    _set_random_landmarks(graph, euclidean, torch.Generator().manual_seed(0), 8)
+    with pytest.raises(ValueError, match=r"reserve\(3, 2\): the graph already holds landmarks with 4 state"):
+        graph.reserve(3, 2)
+    # reserved for other features or another dtype than the builds write: the build reallocates (documented)
+    other = LandmarkGraph(cutoff=3.0, max_landmarks=20, fixed_size=True).reserve(4, 2, dtype=torch.float64)
+    assert other.planning_tensors(capturable=True).states.dtype == torch.float64
+    before = other.planning_tensors(capturable=True).states.data_ptr()
+    _set_random_landmarks(other, euclidean, torch.Generator().manual_seed(0), 8)
+    after = other.planning_tensors(capturable=True).states
+    assert after.dtype == torch.float32 and after.data_ptr() != before
+
+
 def test_capturable_plans_without_a_graph_and_for_no_query():
     graph = LandmarkGraph(cutoff=3.0)
     states, subgoals = random_queries(5, torch.Generator().manual_seed(0))

@@ -704,6 +704,30 @@ def test_fixed_size_planner_is_not_recompiled_by_rebuilds():
         assert recompiled is not fixed_size
 
 
+@pytest.mark.slow
+def test_planner_on_a_reserved_graph_is_not_recompiled_by_its_first_build():
+    """Compiled before the graph has landmarks (a reserved ``fixed_size`` graph, as ``make_agent`` makes for a
+    capturable planner): the first build, a rebuild and a clear change no guard (``fail_on_recompile``), and the
+    compiled planner tracks like the eager one throughout."""
+    torch._dynamo.reset()
+    gen = torch.Generator().manual_seed(17)
+    graph, _, capturable = _planner_pair(euclidean, fixed_size=True)
+    graph.reserve(4, 2)
+    compiled = torch.compile(capturable, fullgraph=True)
+    eager_td = compiled_td = TensorDict(batch_size=(4,))
+    for step, (obs, new, subgoal) in enumerate(_walk(gen, (4,), 16)):
+        if step in (5, 9):  # the first landmarks, then others
+            _set_random_landmarks(graph, euclidean, gen, 20 + step)
+        if step == 13:
+            graph.clear()
+        with torch.compiler.set_stance("fail_on_recompile" if step >= 2 else "default"):
+            eager_td = capturable(_step_td(eager_td, obs, new, subgoal))
+            compiled_td = compiled(_step_td(compiled_td, obs, new, subgoal))
+        _assert_same_tracking(compiled_td, eager_td, capturable, exact=False)
+        compiled_td = eager_td.clone()
+    assert bool(eager_td["planner", "has_plan"].all())
+
+
 # ----------------------------------------------------------------------------- an agent of the recipe's builders
 def _agent(capturable_planner, num_cells=(16,)):
     from torchrl_dhrl.recipe import make_agent, make_environment

@@ -30,6 +30,83 @@ def test_make_collector_compile_policy_needs_a_capturable_planner():
     make_collector(env, agent, 30).shutdown()  # the default needs nothing
 
 
+def test_capturable_agent_plans_on_a_graph_reserved_before_its_first_build():
+    """``make_agent(capturable_planner=True)`` reserves the fixed-size graph: planning tensors before any landmark
+    (the plans of no graph) and the first build of the planner from float32 candidates writes into them."""
+    from torchrl_dhrl.recipe import make_agent, make_environment
+
+    env = make_environment("PointMaze", num_envs=2, seed=0, max_episode_steps=30)
+    kwargs = {
+        "high_policy": {
+            "subgoal_low": [-2.0, -2.0],
+            "subgoal_high": [10.0, 10.0],
+            "interval": 5,
+            "num_cells": (16,),
+        }
+    }
+    plain = make_agent(env, goal_indices=[0, 1], **kwargs)
+    assert plain.planner.graph.planning_tensors(capturable=True) is None  # nothing reserved, nothing fixed
+    agent = make_agent(env, goal_indices=[0, 1], capturable_planner=True, **kwargs)
+    graph = agent.planner.graph
+    tensors = graph.planning_tensors(capturable=True)
+    obs_dim = env.observation_spec["observation"].shape[-1]
+    assert graph.num_landmarks == 0 and tensors.states.shape == (graph.max_landmarks, obs_dim)
+    assert not tensors.valid.any()
+    pointers = [t.data_ptr() for t in tensors]
+    points = torch.rand(80, obs_dim, generator=torch.Generator().manual_seed(0)) * 12 - 2
+    agent.planner.build(points, points[:, :2])
+    assert graph.num_landmarks > 0
+    assert [t.data_ptr() for t in graph.planning_tensors(capturable=True)] == pointers
+
+
+def test_make_collector_cudagraph_policy_refusals():
+    """``cudagraph_policy`` needs a capturable planner on a reserved graph and the env on CUDA; the refusals name
+    what is missing (on a CUDA machine the capture itself is tested in tests/test_cuda.py)."""
+    from torchrl_dhrl.recipe import make_collector
+
+    agent, env = _agent(False)
+    with pytest.raises(ValueError, match="`cudagraph_policy` needs a capturable planner"):
+        make_collector(env, agent, 30, cudagraph_policy=True)
+    agent, env = _agent(True)
+    with pytest.raises(ValueError, match="needs the env \\(and the policy\\) on a CUDA device, got cpu"):
+        make_collector(env, agent, 30, cudagraph_policy={"warmup": 3})
+
+
+def test_make_eval_policy_is_the_agents_policy_or_refuses_a_capture_it_cannot_make():
+    from torchrl_dhrl.recipe import make_eval_policy
+
+    agent, _ = _agent(False)
+    assert make_eval_policy(agent) is agent.policy and make_eval_policy(agent, cudagraph_policy=False) is agent.policy
+    with pytest.raises(ValueError, match="`cudagraph_policy` needs a capturable planner"):
+        make_eval_policy(agent, cudagraph_policy=True)
+    agent, _ = _agent(True)
+    with pytest.raises(ValueError, match="it needs the policy on a CUDA device, got cpu"):
+        make_eval_policy(agent, cudagraph_policy=True)
+    unreserved, _ = _agent(True)
+    unreserved.planner.graph.fixed_size = False  # plans on the graph's own buffers, which a rebuild reallocates
+    with pytest.raises(ValueError, match="fixed-size tensors that exist before the capture"):
+        make_eval_policy(unreserved, cudagraph_policy=True)
+
+
+def test_cudagraph_policy_key_is_validated():
+    from _recipe import recipe_config
+
+    from torchrl_dhrl.recipe import RESUME_MUTABLE_KEYS, ConfigError, policy_captured, validate_config
+
+    assert "cudagraph_policy" in RESUME_MUTABLE_KEYS  # same plans: a resumed run may switch it
+    with pytest.raises(ConfigError, match="`cudagraph_policy` must be true or false, got 'yes'"):
+        validate_config(recipe_config("env=PointMaze", "device=cpu", "cudagraph_policy=yes"))
+    with pytest.raises(
+        ConfigError, match="`cudagraph_policy=true` needs a CUDA device, but `device` resolves to cpu"
+    ):
+        validate_config(recipe_config("env=PointMaze", "device=cpu", "cudagraph_policy=true"))
+    cfg = recipe_config("env=PointMaze", "device=cpu")
+    assert cfg["cudagraph_policy"] is False and not policy_captured(cfg)
+    assert policy_captured({**cfg, "cudagraph_policy": True}) and policy_captured(
+        {**cfg, "compile_policy": True}
+    )
+
+
 @pytest.mark.slow
 def test_compiled_collector_collects_what_the_eager_one_does():
     """The collector's ``compile_policy`` with a capturable planner: the same two batches as an eager

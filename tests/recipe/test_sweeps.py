@@ -20,7 +20,7 @@ from types import SimpleNamespace
 import numpy as np
 import pytest
 import yaml
-from _recipe import RECIPES, load_recipe, metrics_rows, recipe_config
+from _recipe import RECIPES, TIMING_COLUMNS, load_recipe, metrics_rows, recipe_config
 from omegaconf import OmegaConf
 
 from torchrl_dhrl.recipe import CONFIG_NAME, load_checkpoint
@@ -152,12 +152,50 @@ LAUNCHERS = {
 }
 
 
+#: the sweep's settings, shared by the runs alone they are compared with
+SWEEP_RUN = (
+    "env=PointMaze",
+    "preset=smoke",
+    "total_steps=240",
+    "plots.every_epochs=0",
+    "device=cpu",
+    "logger.backend=csv",
+)
+
+
+@pytest.fixture(scope="module")
+def runs_alone(tmp_path_factory):
+    """Seeds 0 and 1 of the sweep, each run alone (one process, one thread): their untimed metrics rows."""
+    rows = {}
+    for seed in (0, 1):
+        folder = tmp_path_factory.mktemp(f"alone_{seed}")
+        out = subprocess.run(
+            [
+                sys.executable,
+                str(RECIPES / "dhrl_antmaze.py"),
+                *SWEEP_RUN,
+                f"seed={seed}",
+                "threads=1",
+                f"run_dir={folder}",
+                f"hydra.run.dir={folder}/hydra",
+            ],
+            env={**os.environ, "OMP_NUM_THREADS": "1"},
+            capture_output=True,
+            text=True,
+            timeout=600,
+        )
+        assert out.returncode == 0, out.stderr[-3000:]
+        rows[seed] = metrics_rows(folder, drop=TIMING_COLUMNS)
+    return rows
+
+
 @pytest.mark.recipe
 @pytest.mark.slow
 @pytest.mark.parametrize("launcher", list(LAUNCHERS))
-def test_sweep_runs_two_seeds_and_aggregates(launcher, request, tmp_path):
-    """A 2-seed sweep through each launcher: both runs, their seeds, threads and group, the aggregate against
-    numpy on the same files, and the sweep re-run skipping both finished jobs."""
+def test_sweep_runs_two_seeds_and_aggregates(launcher, request, runs_alone, tmp_path):
+    """A 2-seed sweep through each launcher: both runs, their seeds, threads and group, each run's metrics
+    identical to the same seed run alone (jobs running at once do not change each other's results), the
+    aggregate against numpy on the same files, and the sweep re-run skipping both finished jobs."""
     plugin, overrides, threads = LAUNCHERS[launcher]
     if not _has(plugin):
         pytest.skip(f"needs {plugin.replace('_', '-')} (pip install -e '.[sweeps]')")
@@ -174,13 +212,8 @@ def test_sweep_runs_two_seeds_and_aggregates(launcher, request, tmp_path):
         sys.executable,
         str(RECIPES / "dhrl_antmaze.py"),
         "-m",
-        "env=PointMaze",
-        "preset=smoke",
+        *SWEEP_RUN,
         "seed=0,1",
-        "total_steps=240",
-        "plots.every_epochs=0",
-        "device=cpu",
-        "logger.backend=csv",
         "resume=auto",
         *overrides,
         f"hydra.sweep.dir={sweep}",
@@ -201,6 +234,9 @@ def test_sweep_runs_two_seeds_and_aggregates(launcher, request, tmp_path):
         [float(r["low/loss_graph_qvalue"]) for r in run if r.get("low/loss_graph_qvalue")] for run in rows
     ]
     assert losses[0] != losses[1]  # two seeds, two runs
+    # each job's losses, success and graph figures are its seed's run alone, to the last digit
+    for seed, run in zip((0, 1), runs, strict=True):
+        assert metrics_rows(run, drop=TIMING_COLUMNS) == runs_alone[seed]
 
     # aggregate the sweep and check the statistics against numpy on the same files
     table_out = subprocess.run(

@@ -409,52 +409,138 @@ class LandmarkGraph(UnregisteredAttributes, nn.Module):
         return self
 
     @torch.no_grad()
+    def reserve(
+        self,
+        obs_dim: int,
+        goal_dim: int,
+        *,
+        dtype: torch.dtype | None = None,
+        device: torch.device | str | None = None,
+    ) -> LandmarkGraph:
+        """Allocates a ``fixed_size`` graph's planning tensors before its first build, every row padding.
+
+        :meth:`planning_tensors` with ``capturable=True`` then returns them at once: a capturable planner plans
+        on them as on a graph without landmarks (every plan the subgoal alone, like the graph's own empty
+        buffers), and the first :meth:`build` writes into the same storage. A policy compiled or captured in a
+        CUDA graph before the first build therefore reads every later graph without being recompiled or
+        captured again (:func:`~torchrl_dhrl.recipe.make_agent` reserves the graph of a capturable planner).
+        The tensors are allocated where and as the builds will write them: ``obs_dim`` and ``goal_dim`` features,
+        ``dtype`` (default: PyTorch's default dtype) on ``device`` (default: the graph's); a build of another
+        size, dtype or device reallocates them. Reserve after moving the graph (``.to(device)`` reallocates).
+        A graph that already has landmarks keeps them (its sizes must match).
+
+        Args:
+            obs_dim (int): the landmark states' features.
+            goal_dim (int): the landmark goals' features.
+
+        Keyword Args:
+            dtype (torch.dtype, optional): the floating dtype of states, goals and distances.
+            device (torch.device or str, optional): where to allocate.
+
+        Returns:
+            this graph.
+
+        Examples:
+            >>> graph = LandmarkGraph(max_landmarks=8, fixed_size=True).reserve(4, 2)
+            >>> graph.num_landmarks, graph.planning_tensors(capturable=True).valid
+            (0, tensor([False, False, False, False, False, False, False, False]))
+            >>> storage = graph.planning_tensors(capturable=True).states.data_ptr()
+            >>> points = torch.rand(20, 4)
+            >>> _ = graph.build(points, points[:, :2], lambda s, g: (s[..., :2] - g).norm(dim=-1))
+            >>> graph.planning_tensors(capturable=True).states.data_ptr() == storage  # the same storage
+            True
+        """
+        if not self.fixed_size:
+            raise ValueError(
+                "reserve() allocates the fixed-size planning tensors of a graph made with fixed_size=True; this "
+                "graph has fixed_size=False."
+            )
+        for name, value in (("obs_dim", obs_dim), ("goal_dim", goal_dim)):
+            if isinstance(value, bool) or not isinstance(value, int) or value < 1:
+                raise ValueError(f"reserve(): `{name}` must be a positive int, got {value!r}.")
+        if self.num_landmarks:
+            sizes = (self.landmark_states.shape[1], self.landmark_goals.shape[1])
+            if sizes != (obs_dim, goal_dim):
+                raise ValueError(
+                    f"reserve({obs_dim}, {goal_dim}): the graph already holds landmarks with {sizes[0]} state "
+                    f"and {sizes[1]} goal features."
+                )
+            return self
+        dtype = torch.get_default_dtype() if dtype is None else dtype
+        device = self.version.device if device is None else torch.device(device)
+        self._allocate_fixed(obs_dim, goal_dim, (dtype, dtype, dtype, dtype), device)
+        self._fill_fixed(0)
+        self.fixed_version = self.fixed_version.to(device)
+        self.fixed_version.copy_(self.version)
+        return self
+
+    def _allocate_fixed(
+        self, obs_dim: int, goal_dim: int, dtypes: tuple[torch.dtype, ...], device: torch.device
+    ) -> None:
+        """(Re)allocates the fixed-size copies whose size, dtype or device differ from the given ones."""
+        size = self.max_landmarks
+        states, goals, distances, shortest = dtypes
+        layout = {
+            "fixed_states": ((size, obs_dim), states),
+            "fixed_goals": ((size, goal_dim), goals),
+            "fixed_distances": ((size, size), distances),
+            "fixed_shortest": ((size, size), shortest),
+            "fixed_next_hop": ((size, size), torch.int64),
+            "fixed_hop_counts": ((size, size), torch.int64),
+            "fixed_valid": ((size,), torch.bool),
+        }
+        for name, (shape, dtype) in layout.items():
+            old = getattr(self, name)
+            if old.shape != shape or old.dtype != dtype or old.device != device:
+                setattr(self, name, torch.empty(shape, dtype=dtype, device=device))
+
+    def _fill_fixed(self, num: int) -> None:
+        """Writes the first ``num`` landmarks into the fixed-size copies, in place; the other rows are padding
+        (no edge to or from them, themselves at no cost like Floyd-Warshall's diagonal, invalid)."""
+        pad = slice(num, None)
+        for name, source, fill, square in (
+            ("fixed_states", self.landmark_states, 0.0, False),
+            ("fixed_goals", self.landmark_goals, 0.0, False),
+            ("fixed_distances", self.landmark_distances, math.inf, True),
+            ("fixed_shortest", self.shortest_distances, math.inf, True),
+            ("fixed_next_hop", self.next_hop, -1, True),
+            ("fixed_hop_counts", self.hop_counts, 0, True),
+        ):
+            target = getattr(self, name)
+            if square:  # the [K, K] block, the rest padding
+                target.fill_(fill)
+                if num:
+                    target[:num, :num].copy_(source)
+            else:
+                if num:
+                    target[:num].copy_(source)
+                target[pad].fill_(fill)
+        rows = torch.arange(num, self.max_landmarks, device=self.fixed_valid.device)
+        self.fixed_shortest[rows, rows] = 0.0
+        self.fixed_distances[rows, rows] = 0.0
+        self.fixed_next_hop[rows, rows] = rows
+        self.fixed_valid[:num] = True
+        self.fixed_valid[pad] = False
+
+    @torch.no_grad()
     def _sync_fixed(self) -> None:
-        """Copies the graph into the fixed-size planning tensors, in place (allocated at the first build, or
-        again when the feature sizes, dtype or device change); padding rows: no edge, invalid."""
+        """Copies the graph into the fixed-size planning tensors, in place (allocated at the first build or by
+        :meth:`reserve`, again when the feature sizes, dtype or device change); padding rows: no edge, invalid."""
         if not self.fixed_size:
             return
-        num, size = self.num_landmarks, self.max_landmarks
+        num = self.num_landmarks
         if num:
-            states, goals = self.landmark_states, self.landmark_goals
-            device = states.device
-            layout = {
-                "fixed_states": ((size, states.shape[1]), states.dtype),
-                "fixed_goals": ((size, goals.shape[1]), goals.dtype),
-                "fixed_distances": ((size, size), self.landmark_distances.dtype),
-                "fixed_shortest": ((size, size), self.shortest_distances.dtype),
-                "fixed_next_hop": ((size, size), torch.int64),
-                "fixed_hop_counts": ((size, size), torch.int64),
-                "fixed_valid": ((size,), torch.bool),
-            }
-            for name, (shape, dtype) in layout.items():
-                old = getattr(self, name)
-                if old.shape != shape or old.dtype != dtype or old.device != device:
-                    setattr(self, name, torch.empty(shape, dtype=dtype, device=device))
-            pad = slice(num, None)
-            for name, source, fill, square in (
-                ("fixed_states", states, 0.0, False),
-                ("fixed_goals", goals, 0.0, False),
-                ("fixed_distances", self.landmark_distances, math.inf, True),
-                ("fixed_shortest", self.shortest_distances, math.inf, True),
-                ("fixed_next_hop", self.next_hop, -1, True),
-                ("fixed_hop_counts", self.hop_counts, 0, True),
-            ):
-                target = getattr(self, name)
-                if square:  # the [K, K] block, the rest padding
-                    target.fill_(fill)
-                    target[:num, :num].copy_(source)
-                else:
-                    target[:num].copy_(source)
-                    target[pad].fill_(fill)
-            rows = torch.arange(
-                num, size, device=device
-            )  # padding rows: themselves at no cost, like FW's diagonal
-            self.fixed_shortest[rows, rows] = 0.0
-            self.fixed_distances[rows, rows] = 0.0
-            self.fixed_next_hop[rows, rows] = rows
-            self.fixed_valid[:num] = True
-            self.fixed_valid[pad] = False
+            dtypes = tuple(
+                getattr(self, name).dtype
+                for name in ("landmark_states", "landmark_goals", "landmark_distances", "shortest_distances")
+            )
+            self._allocate_fixed(
+                self.landmark_states.shape[1],
+                self.landmark_goals.shape[1],
+                dtypes,
+                self.landmark_states.device,
+            )
+            self._fill_fixed(num)
         elif self.fixed_valid.numel():
             self.fixed_valid.fill_(False)
         if self.fixed_version.device != self.version.device:

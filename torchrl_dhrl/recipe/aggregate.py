@@ -55,6 +55,7 @@ IGNORED_KEYS = (
     "compile",
     "capture_sampling",
     "compile_policy",
+    "cudagraph_policy",
     "logger.*",
     "plots.*",
     "checkpoint.*",

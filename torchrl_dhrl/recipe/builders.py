@@ -13,7 +13,7 @@ from pathlib import Path
 from typing import Any
 
 import torch
-from tensordict.nn import TensorDictSequential
+from tensordict.nn import CudaGraphModule, TensorDictModuleBase, TensorDictSequential
 from torchrl.collectors import Collector
 from torchrl.data import ReplayBuffer
 from torchrl.envs import Compose, EnvBase, TransformedEnv
@@ -54,6 +54,7 @@ __all__ = [
     "make_agent",
     "make_collector",
     "make_environment",
+    "make_eval_policy",
     "make_high_level_buffer",
     "make_logger",
     "make_low_level_buffer",
@@ -171,8 +172,10 @@ def make_agent(
         capturable_planner (bool): the :class:`~torchrl_dhrl.planner.GraphPlanner`'s ``capturable``: plans
             with static shapes, every env in the steps where some env is due for a replan (``torch.cond`` when
             compiled; ``plan_on_demand``), so that the acting policy compiles whole (:func:`make_collector`'s
-            ``compile_policy``), on a ``fixed_size`` graph (the same storage after every rebuild: no
-            recompilation). Same plans. Defaults to ``False``.
+            ``compile_policy``, or captured as a CUDA graph, ``cudagraph_policy``), on a ``fixed_size`` graph
+            reserved at once (:meth:`LandmarkGraph.reserve <torchrl_dhrl.planner.LandmarkGraph.reserve>`: the same
+            storage before the first build and after every rebuild, so no recompilation and no new capture). Same
+            plans. Defaults to ``False``.
 
     Raises:
         ValueError: from the component whose argument is refused, naming the argument (e.g. a subgoal box
@@ -233,6 +236,10 @@ def make_agent(
     graph_planner = GraphPlanner(
         landmark_graph, distance, goal_dim, capturable=capturable_planner, **(planner or {})
     ).to(device)
+    if capturable_planner and landmark_graph.fixed_size:
+        landmark_graph.reserve(
+            obs_dim, goal_dim, dtype=env.observation_spec["observation"].dtype, device=device
+        )
     policy = TensorDictSequential(high, graph_planner, TensorDictSequential(actor, exploration_module))
     return DHRLAgent(high, actor, exploration_module, sqgc, high_loss_module, graph_planner, policy)
 
@@ -320,8 +327,36 @@ def make_environment(
     return out
 
 
+def _check_policy_capture(agent: DHRLAgent, device: torch.device | None, what: str) -> None:
+    """Refuses ``cudagraph_policy`` where the captured graph could not replay the policy: a planner that is not
+    capturable, ``what`` off CUDA, or planning tensors that a rebuild would reallocate."""
+    if not agent.planner.capturable:
+        raise ValueError(
+            "`cudagraph_policy` needs a capturable planner (make_agent(..., capturable_planner=True), or "
+            "agent.planner.capturable = True): the planner's replanning branch cannot be captured."
+        )
+    tensors = agent.planner.graph.planning_tensors(capturable=True)
+    if tensors is None or tensors.valid is None:
+        raise ValueError(
+            "`cudagraph_policy` needs the planner's graph to plan on fixed-size tensors that exist before the "
+            "capture (LandmarkGraph(fixed_size=True) and .reserve(obs_dim, goal_dim), as make_agent(..., "
+            "capturable_planner=True) does): a graph captured on the graph's own buffers would keep reading the "
+            "landmarks of the capture."
+        )
+    if device is None or torch.device(device).type != "cuda":
+        raise ValueError(
+            f"`cudagraph_policy` captures the acting policy as a CUDA graph: it needs {what} on a CUDA device, "
+            f"got {device}."
+        )
+
+
 def make_collector(
-    env: EnvBase, agent: DHRLAgent, episode_length: int, *, compile_policy: bool | Mapping[str, Any] = False
+    env: EnvBase,
+    agent: DHRLAgent,
+    episode_length: int,
+    *,
+    compile_policy: bool | Mapping[str, Any] = False,
+    cudagraph_policy: bool | Mapping[str, Any] = False,
 ) -> Collector:
     """A :class:`~torchrl.collectors.Collector` yielding one whole episode per env and batch.
 
@@ -339,8 +374,19 @@ def make_collector(
     capturable_planner=True)``), whose policy compiles as one graph; the same actions up to float
     round-off (and, in a compiled graph, other random draws for the exploration noise).
 
+    ``cudagraph_policy`` (``True`` or the keyword arguments of :class:`tensordict.nn.CudaGraphModule`, e.g.
+    ``{"warmup": 3}``) is the collector's too: after its warm-up calls the acting policy is captured whole as one
+    CUDA graph and replayed at every step (the step's inputs copied in, its outputs copied out: no Python or
+    kernel launches of the policy's own). It needs the env on a CUDA device and a capturable planner on a
+    reserved ``fixed_size`` graph (what ``make_agent(..., capturable_planner=True)`` builds): the graph is
+    captured before the first landmarks exist and reads every later rebuild in place, and in a captured call
+    the planner plans every env (static control flow). The same plans and actions up to float round-off; the
+    exploration noise is drawn inside the graph (other draws than eager). Combined with ``compile_policy``,
+    the compiled policy is captured.
+
     Raises:
-        ValueError: ``compile_policy`` with a planner that is not ``capturable``.
+        ValueError: ``compile_policy`` or ``cudagraph_policy`` with a planner that is not ``capturable``;
+            ``cudagraph_policy`` with the env off CUDA or a graph without reserved fixed-size planning tensors.
     """
     if compile_policy not in (False, None) and not agent.planner.capturable:
         raise ValueError(
@@ -348,6 +394,8 @@ def make_collector(
             "agent.planner.capturable = True): the planner's replanning branch would split the compiled "
             "policy into pieces at every step."
         )
+    if cudagraph_policy not in (False, None):
+        _check_policy_capture(agent, env.device, "the env (and the policy)")
     num_envs = env.batch_size.numel()
     # The planner and the subgoal scheduler carry their state with TensorDictPrimers (already on the env);
     # they do not need the InitTracker the collector would add for recurrent-looking modules.
@@ -359,7 +407,41 @@ def make_collector(
         device=env.device,
         auto_register_policy_transforms=False,
         compile_policy=None if compile_policy is False else compile_policy,
+        cudagraph_policy=None if cudagraph_policy is False else cudagraph_policy,
     )
+
+
+def make_eval_policy(
+    agent: DHRLAgent, *, cudagraph_policy: bool | Mapping[str, Any] = False
+) -> TensorDictModuleBase:
+    """The policy of the test episodes: ``agent.policy``, or with ``cudagraph_policy`` (``True`` or the keyword
+    arguments of :class:`tensordict.nn.CudaGraphModule`) that policy captured whole as a CUDA graph of its own.
+
+    Evaluation acts with exploration off, which the policy's modules read when they run: a graph captured in the
+    collector (exploration on) cannot serve it, so the test episodes get their own, captured in the first
+    evaluation (its second step, after one eager warm-up call by default) and replayed in every later one. Build it
+    once per run and pass it to :func:`evaluate_epoch` (``policy=``); it needs what ``make_collector``'s
+    ``cudagraph_policy`` needs (a capturable planner on a reserved fixed-size graph, the policy on CUDA), so that
+    the graph rebuilds between evaluations are read in place.
+
+    Raises:
+        ValueError: ``cudagraph_policy`` with a planner that is not capturable, parameters off CUDA or a graph
+            without reserved fixed-size planning tensors.
+
+    Examples:
+        >>> from torchrl_dhrl.recipe import make_agent, make_environment
+        >>> env = make_environment("PointMaze", max_episode_steps=20)
+        >>> agent = make_agent(env, high_policy={"subgoal_low": [-2.0, -2.0], "subgoal_high": [10.0, 10.0],
+        ...     "interval": 5, "num_cells": (16,)})
+        >>> make_eval_policy(agent) is agent.policy
+        True
+    """
+    if cudagraph_policy in (False, None):
+        return agent.policy
+    device = next(agent.low_actor.parameters()).device
+    _check_policy_capture(agent, device, "the policy")
+    kwargs = {} if cudagraph_policy is True else dict(cudagraph_policy)
+    return CudaGraphModule(agent.policy, **{"device": device, **kwargs})
 
 
 def _batch_within_buffer(batch_size, buffer_size) -> None:

@@ -35,6 +35,7 @@ __all__ = [
     "derive_goal_units",
     "check_resume_config",
     "describe_precisions",
+    "policy_captured",
     "resolve_device",
     "resolve_speed",
     "run_precisions",
@@ -83,6 +84,7 @@ RESUME_MUTABLE_KEYS = (
     "compile",
     "capture_sampling",
     "compile_policy",
+    "cudagraph_policy",
     "update_dtype",
     "planner.build_dtype",
     "logger.*",
@@ -243,7 +245,7 @@ def _check_run_keys(cfg: Mapping) -> None:
         value = _get(cfg, path)
         if value is not None and (not isinstance(value, str) or not value):
             raise ConfigError(f"`{path}` must be null or a path, got {value!r}.")
-    optional = tuple(key for key in ("compile", "compile_policy") if key in cfg)
+    optional = tuple(key for key in ("compile", "compile_policy", "cudagraph_policy") if key in cfg)
     for path in ("progress", "plots.video") + optional:
         if not isinstance(_get(cfg, path), bool):
             raise ConfigError(f"`{path}` must be true or false, got {_get(cfg, path)!r}.")
@@ -403,6 +405,17 @@ def resolve_device(device: str | torch.device | None) -> torch.device:
                 + (f" to cuda:{count - 1}." if count > 1 else ".")
             )
     return resolved
+
+
+def policy_captured(cfg: Mapping) -> bool:
+    """Whether the recipe's acting policy is compiled (``compile_policy``) or captured as a CUDA graph
+    (``cudagraph_policy``): both need the capturable planner, and neither lets hooks time the planner.
+
+    Examples:
+        >>> policy_captured({"compile_policy": False}), policy_captured({"cudagraph_policy": True})
+        (False, True)
+    """
+    return bool(cfg.get("compile_policy", False)) or bool(cfg.get("cudagraph_policy", False))
 
 
 def resolve_speed(cfg: Mapping, device: str | torch.device) -> tuple[dict, str]:
@@ -720,6 +733,8 @@ def validate_config(cfg: Mapping, env_names: tuple[str, ...] | None = None) -> N
         )
     if cfg.get("cudagraphs") and device.type != "cuda":
         raise ConfigError(f"`cudagraphs=true` needs a CUDA device, but `device` resolves to {device}.")
+    if cfg.get("cudagraph_policy") and device.type != "cuda":
+        raise ConfigError(f"`cudagraph_policy=true` needs a CUDA device, but `device` resolves to {device}.")
     update_dtype = cfg.get("update_dtype")
     if update_dtype is not None and update_dtype not in UPDATE_DTYPES:
         raise ConfigError(

@@ -12,6 +12,7 @@ from pathlib import Path
 from typing import Any
 
 import torch
+from tensordict.nn import TensorDictModuleBase
 from torchrl.data import RandomSampler, ReplayBuffer
 from torchrl.envs import EnvBase
 
@@ -106,6 +107,7 @@ def evaluate_epoch(
     far_from_graph_threshold: float,
     oracle_margin: float = 0.5,
     flat: bool = True,
+    policy: TensorDictModuleBase | None = None,
 ) -> tuple[dict[str, Any], EvaluationResult]:
     """The evaluation of an epoch: the test episodes with the agent's policy, and what the recipe logs of it.
 
@@ -132,6 +134,10 @@ def evaluate_epoch(
             ``state_dict``, as :func:`~torchrl_dhrl.envs.make_env`'s envs do).
         max_steps (int): the episode length.
 
+    Keyword Args:
+        policy (TensorDictModuleBase, optional): what acts in the test episodes, e.g. the agent's policy captured
+            as a CUDA graph (:func:`~torchrl_dhrl.recipe.make_eval_policy`). Defaults to ``agent.policy``.
+
     Returns:
         ``(metrics, result)``: the metrics and the main evaluation's
         :class:`~torchrl_dhrl.training.EvaluationResult` (its rollout is what :func:`plot_epoch` draws).
@@ -155,7 +161,7 @@ def evaluate_epoch(
     planner = agent.planner
     start = time.perf_counter()
     before = eval_env.base_env.state_dict() if flat else None
-    result = evaluate(eval_env, agent.policy, max_steps)
+    result = evaluate(eval_env, agent.policy if policy is None else policy, max_steps)
     metrics: dict[str, Any] = {"time/eval_s": time.perf_counter() - start}
     metrics["eval/success"] = result.success
     metrics["eval/any_success"] = result.any_success

@@ -279,7 +279,14 @@ def start_run(
     print(threads_line)
     print(speed_line)
     print(describe_precisions(cfg, device))
-    if cfg.get("compile_policy", False):
+    if cfg.get("cudagraph_policy", False):
+        print(
+            "Acting: the policy captured as CUDA graphs (one in the collector, one for the test episodes), its "
+            "planner capturable on a reserved fixed-size graph (every env planned in a replay; the same plans; "
+            "the planner's time per call is not logged)."
+            + (" The collector's graph captures the compiled policy." if cfg.get("compile_policy", False) else "")
+        )
+    elif cfg.get("compile_policy", False):
         print(
             "Acting: the policy compiled in the collector (torch.compile), its planner capturable (every env "
             "planned inside a torch.cond in the steps where a replan is due; the same plans; the planner's time "
