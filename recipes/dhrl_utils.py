@@ -298,7 +298,13 @@ def build_agent(cfg: dict, device: torch.device) -> DHRLAgent:
         device,
         goal_indices=goal_indices(cfg),
         **{part: args[part] for part in AGENT_PARTS},
-        graph={**args["graph"], "build_autocast_dtype": run_precisions(cfg, device)[1]},
+        graph={
+            **args["graph"],
+            "build_autocast_dtype": run_precisions(cfg, device)[1],
+            # fixed-size planning tensors, reserved: for a captured or compiled policy, and for the high level's
+            # sampling captured in its CUDA graphs (the gradual penalty's graph query)
+            "fixed_size": policy_captured(cfg) or bool(resolve_speed(cfg, device)[0]["cudagraphs"]),
+        },
         distance=oracle_distance(cfg) if cfg["planner"]["distance"] == "oracle" else args["distance"],
         capturable_planner=policy_captured(cfg),
     )
@@ -356,7 +362,8 @@ def build_updaters(cfg: dict, agent: DHRLAgent, low_rb, high_rb) -> tuple[LossUp
                 cudagraphs=cfg["cudagraphs"],
                 updates_per_graph=cfg.get("updates_per_graph", 1),
                 compile=cfg.get("compile", False),
-                # the high-level buffer has no capture-safe sampler (its gradual penalty queries the graph)
+                # the high level's capture-safe sampler queries the graph exactly over all max_landmarks rows: only
+                # inside the CUDA graphs (null), where it saves host work, never eagerly on a CPU
                 capture_sampling=cfg.get("capture_sampling") if level == "low" else None,
                 autocast_dtype=run_precisions(cfg, next(loss.parameters()).device)[0],
             )

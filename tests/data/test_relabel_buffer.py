@@ -355,10 +355,14 @@ def test_capturable_sampler_refuses_what_it_cannot_capture():
     without.extend(stream.batch(5))
     with pytest.raises(RuntimeError, match="this buffer's sampler is SamplerWithoutReplacement"):
         without.capturable_sampler()
-    hindsight = buffer(relabel=[HindsightSubgoalRelabel(subgoal_test_ratio=0.0)])
-    hindsight.extend(stream.batch(5))
-    with pytest.raises(RuntimeError, match="HindsightSubgoalRelabel has no capture-safe form"):
-        hindsight.capturable_sampler()
+    class Identity:  # a relabel step without a capture-safe form (no capturable_relabel)
+        def __call__(self, tensordict):
+            return tensordict
+
+    custom = buffer(relabel=[Identity()])
+    custom.extend(stream.batch(5))
+    with pytest.raises(RuntimeError, match="the relabel step Identity has no capture-safe form"):
+        custom.capturable_sampler()
     restored = buffer()
     restored.load_state_dict({k: v for k, v in rb.state_dict().items() if k != "_newest_index"})
     with pytest.raises(RuntimeError, match="newest written row is unknown"):
@@ -384,13 +388,32 @@ def test_capturable_sampler_after_a_restore():
     check_goals(got, "graph_goal", window)
 
 
-def test_recipe_buffers_low_level_captures_high_level_does_not():
+def test_recipe_buffers_offer_capture_safe_sampling():
+    """Both levels' recipe buffers offer the capture-safe sampler: the high level's (its transition builder acts on
+    writes only) with subgoal testing, and with the gradual penalty only where the planner's graph query has a
+    capture-safe form (a fixed-size graph; refused on a plain one, saying why)."""
+    from tests.data.test_high_level_transitions import SubgoalStream
+    from torchrl_dhrl.planner import GraphPlanner, LandmarkGraph
+
     low = make_low_level_buffer(buffer_size=200, batch_size=16, reward_threshold=0.5)
     stream = GoalStream(num_envs=1, min_len=3, max_len=9, seed=0)
     batch = stream.batch(20).rename_key_("desired_goal", "waypoint")
     low.extend(batch)
     out = low.capturable_sampler()()
     assert out["index"].shape == (16, 2) and out["goal"].shape == (16, 2)
-    high = make_high_level_buffer(buffer_size=100, batch_size=8, reward_threshold=0.5)
-    with pytest.raises(RuntimeError, match="HindsightSubgoalRelabel has no capture-safe form"):
-        high.capturable_sampler()
+    segments = SubgoalStream(num_envs=3, min_len=8, max_len=40, flag_prob=0.2, seed=11)
+    plain = GraphPlanner(LandmarkGraph(), lambda s, g: (s[..., :2] - g).norm(dim=-1), 2)
+    for planner in (None, plain):
+        high = make_high_level_buffer(
+            buffer_size=100, batch_size=8, reward_threshold=0.5, her_window=3, planner=planner
+        )
+        for _ in range(3):
+            high.extend(segments.batch(12))
+        if planner is None:  # no graph query: subgoal tests and hindsight only
+            out = high.capturable_sampler()()
+            assert out["index"].shape == (8,) and out["subgoal_test"].shape == (8, 1)
+            tested = out["subgoal_test"].squeeze(-1)
+            assert torch.equal(out["subgoal"][~tested], out["next", "achieved_goal"][~tested])
+        else:
+            with pytest.raises(RuntimeError, match="distance_from_graph has no capture-safe form here"):
+                high.capturable_sampler()

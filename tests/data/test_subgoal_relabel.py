@@ -225,6 +225,116 @@ def test_pipeline_goals_same_episode_within_high_level_window():
     assert rb.storage._is_full
 
 
+def _reserved_planner(num_landmarks: int, seed: int = 0):
+    """A GraphPlanner on a reserved fixed-size graph, the distance ten steps per goal unit."""
+    from torchrl_dhrl.planner import GraphPlanner, LandmarkGraph
+
+    def distance(states, goals):
+        return (states[..., :2] - goals).norm(dim=-1) * 10
+
+    graph = LandmarkGraph(cutoff=30.0, max_landmarks=24, fixed_size=True).reserve(4, 2)
+    planner = GraphPlanner(graph, distance, 2, capturable=True)
+    if num_landmarks:
+        points = torch.rand(num_landmarks, 2, generator=torch.Generator().manual_seed(seed)) * 10 - 5
+        graph.set_landmarks(torch.cat([points, torch.zeros_like(points)], -1), points, distance)
+    return planner
+
+
+def _written_storage(n: int = 64) -> LazyTensorStorage:
+    storage = LazyTensorStorage(n)
+    storage.set(torch.arange(n), high_level_sample(n, seed=9))
+    return storage
+
+
+@pytest.mark.parametrize("requires_miss", [False, True])
+def test_capturable_relabel_equals_forward(requires_miss):
+    """The capture-safe relabelling (every row queried, static shapes) writes what ``forward`` writes from the same
+    random state: subgoals, rewards and test flags, with the gradual penalty's query on a reserved graph (no
+    landmark, then 3 and 12), without a graph query and without a gradual penalty; over random batches."""
+    import functools
+
+    storage = _written_storage()
+    penalties = {"far": 0, "missed": 0}
+    for num in (0, 3, 12):
+        planner = _reserved_planner(num, seed=num)
+        query = functools.partial(planner.distance_from_graph, at_most=FAR)
+        for distance, penalty in ((query, P2), (None, P2), (query, None)):
+            relabel = HindsightSubgoalRelabel(
+                distance, sparse, gradual_penalty=penalty, far_penalty_requires_miss=requires_miss
+            )
+            captured = relabel.capturable_relabel(storage)
+            for seed in range(4):
+                sample = high_level_sample(int(torch.randint(1, 300, ())), seed=seed)
+                sample["subgoal"] = sample["subgoal"] * 4  # some far from the landmarks
+                torch.manual_seed(seed)
+                eager = relabel(sample.clone())
+                torch.manual_seed(seed)
+                mine = captured(sample.clone(), torch.zeros(sample.shape[0], 1, dtype=torch.long), torch.tensor(0))
+                for key in ("subgoal", ("next", "reward"), "subgoal_test"):
+                    assert torch.equal(mine[key], eager[key]), (num, penalty, key)
+                rewards = eager["next", "reward"]
+                penalties["far"] += int((rewards == -P2).sum())
+                penalties["missed"] += int((rewards == -P1).sum())
+    assert penalties["far"] > 0 and penalties["missed"] > 0  # both penalties exercised
+
+
+def test_capturable_relabel_refuses_a_query_without_a_capture_safe_form():
+    from torchrl_dhrl.planner import GraphPlanner, LandmarkGraph
+
+    storage = _written_storage()
+    plain = HindsightSubgoalRelabel(lambda goals: goals.norm(dim=-1))
+    with pytest.raises(RuntimeError, match="distance_from_graph has no capture-safe form"):
+        plain.capturable_relabel(storage)
+    unreserved = GraphPlanner(LandmarkGraph(), lambda s, g: (s[..., :2] - g).norm(dim=-1), 2)
+    with pytest.raises(RuntimeError, match="needs a fixed_size graph whose planning tensors exist"):
+        HindsightSubgoalRelabel(unreserved.distance_from_graph).capturable_relabel(storage)
+
+
+@pytest.mark.slow
+def test_capturable_high_level_sampler_compiles_whole():
+    """A high-level buffer (the transition builder on writes, future goals by episode, subgoal testing with the
+    gradual penalty on a reserved graph) offers the capture-safe sampler; compiled with ``fullgraph=True`` (no
+    graph break: no host synchronisation) it draws what the eager sampler draws (random ops on the eager
+    generator); a sample-side transform is still refused."""
+    import functools
+
+    from torch._inductor import config as inductor_config
+
+    planner = _reserved_planner(10)
+    stream = SubgoalStream(num_envs=3, min_len=8, max_len=40, flag_prob=0.2, seed=11)
+    relabel = [
+        FutureGoalRelabel(
+            sparse,
+            her_ratio=0.8,
+            window=3,
+            out_keys=["desired_goal"],
+            reward_keys=None,
+            traj_key="episode_id",
+            step_count_key="segment_index",
+        ),
+        HindsightSubgoalRelabel(functools.partial(planner.distance_from_graph, at_most=FAR), sparse),
+    ]
+    rb = RelabelReplayBuffer(
+        storage=LazyTensorStorage(200), transform=HighLevelTransitionBuilder(), relabel=relabel, batch_size=64
+    )
+    for _ in range(4):
+        rb.extend(stream.batch(12))
+    sample = rb.capturable_sampler()
+    torch.manual_seed(0)
+    eager = sample()
+    compiled = torch.compile(sample, fullgraph=True)
+    with inductor_config.patch(fallback_random=True):
+        torch.manual_seed(0)
+        mine = compiled()
+    for key in ("index", "subgoal", "desired_goal", ("next", "reward"), "subgoal_test"):
+        assert torch.equal(mine[key], eager[key]), key
+    tested = eager["subgoal_test"].squeeze(-1)
+    assert torch.equal(eager["subgoal"][~tested], eager["next", "achieved_goal"][~tested])
+    rb.append_transform(RenameTransform([("next", "reward")], [("next", "high_reward")]))
+    with pytest.raises(RuntimeError, match="does not run the buffer's sample-side `transform`"):
+        rb.capturable_sampler()
+
+
 def test_errors():
     with pytest.raises(ValueError, match="subgoal_test_ratio"):
         HindsightSubgoalRelabel(subgoal_test_ratio=1.5)

@@ -587,6 +587,32 @@ def test_reserved_graph_plans_like_no_graph_and_its_builds_keep_the_storage(name
     )
 
 
+@pytest.mark.parametrize("name", sorted(DISTANCES))
+def test_capturable_distance_from_graph_is_the_exact_minimum(name):
+    """``distance_from_graph(capturable=True)`` on a fixed-size graph (reserved, then 1-40 landmarks): the exact
+    minimum of the eager query, the same answers as the ``at_most`` query at its threshold, ``inf`` without
+    landmarks; a graph without fixed-size tensors is refused."""
+    distance = DISTANCES[name]
+    gen = torch.Generator().manual_seed(500 + len(name))
+    graph = LandmarkGraph(cutoff=3.0, max_landmarks=48, fixed_size=True).reserve(4, 2)
+    goals = torch.rand(2, 7, 2, generator=gen) * 20 - 6
+    assert torch.isinf(graph.distance_from_graph(goals, distance, capturable=True)).all()
+    assert graph.distance_from_graph(goals, distance, capturable=True).shape == (2, 7)
+    for _ in range(12):
+        _set_random_landmarks(graph, distance, gen, int(torch.randint(1, 41, (), generator=gen)))
+        goals = torch.rand(int(torch.randint(1, 60, (), generator=gen)), 2, generator=gen) * 20 - 6
+        exact = graph.distance_from_graph(goals, distance)
+        captured = graph.distance_from_graph(goals, distance, capturable=True)
+        assert torch.equal(captured, exact)
+        for threshold in (0.5, 2.0, 6.0):
+            bounded = graph.distance_from_graph(goals, distance, at_most=threshold, candidates=4)
+            assert torch.equal(captured > threshold, bounded > threshold)
+    with pytest.raises(RuntimeError, match="needs a fixed_size graph whose planning tensors exist"):
+        LandmarkGraph().distance_from_graph(goals, distance, capturable=True)
+    with pytest.raises(ValueError, match="`goals` have 3 features but the landmark goals have 2"):
+        graph.distance_from_graph(torch.zeros(4, 3), distance, capturable=True)
+
+
 def test_reserve_refusals_and_reallocation():
     with pytest.raises(ValueError, match="fixed_size=True; this graph has fixed_size=False"):
         LandmarkGraph().reserve(4, 2)

@@ -59,6 +59,33 @@ def test_capturable_agent_plans_on_a_graph_reserved_before_its_first_build():
     assert [t.data_ptr() for t in graph.planning_tensors(capturable=True)] == pointers
 
 
+def test_high_level_updates_sample_with_the_capture_safe_sampler_on_a_reserved_graph():
+    """The recipe's high-level buffer on a planner with a reserved fixed-size graph offers the capture-safe sampler
+    (gradual penalty included), and the updater trains with it (``capture_sampling=True``, the form the CUDA graphs
+    capture); on a graph that is not fixed-size the sampler is refused, saying why."""
+    from torchrl_dhrl.recipe import make_collector, make_high_level_buffer, make_updater
+
+    for fixed in (True, False):
+        agent, env = _agent(fixed)
+        collector = make_collector(env, agent, 30)
+        rb = make_high_level_buffer(
+            buffer_size=500, batch_size=32, reward_threshold=0.5, her_window=3, planner=agent.planner
+        )
+        it = iter(collector)
+        for _ in range(2):
+            rb.extend(next(it))
+        collector.shutdown()
+        updater = make_updater(agent.high_loss, rb, actor_lr=1e-3, critic_lr=1e-3, capture_sampling=True)
+        if not fixed:
+            with pytest.raises(RuntimeError, match="distance_from_graph has no capture-safe form here"):
+                updater.run(4)
+            continue
+        before = [p.detach().clone() for p in agent.high_loss.parameters()]
+        updater.run(4)
+        assert (updater.sampling_captured, updater.sampling_note) == (True, "capture-safe sampler")
+        assert any(not torch.equal(a, b) for a, b in zip(before, agent.high_loss.parameters(), strict=True))
+
+
 def test_make_collector_cudagraph_policy_refusals():
     """``cudagraph_policy`` needs a capturable planner on a reserved graph and the env on CUDA; the refusals name
     what is missing (on a CUDA machine the capture itself is tested in tests/test_cuda.py)."""

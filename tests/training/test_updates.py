@@ -369,18 +369,24 @@ def test_updater_capture_sampling_switch(graphs_on_cpu):
     assert (
         eager_sampling.sampling_captured is False and eager_sampling.sampling_note == "capture_sampling=False"
     )
-    # the high-level buffer cannot: auto samples eagerly and says why, True raises the buffer's reason
-    high = make_high_level_buffer(buffer_size=100, batch_size=8, reward_threshold=0.5)
+    # a high-level buffer whose gradual penalty queries a plain graph cannot: auto samples eagerly and says why,
+    # True raises the buffer's reason
+    from tests.data.test_high_level_transitions import SubgoalStream
+    from torchrl_dhrl.planner import GraphPlanner, LandmarkGraph
+
+    plain = GraphPlanner(LandmarkGraph(), lambda s, g: (s[..., :2] - g).norm(dim=-1), 2)
+    high = make_high_level_buffer(buffer_size=100, batch_size=8, reward_threshold=0.5, her_window=3, planner=plain)
+    high.extend(SubgoalStream(num_envs=3, min_len=8, max_len=40, flag_prob=0.2, seed=11).batch(12))
     loss = _loss()
     auto = LossUpdater(loss, high, make_optimizers(loss), cudagraphs=True)
     auto._setup_sampling()
     assert (
         auto.sampling_captured is False
-        and "HindsightSubgoalRelabel has no capture-safe form" in auto.sampling_note
+        and "distance_from_graph has no capture-safe form here" in auto.sampling_note
     )
     loss = _loss()
     required = LossUpdater(loss, high, make_optimizers(loss), cudagraphs=True, capture_sampling=True)
-    with pytest.raises(RuntimeError, match="capturable_sampler"):
+    with pytest.raises(RuntimeError, match="needs a fixed_size graph"):
         required._setup_sampling()
     # a restore captures again, with a sampler built on the restored storage
     loss = _loss()

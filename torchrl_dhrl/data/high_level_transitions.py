@@ -423,6 +423,9 @@ class HighLevelTransitionBuilder(UnregisteredAttributes, _SampleTransform, Trans
             records.get(self.segment_index_key).squeeze(-1),
         )
 
+    #: it acts on writes only (``inv``); a sample goes through unchanged, so a capture-safe sampler may skip it
+    sample_identity = True
+
     # ------------------------------------------------------------------ transform API
     def _inv_call(self, tensordict: TensorDictBase) -> TensorDictBase | None:
         records = self.build(tensordict)

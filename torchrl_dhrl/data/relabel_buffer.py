@@ -243,7 +243,8 @@ class RelabelReplayBuffer(TensorDictReplayBuffer):
         Raises:
             RuntimeError: on an empty buffer, a full storage whose newest row is unknown (a state loaded
                 from a buffer that did not track it: write once more), a sampler other than
-                :class:`~torchrl.data.RandomSampler`, a sample-side ``transform``, ``prefetch``, or a
+                :class:`~torchrl.data.RandomSampler`, a sample-side ``transform`` (one that acts on samples: a
+                transform with ``sample_identity = True`` acts on writes only), ``prefetch``, or a
                 relabel step without a ``capturable_relabel`` form (the error names it).
 
         Examples:
@@ -290,10 +291,12 @@ class RelabelReplayBuffer(TensorDictReplayBuffer):
                     f"capturable_sampler: the relabel step {type(step).__name__} has no capture-safe form "
                     "(a `capturable_relabel(storage)` method); sample with rb.sample() instead."
                 )
-        if len(self._transform):
+        sample_side = [t for t in self._transform if not getattr(t, "sample_identity", False)]
+        if sample_side:
             raise RuntimeError(
                 "capturable_sampler does not run the buffer's sample-side `transform` "
-                f"({self._transform}); put capture-safe steps in `relabel` instead."
+                f"({sample_side}); put capture-safe steps in `relabel` instead (transforms that act on writes only, "
+                "with `sample_identity = True`, such as HighLevelTransitionBuilder, are fine)."
             )
         if self._prefetch:
             raise RuntimeError(

@@ -2,11 +2,13 @@
 
 from __future__ import annotations
 
+import functools
 from collections.abc import Callable
 
 import torch
 from tensordict import TensorDictBase, is_tensor_collection
 from tensordict.utils import NestedKey
+from torchrl.data import TensorStorage
 from torchrl.envs.transforms import Transform
 
 from torchrl_dhrl._unregistered import UnregisteredAttributes
@@ -194,9 +196,9 @@ class HindsightSubgoalRelabel(UnregisteredAttributes, _SampleTransform, Transfor
             raise TypeError(f"distance_from_graph must be callable or None, got {type(value).__name__}.")
         self.__dict__["_distance_from_graph"] = value
 
-    def _far_from_graph(self, subgoals: torch.Tensor) -> torch.Tensor:
+    def _far_from_graph(self, subgoals: torch.Tensor, query: DistanceFromGraph | None = None) -> torch.Tensor:
         with torch.no_grad():
-            distance = self.distance_from_graph(subgoals)
+            distance = (self.distance_from_graph if query is None else query)(subgoals)
         if not isinstance(distance, torch.Tensor) or distance.shape not in (
             subgoals.shape[:1],
             subgoals.shape[:1] + (1,),
@@ -209,7 +211,48 @@ class HindsightSubgoalRelabel(UnregisteredAttributes, _SampleTransform, Transfor
         distance = distance.reshape(-1).to(subgoals.device)
         return torch.isfinite(distance) & (distance > self.far_from_graph_threshold)
 
+    def capturable_relabel(
+        self, storage: TensorStorage
+    ) -> Callable[[TensorDictBase, torch.Tensor, torch.Tensor], TensorDictBase]:
+        """The relabelling of :meth:`forward` as a capture-safe function of tensors.
+
+        Returns ``relabel(tensordict, coords, newest_index)`` (the signature of
+        :meth:`FutureGoalRelabel.capturable_relabel <torchrl_dhrl.data.FutureGoalRelabel.capturable_relabel>`;
+        this step reads neither): the same draws and rewards as :meth:`forward`, with static shapes and no host
+        synchronisation, for :meth:`RelabelReplayBuffer.capturable_sampler
+        <torchrl_dhrl.data.RelabelReplayBuffer.capturable_sampler>`. The gradual penalty's graph query then runs
+        for every row (kept where the subgoal is tested) through ``distance_from_graph(subgoals, capturable=True)``,
+        e.g. :meth:`GraphPlanner.distance_from_graph <torchrl_dhrl.planner.GraphPlanner.distance_from_graph>` on a
+        ``fixed_size`` graph (its exact minimum: the same penalties as the eager query to float round-off).
+
+        Raises:
+            RuntimeError: with a gradual penalty, a ``distance_from_graph`` without a ``capturable`` keyword, or one
+                that refuses it (e.g. a graph that is not ``fixed_size``); the message says which.
+        """
+        query = None
+        if self.gradual_penalty is not None and self.distance_from_graph is not None:
+            query = functools.partial(self.distance_from_graph, capturable=True)
+            subgoals = storage._storage.get(self.action_key)
+            probe = subgoals.new_zeros((0, subgoals.shape[-1]))
+            try:
+                query(probe)
+            except (TypeError, RuntimeError) as err:
+                raise RuntimeError(
+                    "HindsightSubgoalRelabel: the gradual penalty's distance_from_graph has no capture-safe form "
+                    f"here (called with capturable=True: {err})"
+                ) from err
+
+        def relabel(tensordict: TensorDictBase, coords: torch.Tensor, newest_index: torch.Tensor) -> TensorDictBase:
+            return self._relabel(tensordict, query, capturable=True)
+
+        return relabel
+
     def forward(self, tensordict: TensorDictBase) -> TensorDictBase:
+        return self._relabel(tensordict, None, capturable=False)
+
+    def _relabel(
+        self, tensordict: TensorDictBase, query: DistanceFromGraph | None, capturable: bool
+    ) -> TensorDictBase:
         if not is_tensor_collection(tensordict):
             raise TypeError(f"HindsightSubgoalRelabel expects a TensorDict, got {type(tensordict).__name__}.")
         values = {}
@@ -242,7 +285,10 @@ class HindsightSubgoalRelabel(UnregisteredAttributes, _SampleTransform, Transfor
             > self.subgoal_test_threshold
         )
         far = torch.zeros_like(tested)
-        if self.gradual_penalty is not None and self.distance_from_graph is not None and bool(tested.any()):
+        if capturable:  # every row queried (static shapes), kept where the subgoal is tested
+            if query is not None:
+                far = tested & self._far_from_graph(subgoal, query)
+        elif self.gradual_penalty is not None and self.distance_from_graph is not None and bool(tested.any()):
             far[tested] = self._far_from_graph(subgoal[tested])
         if self.far_penalty_requires_miss:
             far = far & missed

@@ -707,7 +707,13 @@ class LandmarkGraph(UnregisteredAttributes, nn.Module):
 
     @torch.no_grad()
     def distance_from_graph(
-        self, goals: Tensor, distance: TemporalDistance, *, at_most: float | None = None, candidates: int = 16
+        self,
+        goals: Tensor,
+        distance: TemporalDistance,
+        *,
+        at_most: float | None = None,
+        candidates: int = 16,
+        capturable: bool = False,
     ) -> Tensor:
         """``min_k d(landmark_state_k -> goal)`` for goals ``[..., goal_dim]`` -> ``[...]``.
 
@@ -721,7 +727,15 @@ class LandmarkGraph(UnregisteredAttributes, nn.Module):
         Comparisons ``<, <=, >, >=`` with ``at_most`` therefore give exactly the answers of the full
         minimum, for about ``candidates / num_landmarks`` of its cost when most goals are near the graph
         (the learned distance is evaluated for ``B x candidates`` pairs instead of ``B x K``).
+
+        With ``capturable=True`` (a ``fixed_size`` graph, reserved or built once) the exact minimum over the
+        fixed-size planning tensors, padding rows masked (``inf`` without landmarks): static shapes, no host
+        synchronisation, for a query captured in a CUDA graph or compiled whole (the high level's capture-safe
+        sampling). ``at_most`` and ``candidates`` are not used (the exact minimum answers every threshold); the
+        distance is evaluated for ``B x max_landmarks`` pairs.
         """
+        if capturable:
+            return self._distance_from_fixed(goals, distance)
         batch = goals.shape[:-1]
         if not self.has_graph:
             return torch.full(batch, math.inf, dtype=goals.dtype, device=goals.device)
@@ -751,6 +765,26 @@ class LandmarkGraph(UnregisteredAttributes, nn.Module):
             matrix = pairwise_distances(distance, self.landmark_states, flat[open_rows], self.chunk_size)
             result[open_rows] = matrix.min(dim=0).values.to(flat.dtype)
         return result.reshape(batch)
+
+    def _distance_from_fixed(self, goals: Tensor, distance: TemporalDistance) -> Tensor:
+        """:meth:`distance_from_graph` on the fixed-size planning tensors (``capturable=True``)."""
+        tensors = self.planning_tensors(capturable=True)
+        if tensors is None or tensors.valid is None:
+            raise RuntimeError(
+                "distance_from_graph(capturable=True) needs a fixed_size graph whose planning tensors exist "
+                "(LandmarkGraph(fixed_size=True), then reserve(obs_dim, goal_dim) or a first build)."
+            )
+        if goals.shape[-1] != tensors.goals.shape[-1]:
+            raise ValueError(
+                f"`goals` have {goals.shape[-1]} features but the landmark goals have {tensors.goals.shape[-1]}."
+            )
+        flat = goals.reshape(-1, goals.shape[-1])
+        matrix = pairwise_distances(distance, tensors.states, flat, self.chunk_size).to(flat.dtype)  # [K, M]
+        inf = torch.full((), math.inf, dtype=flat.dtype, device=flat.device)
+        matrix = torch.where(tensors.valid.unsqueeze(1), matrix, inf)
+        if matrix.shape[1] == 0:
+            return torch.empty(goals.shape[:-1], dtype=flat.dtype, device=flat.device)
+        return matrix.min(dim=0).values.reshape(goals.shape[:-1])
 
     @torch.no_grad()
     def plan(

@@ -288,16 +288,19 @@ class GraphPlanner(UnregisteredAttributes, Transform):
         return self
 
     def distance_from_graph(
-        self, goals: Tensor, *, at_most: float | None = None, candidates: int = 16
+        self, goals: Tensor, *, at_most: float | None = None, candidates: int = 16, capturable: bool = False
     ) -> Tensor:
         """``min_k d(landmark_state_k -> goal)`` for ``goals[..., goal_dim]`` -> ``[...]``.
 
         ``inf`` everywhere when there is no graph. With ``at_most``, exact only relative to that threshold
-        and much cheaper (see :meth:`LandmarkGraph.distance_from_graph`).
+        and much cheaper; with ``capturable`` (a ``fixed_size`` graph), capture-safe (see
+        :meth:`LandmarkGraph.distance_from_graph`).
 
         Used by the gradual penalty (Algorithm 4) and by frontier-based goal shifting.
         """
-        return self.graph.distance_from_graph(goals, self.distance, at_most=at_most, candidates=candidates)
+        return self.graph.distance_from_graph(
+            goals, self.distance, at_most=at_most, candidates=candidates, capturable=capturable
+        )
 
     def plan(self, states: Tensor, subgoals: Tensor) -> GraphPlan:
         """Plans for ``states[B, obs_dim]`` and ``subgoals[B, goal_dim]`` (see :meth:`LandmarkGraph.plan`)."""

@@ -163,7 +163,10 @@ def make_agent(
         high_critic, high_loss (mapping, optional): the high level's :class:`~torchrl_dhrl.modules.GoalConditionedCritic`
             (``gamma``, ``distance_output``, ``num_cells``) and :class:`~torchrl_dhrl.objectives.HighLevelLoss`.
         graph (mapping, optional): :class:`~torchrl_dhrl.planner.LandmarkGraph`'s (``cutoff``,
-            ``max_landmarks``, ``early_stop``, ``build_autocast_dtype``, ...).
+            ``max_landmarks``, ``early_stop``, ``build_autocast_dtype``, ``fixed_size`` (default: as
+            ``capturable_planner``), ...). A ``fixed_size`` graph is reserved at once
+            (:meth:`LandmarkGraph.reserve <torchrl_dhrl.planner.LandmarkGraph.reserve>`), so that capture-safe
+            queries (the high level's captured sampling, a captured policy) work from the start.
         planner (mapping, optional): :class:`~torchrl_dhrl.planner.GraphPlanner`'s (``reach_radius``, ...).
         distance (TemporalDistance or mapping, optional): the planner's distance, e.g. a
             :class:`~torchrl_dhrl.planner.LineOfSightDistance` for the oracle; or the keyword arguments of
@@ -236,7 +239,7 @@ def make_agent(
     graph_planner = GraphPlanner(
         landmark_graph, distance, goal_dim, capturable=capturable_planner, **(planner or {})
     ).to(device)
-    if capturable_planner and landmark_graph.fixed_size:
+    if landmark_graph.fixed_size:
         landmark_graph.reserve(
             obs_dim, goal_dim, dtype=env.observation_spec["observation"].dtype, device=device
         )

@@ -83,10 +83,11 @@ class LossUpdater:
     (``benchmarks/bench_losses.py --device cuda``). Where the buffer offers a capture-safe sampler
     (:meth:`RelabelReplayBuffer.capturable_sampler <torchrl_dhrl.data.RelabelReplayBuffer.capturable_sampler>`:
     uniform draws and relabel steps with a capture-safe form, such as the low-level buffer's
-    :class:`~torchrl_dhrl.data.FutureGoalRelabel`), sampling and relabelling are captured in the same graphs
-    (``capture_sampling``): a replay is then the whole update from the storage on, with no host work but
-    the replay itself. Otherwise (e.g. the high-level buffer, whose gradual penalty queries the planner's
-    graph) the batch is sampled eagerly and copied into the graph's inputs. The delayed-actor schedule
+    :class:`~torchrl_dhrl.data.FutureGoalRelabel`, or the high-level buffer's
+    :class:`~torchrl_dhrl.data.HindsightSubgoalRelabel` whose gradual penalty queries a ``fixed_size`` graph),
+    sampling and relabelling are captured in the same graphs (``capture_sampling``): a replay is then the whole
+    update from the storage on, with no host work but the replay itself. Otherwise (e.g. a gradual penalty on a
+    graph that is not ``fixed_size``) the batch is sampled eagerly and copied into the graph's inputs. The delayed-actor schedule
     (decided on the host from :attr:`num_updates`) and Polyak averaging stay eager. The optimisers are
     switched to ``capturable`` Adam, and the graphs are captured after a few eager warm-up steps: load
     any state (``resume``) before the first step. The non-finite check then runs after the steps (once
