@@ -21,7 +21,8 @@ Prints, in one run and side by side:
 5. the gradual penalty's graph query of one high-level update (paper sizes: 300 landmarks, the 20% of a
    1024 batch that are subgoal tests, the 3x256 distance model): the full minimum over landmarks
    against ``distance_from_graph(at_most=3 x cutoff)`` (16 candidates first), with the far/near
-   decisions compared.
+   decisions compared, and the capture-safe form (``capturable=True``: every subgoal of the batch against
+   all ``max_landmarks`` rows of a fixed-size graph, what the high level's captured sampling evaluates).
 
 Run ``python benchmarks/bench_planner.py`` (``--quick`` for a smoke run, ``--dense`` to also time
 dense FPS instead of extrapolating it, ``--rebuild-repeats`` for more interleaved rebuilds).
@@ -503,6 +504,22 @@ def bench_penalty_query(args, gen):
     print(f"   full minimum        {t_full * 1e3:9.1f} ms  {full_pairs:>8} pairs")
     print(
         f"   at_most (16 first)  {t_fast * 1e3:9.1f} ms  {fast_pairs:>8} pairs   x{t_full / t_fast:.1f} faster, same far/near decisions: {same}"
+    )
+    # the capture-safe form (the high level's sampling inside its CUDA graphs): every subgoal of the batch, not only
+    # the tested ones, against all max_landmarks rows of a fixed-size graph, static shapes
+    fixed = LandmarkGraph(cutoff=CUTOFF, max_landmarks=args.penalty_landmarks, fixed_size=True)
+    fixed.set_landmarks(graph.landmark_states, graph.landmark_goals, distance)
+    batch = torch.cat([subgoals] * round(1 / 0.2))  # the whole batch whose 20% are the tested subgoals
+    counting.reset()
+    exact = fixed.distance_from_graph(batch, counting, capturable=True)
+    captured_pairs = counting.pairs
+    same = torch.equal(exact[:num] > threshold, fast > threshold)
+    t_captured = timed(
+        lambda: fixed.distance_from_graph(batch, distance, capturable=True), max(1, args.repeats // 10)
+    )
+    print(
+        f"   capturable, batch {batch.shape[0]:>4} {t_captured * 1e3:9.1f} ms  {captured_pairs:>8} pairs   "
+        f"x{t_full / t_captured:.2f} the full minimum's speed, same far/near decisions: {same}"
     )
 
 

@@ -286,6 +286,13 @@ def gymnasium_kwargs(cfg: dict, *, eval: bool = False) -> dict[str, Any] | None:
     return args
 
 
+def high_sampling_captured(cfg: dict, device: torch.device) -> bool:
+    """Whether the high level samples with the capture-safe sampler (``high.capture_sampling``: true, or null
+    with ``cudagraphs``), which needs the planner's graph fixed-size and reserved."""
+    switch = cfg["high"].get("capture_sampling", False)
+    return bool(switch) or (switch is None and bool(resolve_speed(cfg, device)[0]["cudagraphs"]))
+
+
 def build_agent(cfg: dict, device: torch.device) -> DHRLAgent:
     """:func:`~torchrl_dhrl.recipe.make_agent` of the configuration: each component takes the keys of its
     group that are its arguments (:mod:`torchrl_dhrl.recipe.routing`); sizes from the env's specs."""
@@ -302,8 +309,8 @@ def build_agent(cfg: dict, device: torch.device) -> DHRLAgent:
             **args["graph"],
             "build_autocast_dtype": run_precisions(cfg, device)[1],
             # fixed-size planning tensors, reserved: for a captured or compiled policy, and for the high level's
-            # sampling captured in its CUDA graphs (the gradual penalty's graph query)
-            "fixed_size": policy_captured(cfg) or bool(resolve_speed(cfg, device)[0]["cudagraphs"]),
+            # capture-safe sampling (the gradual penalty's graph query)
+            "fixed_size": policy_captured(cfg) or high_sampling_captured(cfg, device),
         },
         distance=oracle_distance(cfg) if cfg["planner"]["distance"] == "oracle" else args["distance"],
         capturable_planner=policy_captured(cfg),
@@ -362,9 +369,8 @@ def build_updaters(cfg: dict, agent: DHRLAgent, low_rb, high_rb) -> tuple[LossUp
                 cudagraphs=cfg["cudagraphs"],
                 updates_per_graph=cfg.get("updates_per_graph", 1),
                 compile=cfg.get("compile", False),
-                # the high level's capture-safe sampler queries the graph exactly over all max_landmarks rows: only
-                # inside the CUDA graphs (null), where it saves host work, never eagerly on a CPU
-                capture_sampling=cfg.get("capture_sampling") if level == "low" else None,
+                # the low level's switch is top-level; the high level's, `high.capture_sampling`, is routed
+                **({"capture_sampling": cfg.get("capture_sampling")} if level == "low" else {}),
                 autocast_dtype=run_precisions(cfg, next(loss.parameters()).device)[0],
             )
         )

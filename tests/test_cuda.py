@@ -470,7 +470,7 @@ def test_recipe_with_cudagraphs(tmp_path, capsys):
     assert 0.0 <= summary["eval/success"] <= 1.0
     printed = capsys.readouterr().out
     assert "Sampling, low level: sampling and relabelling captured." in printed
-    assert "Sampling, high level: sampling and relabelling captured." in printed  # the gradual penalty's query too
+    assert "Sampling, high level: capture_sampling=False." in printed  # high.capture_sampling: false by default
     recipe.train(
         recipe_config(  # resumed with ten low-level updates per replay and the acting policy captured
             *SMOKE,
@@ -478,13 +478,16 @@ def test_recipe_with_cudagraphs(tmp_path, capsys):
             "cudagraphs=true",
             "updates_per_graph=10",
             "cudagraph_policy=true",
+            "high.capture_sampling=null",
             "total_steps=480",
             f"resume={tmp_path}",
         ),
         run_dir=tmp_path,
     )
     assert load_checkpoint(tmp_path)["counters"]["env_steps"] == 480
-    assert "Acting: the policy captured as CUDA graphs" in capsys.readouterr().out
+    printed = capsys.readouterr().out
+    assert "Acting: the policy captured as CUDA graphs" in printed
+    assert "Sampling, high level: sampling and relabelling captured." in printed  # the gradual penalty's query too
 
 
 def test_future_goal_relabel_on_a_cuda_buffer():

@@ -202,3 +202,31 @@ def test_recipe_runs_with_a_compiled_policy_and_resumes_without_it(tmp_path, cap
     assert summary["env_steps"] == 480 and 0.0 <= summary["eval/success"] <= 1.0
     timed = [row["time/planner_ms_per_call"] != "" for row in metrics_rows(tmp_path)]
     assert timed and timed[-1]  # the eager segment times the planner again
+
+
+@pytest.mark.recipe
+def test_recipe_high_capture_sampling_key(tmp_path, capsys):
+    """``high.capture_sampling=true``: the recipe reserves a fixed-size graph, the high level trains with the
+    capture-safe sampler (gradual penalty included) and says so; the default keeps ``rb.sample()``; a resumed run may
+    switch it; bad values are refused before work starts."""
+    from _recipe import load_recipe, recipe_config
+    from dhrl_utils import build_run, high_sampling_captured
+
+    from torchrl_dhrl.recipe import RESUME_MUTABLE_KEYS, ConfigError, validate_config
+
+    assert "high.capture_sampling" in RESUME_MUTABLE_KEYS
+    with pytest.raises(ConfigError, match="`high.capture_sampling` must be None, True or False, got 'yes'"):
+        validate_config(recipe_config("env=PointMaze", "device=cpu", "high.capture_sampling=yes"))
+    cpu = torch.device("cpu")
+    default = recipe_config("env=PointMaze", "preset=smoke", "device=cpu")
+    assert default["high"]["capture_sampling"] is False and not high_sampling_captured(default, cpu)
+    assert not high_sampling_captured(recipe_config("env=PointMaze", "device=cpu", "high.capture_sampling=null"), cpu)
+    parts = build_run(default, cpu)
+    assert not parts.agent.planner.graph.fixed_size and parts.high_updater.capture_sampling is False
+    parts.collector.shutdown()
+    recipe = load_recipe()
+    overrides = ("env=PointMaze", "preset=smoke", "logger.backend=csv", "plots.every_epochs=0", "device=cpu")
+    recipe.train(recipe_config(*overrides, "total_steps=240", "high.capture_sampling=true"), run_dir=tmp_path)
+    assert "Sampling, high level: capture-safe sampler." in capsys.readouterr().out
+    summary = recipe.train(recipe_config(*overrides, "total_steps=480", f"resume={tmp_path}"), run_dir=tmp_path)
+    assert summary["env_steps"] == 480 and "high.capture_sampling" in capsys.readouterr().out  # the resume note

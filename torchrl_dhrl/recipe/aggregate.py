@@ -54,6 +54,7 @@ IGNORED_KEYS = (
     "updates_per_graph",
     "compile",
     "capture_sampling",
+    "high.capture_sampling",
     "compile_policy",
     "cudagraph_policy",
     "logger.*",

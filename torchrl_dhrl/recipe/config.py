@@ -83,6 +83,7 @@ RESUME_MUTABLE_KEYS = (
     "updates_per_graph",
     "compile",
     "capture_sampling",
+    "high.capture_sampling",
     "compile_policy",
     "cudagraph_policy",
     "update_dtype",
