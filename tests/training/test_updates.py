@@ -546,12 +546,16 @@ def test_capture_sampling_key_is_validated_and_reaches_the_low_level_updater():
     ):
         validate_config(recipe_config("env=PointMaze", "device=cpu", "capture_sampling=yes"))
     for value, expected in (("true", True), ("false", False), ("null", None)):
-        cfg = recipe_config("env=PointMaze", "preset=smoke", f"capture_sampling={value}")
-        validate_config(cfg)
-        agent = build_agent(cfg, torch.device("cpu"))
-        low_rb, high_rb = build_replay_buffers(cfg, agent, torch.device("cpu"))
-        low, high = build_updaters(cfg, agent, low_rb, high_rb)
-        assert (low.capture_sampling, high.capture_sampling) == (expected, None)
+        # the top-level key is the low level's; the high level's is high.capture_sampling (default false)
+        for high_value, high_expected in (("false", False), (value, expected)):
+            cfg = recipe_config(
+                "env=PointMaze", "preset=smoke", f"capture_sampling={value}", f"high.capture_sampling={high_value}"
+            )
+            validate_config(cfg)
+            agent = build_agent(cfg, torch.device("cpu"))
+            low_rb, high_rb = build_replay_buffers(cfg, agent, torch.device("cpu"))
+            low, high = build_updaters(cfg, agent, low_rb, high_rb)
+            assert (low.capture_sampling, high.capture_sampling) == (expected, high_expected)
 
 
 def test_updater_capture_sampling_argument_errors():
