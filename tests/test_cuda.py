@@ -18,6 +18,7 @@ from torchrl.data import LazyTensorStorage, TensorDictReplayBuffer
 
 from tests.data.test_future_goals import GoalStream, check_goals
 from tests.planner.test_fps import asymmetric_distance, make_candidates
+from tests.planner.test_graph_planner import assert_same_collection
 from tests.recipe.test_recipe_script import _flat
 from torchrl_dhrl.data import FutureGoalRelabel, RelabelReplayBuffer
 from torchrl_dhrl.modules import GoalConditionedCritic, HighLevelPolicy, LowLevelActor
@@ -192,12 +193,7 @@ def test_cudagraph_policy_collects_what_the_eager_policy_does():
         batches[captured] = torch.cat(out, 1)
         if captured:
             assert agent.planner.graph.num_landmarks > 0
-    for key in (("next", "observation"), "action", "waypoint", "subgoal", ("planner", "path")):
-        expected = batches[False][key]
-        if expected.is_floating_point():
-            torch.testing.assert_close(batches[True][key], expected, rtol=1e-4, atol=1e-4, msg=str(key))
-        else:
-            assert torch.equal(batches[True][key], expected), key
+    assert_same_collection(batches[True], batches[False])
 
 
 def test_captured_eval_policy_evaluates_like_the_eager_policy():

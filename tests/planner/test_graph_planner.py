@@ -729,6 +729,15 @@ def test_planner_on_a_reserved_graph_is_not_recompiled_by_its_first_build():
 
 
 # ----------------------------------------------------------------------------- an agent of the recipe's builders
+def assert_same_collection(got, expected):
+    """Two collectors' batches: the same observations, actions, waypoints, subgoals (float round-off) and paths."""
+    for key in (("next", "observation"), "action", "waypoint", "subgoal", ("planner", "path")):
+        if expected[key].is_floating_point():
+            torch.testing.assert_close(got[key], expected[key], rtol=1e-4, atol=1e-4, msg=str(key))
+        else:
+            assert torch.equal(got[key], expected[key]), key
+
+
 def _agent(capturable_planner, num_cells=(16,)):
     from torchrl_dhrl.recipe import make_agent, make_environment
 

@@ -4,7 +4,7 @@ collector's ``compile_policy`` and the recipe's key."""
 import pytest
 import torch
 
-from tests.planner.test_graph_planner import _agent
+from tests.planner.test_graph_planner import _agent, assert_same_collection
 
 
 @pytest.mark.slow
@@ -152,12 +152,7 @@ def test_compiled_collector_collects_what_the_eager_one_does():
             it = iter(collector)
             batches[compiled] = torch.cat([next(it), next(it)])
         collector.shutdown()
-    for key in (("next", "observation"), "action", "waypoint", "subgoal", ("planner", "path")):
-        expected = batches[False][key]
-        if expected.is_floating_point():
-            torch.testing.assert_close(batches[True][key], expected, rtol=1e-4, atol=1e-4, msg=str(key))
-        else:
-            assert torch.equal(batches[True][key], expected), key
+    assert_same_collection(batches[True], batches[False])
 
 
 def test_compile_policy_key_is_validated_and_reaches_the_planner_and_collector():

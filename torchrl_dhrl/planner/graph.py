@@ -782,9 +782,7 @@ class LandmarkGraph(UnregisteredAttributes, nn.Module):
         matrix = pairwise_distances(distance, tensors.states, flat, self.chunk_size).to(flat.dtype)  # [K, M]
         inf = torch.full((), math.inf, dtype=flat.dtype, device=flat.device)
         matrix = torch.where(tensors.valid.unsqueeze(1), matrix, inf)
-        if matrix.shape[1] == 0:
-            return torch.empty(goals.shape[:-1], dtype=flat.dtype, device=flat.device)
-        return matrix.min(dim=0).values.reshape(goals.shape[:-1])
+        return matrix.min(dim=0).values.reshape(goals.shape[:-1])  # K >= 1 rows: also right for no goal
 
     @torch.no_grad()
     def plan(
