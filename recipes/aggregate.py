@@ -12,6 +12,11 @@ holds the mean and standard deviation over seeds (the paper's convention), the i
 95% percentile-bootstrap interval (rliable's IQM), the range and each seed's value. Written to ``--out``
 (default: the first path): ``aggregate.csv``, ``aggregate.png`` (the paper's points overlaid) and
 ``aggregate.md`` (a summary at each group's last common evaluation point and at the paper's step counts).
+
+``--metric`` takes one or more ``metrics.csv`` columns (default ``eval/success``), e.g. ``--metric eval/success
+train/frontier diag/landmark_coverage``: the first writes ``aggregate.csv``/``.png``, every other one
+``aggregate_<column>.csv``/``.png`` (``/`` as ``_``), and ``aggregate.md`` has one table per column. Only success
+columns are printed as percentages, and only ``eval/success`` (final-state success) is set against the paper's.
 """
 
 from __future__ import annotations
@@ -24,9 +29,29 @@ from dhrl_utils import PAPER_SUCCESS
 
 from torchrl_dhrl.recipe import aggregate_runs, find_runs, plot_aggregate, write_aggregate_csv
 
+PAPER_METRIC = "eval/success"  # the paper's measure: final-state success over the test episodes
 
-def summary_markdown(table: list[dict], reference: dict) -> str:
-    """A markdown table: per task and variant, the last common evaluation point and the paper's points."""
+
+def is_success(metric: str) -> bool:
+    """Whether ``metric`` is a success rate in [0, 1] (printed as a percentage)."""
+    return metric.rsplit("/", 1)[-1].endswith("success")
+
+
+def summary_markdown(table: list[dict], reference: dict, metric: str = "eval/success") -> str:
+    """A markdown table: per task and variant, the last common evaluation point and the paper's points.
+
+    The paper's success rates (``reference``) are only set against ``eval/success`` (final-state success, the
+    paper's measure); success columns are printed as percentages, others (the frontier, the landmark coverage,
+    ...) as numbers, at the last common point and at the paper's step counts.
+    """
+    success = is_success(metric)
+
+    def fmt(v: float) -> str:
+        return f"{100 * v:.1f}%" if success else f"{v:.4g}"
+
+    def spread(v: float) -> str:
+        return f"{100 * v:.1f}" if success else f"{v:.3g}"
+
     lines = [
         "| task | variant | env steps | runs | mean ± std | IQM [95% CI] | per seed | paper |",
         "|---|---|---|---|---|---|---|---|",
@@ -42,14 +67,23 @@ def summary_markdown(table: list[dict], reference: dict) -> str:
             near = min(rows, key=lambda r: abs(r["env_steps"] - steps))
             if abs(near["env_steps"] - steps) <= 0.05 * steps and near not in picked:
                 picked.append(near)
+        ref = (
+            ", ".join(f"{100 * v:.1f}% at {s / 1e6:g}M" for s, v in paper.items())
+            if metric == PAPER_METRIC
+            else ""
+        )
         for r in sorted(picked, key=lambda r: r["env_steps"]):
-            ref = ", ".join(f"{100 * v:.1f}% at {s / 1e6:g}M" for s, v in paper.items()) or "-"
             lines.append(
-                f"| {env} | {variant} | {r['env_steps']} | {r['n']} | {100 * r['mean']:.1f}% ± {100 * r['std']:.1f} | "
-                f"{100 * r['iqm']:.1f}% [{100 * r['iqm_ci_low']:.1f}, {100 * r['iqm_ci_high']:.1f}] | "
-                f"{r['values']} | {ref} |"
+                f"| {env} | {variant} | {r['env_steps']} | {r['n']} | {fmt(r['mean'])} ± {spread(r['std'])} | "
+                f"{fmt(r['iqm'])} [{spread(r['iqm_ci_low'])}, {spread(r['iqm_ci_high'])}] | "
+                f"{r['values']} | {ref or '-'} |"
             )
     return "\n".join(lines) + "\n"
+
+
+def output_name(metric: str, first: bool) -> str:
+    """``aggregate`` for the first column, ``aggregate_<column>`` (``/`` as ``_``) for the others."""
+    return "aggregate" if first else "aggregate_" + metric.replace("/", "_")
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -58,23 +92,51 @@ def main(argv: list[str] | None = None) -> int:
     )
     parser.add_argument("paths", nargs="+", help="run directories or folders holding them")
     parser.add_argument("--out", default=None, help="output folder (default: the first path)")
-    parser.add_argument("--metric", default="eval/success", help="metrics.csv column (default eval/success)")
+    parser.add_argument(
+        "--metric",
+        nargs="+",
+        default=["eval/success"],
+        help="metrics.csv columns (default eval/success); the first names aggregate.csv/.png",
+    )
     parser.add_argument("--reps", type=int, default=2000, help="bootstrap resamples")
     args = parser.parse_args(argv)
     runs = find_runs(args.paths)
     if not runs:
         print(f"aggregate.py: no metrics.csv under {' '.join(args.paths)}", file=sys.stderr)
         return 2
-    table = aggregate_runs(runs, metric=args.metric, reps=args.reps)
+    present = {key for run in runs for row in run.rows for key in row}
+    missing = [m for m in args.metric if m not in present]
+    if missing:
+        print(
+            f"aggregate.py: --metric {' '.join(missing)}: no such column in any metrics.csv "
+            f"(columns: {' '.join(sorted(present))})",
+            file=sys.stderr,
+        )
+        return 2
     out = Path(args.out or args.paths[0])
-    csv_path = write_aggregate_csv(table, out / "aggregate.csv")
     reference = {env: dict(points) for env, points in PAPER_SUCCESS.items()}
-    png = plot_aggregate(table, out / "aggregate.png", reference=reference)
-    markdown = summary_markdown(table, reference)
-    (out / "aggregate.md").write_text(markdown)
     print(f"{len(runs)} runs: " + ", ".join(f"{r.env} seed {r.seed} ({r.path.name})" for r in runs))
+    sections, written = [], []
+    for i, metric in enumerate(args.metric):
+        table = aggregate_runs(runs, metric=metric, reps=args.reps)
+        name = output_name(metric, first=i == 0)
+        success = is_success(metric)
+        written.append(write_aggregate_csv(table, out / f"{name}.csv"))
+        written.append(
+            plot_aggregate(
+                table,
+                out / f"{name}.png",
+                reference=reference if metric == PAPER_METRIC else None,
+                metric_label="final-state success" if metric == PAPER_METRIC else metric,
+                ylim=(-0.02, 1.02) if success else None,
+            )
+        )
+        heading = f"## {metric}\n\n" if len(args.metric) > 1 else ""
+        sections.append(heading + summary_markdown(table, reference, metric))
+    markdown = "\n".join(sections)
+    (out / "aggregate.md").write_text(markdown)
     print(markdown)
-    print(f"Table: {csv_path}, figure: {png}, summary: {out / 'aggregate.md'}")
+    print("Written: " + ", ".join(str(p) for p in [*written, out / "aggregate.md"]))
     return 0
 
 

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import csv
+import math
 
 import numpy as np
 import pytest
@@ -15,15 +16,18 @@ from torchrl_dhrl.recipe.aggregate import variant_of
 aggregate_cli = load_recipe("aggregate")
 
 
-def _run(root, name, config, success, steps=None, extra_files=True):
+def _run(root, name, config, success, steps=None, extra_files=True, frontier=None):
     path = root / name
     path.mkdir(parents=True)
     steps = steps or [3000 * (i + 1) for i in range(len(success))]
+    frontier = [math.nan] * len(success) if frontier is None else frontier
     with open(path / "metrics.csv", "w", newline="") as file:
-        writer = csv.DictWriter(file, ["env_steps", "epoch", "eval/success", "time/wall_s"])
+        writer = csv.DictWriter(file, ["env_steps", "epoch", "eval/success", "train/frontier", "time/wall_s"])
         writer.writeheader()
-        for i, (s, v) in enumerate(zip(steps, success, strict=True)):
-            writer.writerow({"env_steps": s, "epoch": i + 1, "eval/success": v, "time/wall_s": 10.0 * i})
+        for i, (s, v, f) in enumerate(zip(steps, success, frontier, strict=True)):
+            row = {"env_steps": s, "epoch": i + 1, "eval/success": v, "time/wall_s": 10.0 * i}
+            row["train/frontier"] = "" if math.isnan(f) else f
+            writer.writerow(row)
     if extra_files:
         (path / "config.yaml").write_text(yaml.safe_dump(config))
     return path
@@ -83,6 +87,64 @@ def test_table_matches_numpy(sweep, tmp_path):
     assert (tmp_path / "out" / "aggregate.png").stat().st_size > 10_000
     summary = (tmp_path / "out" / "aggregate.md").read_text()
     assert "| PointMaze | low.sqgc=false | 9000 | 4 |" in summary and "96.9% at 0.25M" in summary
+
+
+@pytest.mark.recipe
+def test_several_metrics_each_against_numpy_and_only_success_against_the_paper(tmp_path):
+    rng = np.random.default_rng(3)
+    success = {seed: rng.integers(0, 11, size=3) / 10 for seed in range(3)}
+    frontier = {seed: rng.uniform(5.0, 25.0, size=3) for seed in range(3)}
+    frontier[2][0] = math.nan  # an epoch without the column (e.g. before the first training episode)
+    for seed in range(3):
+        _run(
+            tmp_path / "runs",
+            f"bn_{seed}",
+            _config("AntMazeBottleneck", seed),
+            success[seed],
+            frontier=frontier[seed],
+        )
+    out = tmp_path / "out"
+    argv = [
+        str(tmp_path / "runs"),
+        "--out",
+        str(out),
+        "--reps",
+        "300",
+        "--metric",
+        "eval/success",
+        "train/frontier",
+    ]
+    assert aggregate_cli.main(argv) == 0
+    rows = list(csv.DictReader(open(out / "aggregate_train_frontier.csv")))
+    assert [int(r["env_steps"]) for r in rows] == [6000, 9000]  # seed 2 has no frontier at 3000
+    for row in rows:
+        x = np.array([frontier[s][int(row["env_steps"]) // 3000 - 1] for s in range(3)])
+        assert float(row["mean"]) == pytest.approx(x.mean())
+        assert float(row["std"]) == pytest.approx(x.std(ddof=1))
+        assert float(row["iqm"]) == pytest.approx(x.mean())  # three runs: trim_mean(0.25) drops none
+    success_rows = list(csv.DictReader(open(out / "aggregate.csv")))  # the first metric keeps the plain names
+    assert [int(r["env_steps"]) for r in success_rows] == [3000, 6000, 9000]
+    assert (out / "aggregate.png").is_file() and (
+        out / "aggregate_train_frontier.png"
+    ).stat().st_size > 10_000
+    summary = (out / "aggregate.md").read_text()
+    head, tail = summary.split("## train/frontier")
+    assert "## eval/success" in head and "16.5% at 0.5M" in head
+    last = np.array([frontier[s][2] for s in range(3)])
+    frontier_row = next(line for line in tail.splitlines() if line.startswith("| AntMazeBottleneck"))
+    assert f"| 9000 | 3 | {last.mean():.4g} ± {last.std(ddof=1):.3g} |" in frontier_row
+    assert "%" not in frontier_row and frontier_row.endswith(
+        "| - |"
+    )  # a number, not a rate, and no paper point
+
+
+@pytest.mark.recipe
+def test_an_unknown_metric_exits_2_naming_it_and_the_columns(tmp_path, capsys):
+    _run(tmp_path, "a", _config("PointMaze", 0), [0.1, 0.2])
+    assert aggregate_cli.main([str(tmp_path), "--metric", "eval/success", "eval/sucess"]) == 2
+    err = capsys.readouterr().err
+    assert "--metric eval/sucess: no such column" in err and "eval/success" in err and "train/frontier" in err
+    assert not (tmp_path / "aggregate.csv").exists()  # nothing written before the check
 
 
 def test_iqm_and_bootstrap_against_direct_computation():

@@ -253,11 +253,13 @@ def plot_aggregate(
     *,
     reference: Mapping[str, Mapping[float, float]] | None = None,
     metric_label: str = "final-state success",
+    ylim: tuple[float, float] | None = (-0.02, 1.02),
 ) -> Path:
     """Saves success against env steps, one panel per task and one line per variant: the mean with a band of
     one standard deviation, the IQM dashed with its bootstrap interval shaded lightly, the paper's points
     (``reference[env]``: steps -> success) as crosses, or in the panel's title when they lie beyond 1.5x the
-    runs' last evaluation."""
+    runs' last evaluation. ``ylim``: the value axis' limits (``None``: fitted to the data, for columns that are
+    not rates)."""
     envs = sorted({row["env"] for row in table})
     fig = Figure(figsize=(5.5 * max(len(envs), 1), 4))
     axes = fig.subplots(1, max(len(envs), 1), squeeze=False)[0]
@@ -296,7 +298,8 @@ def plot_aggregate(
         ax.set_title(title, fontsize=10)
         ax.set_xlabel("env steps (warm-up included)")
         ax.set_ylabel(metric_label)
-        ax.set_ylim(-0.02, 1.02)
+        if ylim is not None:
+            ax.set_ylim(*ylim)
         ax.grid(alpha=0.3)
         ax.legend(loc="upper left", fontsize=7)
     path = Path(path)
