@@ -17,6 +17,8 @@ holds the mean and standard deviation over seeds (the paper's convention), the i
 train/frontier diag/landmark_coverage``: the first writes ``aggregate.csv``/``.png``, every other one
 ``aggregate_<column>.csv``/``.png`` (``/`` as ``_``), and ``aggregate.md`` has one table per column. Only success
 columns are printed as percentages, and only ``eval/success`` (final-state success) is set against the paper's.
+``--smooth K`` takes each run's value at a point as the mean of its last K evaluations (10 test episodes make a coarse
+rate; the paper's curves are smoothed too).
 """
 
 from __future__ import annotations
@@ -99,10 +101,22 @@ def main(argv: list[str] | None = None) -> int:
         help="metrics.csv columns (default eval/success); the first names aggregate.csv/.png",
     )
     parser.add_argument("--reps", type=int, default=2000, help="bootstrap resamples")
+    parser.add_argument(
+        "--smooth",
+        type=int,
+        default=1,
+        help="each run's value at a point: the mean of its last K evaluations (default 1: none)",
+    )
     args = parser.parse_args(argv)
     runs = find_runs(args.paths)
     if not runs:
         print(f"aggregate.py: no metrics.csv under {' '.join(args.paths)}", file=sys.stderr)
+        return 2
+    if args.smooth < 1:
+        print(
+            f"aggregate.py: --smooth {args.smooth}: must be >= 1 (evaluations per trailing mean)",
+            file=sys.stderr,
+        )
         return 2
     present = {key for run in runs for row in run.rows for key in row}
     missing = [m for m in args.metric if m not in present]
@@ -118,7 +132,7 @@ def main(argv: list[str] | None = None) -> int:
     print(f"{len(runs)} runs: " + ", ".join(f"{r.env} seed {r.seed} ({r.path.name})" for r in runs))
     sections, written = [], []
     for i, metric in enumerate(args.metric):
-        table = aggregate_runs(runs, metric=metric, reps=args.reps)
+        table = aggregate_runs(runs, metric=metric, reps=args.reps, smooth=args.smooth)
         name = output_name(metric, first=i == 0)
         success = is_success(metric)
         written.append(write_aggregate_csv(table, out / f"{name}.csv"))
@@ -132,6 +146,8 @@ def main(argv: list[str] | None = None) -> int:
             )
         )
         heading = f"## {metric}\n\n" if len(args.metric) > 1 else ""
+        if args.smooth > 1:
+            heading += f"Each run's value: the mean of its last {args.smooth} evaluations (`--smooth {args.smooth}`).\n\n"
         sections.append(heading + summary_markdown(table, reference, metric))
     markdown = "\n".join(sections)
     (out / "aggregate.md").write_text(markdown)

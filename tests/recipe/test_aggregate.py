@@ -147,6 +147,40 @@ def test_an_unknown_metric_exits_2_naming_it_and_the_columns(tmp_path, capsys):
     assert not (tmp_path / "aggregate.csv").exists()  # nothing written before the check
 
 
+@pytest.mark.parametrize("window", [1, 2, 3, 7, 50])
+def test_smooth_is_each_runs_trailing_mean_before_the_statistics(tmp_path, window):
+    rng = np.random.default_rng(window)
+    values, steps = {}, {}
+    for seed in range(3):
+        n = 12 - seed  # runs of different lengths, on the same evaluation grid
+        values[seed] = rng.integers(0, 11, size=n) / 10
+        steps[seed] = [1500 * (i + 1) for i in range(n)]
+        _run(tmp_path, f"r{seed}", _config("Reacher3D", seed), values[seed], steps=steps[seed])
+    table = aggregate_runs(find_runs([tmp_path]), reps=100, smooth=window)
+    assert [r["env_steps"] for r in table] == steps[2]  # the points every run reached
+    for row in table:
+        i = row["env_steps"] // 1500 - 1
+        x = np.array([values[s][max(0, i + 1 - window) : i + 1].mean() for s in range(3)])  # direct, per run
+        assert row["mean"] == pytest.approx(x.mean()) and row["std"] == pytest.approx(x.std(ddof=1))
+        assert [float(v) for v in row["values"].split()] == pytest.approx(list(x), rel=1e-5)  # printed with %g
+    with pytest.raises(ValueError, match="smooth must be an integer >= 1"):
+        aggregate_runs(find_runs([tmp_path]), smooth=0)
+
+
+@pytest.mark.recipe
+def test_smooth_on_the_command_line(tmp_path, capsys):
+    _run(tmp_path / "runs", "a", _config("Reacher3D", 0), [0.0, 1.0, 0.5, 0.0])
+    assert (
+        aggregate_cli.main([str(tmp_path / "runs"), "--out", str(tmp_path), "--smooth", "2", "--reps", "50"])
+        == 0
+    )
+    rows = list(csv.DictReader(open(tmp_path / "aggregate.csv")))
+    assert [float(r["mean"]) for r in rows] == pytest.approx([0.0, 0.5, 0.75, 0.25])
+    assert "the mean of its last 2 evaluations" in (tmp_path / "aggregate.md").read_text()
+    assert aggregate_cli.main([str(tmp_path / "runs"), "--smooth", "0"]) == 2
+    assert "--smooth 0: must be >= 1" in capsys.readouterr().err
+
+
 def test_iqm_and_bootstrap_against_direct_computation():
     rng = np.random.default_rng(1)
     for n in (1, 2, 3, 4, 5, 8, 13):

@@ -186,29 +186,50 @@ def bootstrap_iqm_ci(
     return float(low), float(high)
 
 
+def _column(run: RunRecord, metric: str) -> dict[float, float]:
+    """``run``'s evaluation points (env steps) -> value of ``metric``, where the value is present."""
+    return {row["env_steps"]: row[metric] for row in run.rows if not math.isnan(row.get(metric, math.nan))}
+
+
+def _trailing_mean(points: dict[float, float], window: int) -> dict[float, float]:
+    """Each point's value replaced by the mean of the last ``window`` values up to it, in env-step order."""
+    if window == 1:
+        return points
+    steps = sorted(points)
+    values = np.array([points[s] for s in steps])
+    sums = np.concatenate([[0.0], np.cumsum(values)])
+    lows = np.maximum(np.arange(len(steps)) + 1 - window, 0)
+    means = (sums[1:] - sums[lows]) / (np.arange(len(steps)) + 1 - lows)
+    return dict(zip(steps, means.tolist(), strict=True))
+
+
 def aggregate_runs(
     runs: Sequence[RunRecord],
     *,
     metric: str = "eval/success",
     ignored: Sequence[str] = IGNORED_KEYS,
     reps: int = 2000,
+    smooth: int = 1,
 ) -> list[dict[str, Any]]:
     """One row per task, variant and evaluation point that every run of the group reached.
 
     Columns: ``env``, ``variant``, ``env_steps``, ``n`` (runs), ``mean``, ``std`` (sample standard deviation
     over runs, ``ddof=1``; 0 for one run), ``iqm``, ``iqm_ci_low``, ``iqm_ci_high`` (95% percentile
     bootstrap), ``min``, ``max``, ``seeds`` and ``values`` (per run, in seed order).
+
+    ``smooth=k`` replaces each run's value at an evaluation point by the mean of its last ``k`` evaluations
+    (that one included; fewer at the run's start) before the statistics over runs: a 10-episode success rate
+    is a coarse estimate, and the paper's curves are smoothed too.
     """
+    if int(smooth) != smooth or smooth < 1:
+        raise ValueError(f"smooth must be an integer >= 1 (evaluations per trailing mean), got {smooth!r}.")
     groups: dict[tuple[str, str], list[RunRecord]] = {}
     for run in runs:
         groups.setdefault((run.env, variant_of(run, runs, ignored)), []).append(run)
     table = []
     for (env, variant), members in sorted(groups.items()):
         members = sorted(members, key=lambda r: repr(r.seed))
-        per_run = [
-            {row["env_steps"]: row[metric] for row in r.rows if not math.isnan(row.get(metric, math.nan))}
-            for r in members
-        ]
+        per_run = [_trailing_mean(_column(r, metric), int(smooth)) for r in members]
         common = sorted(set.intersection(*(set(p) for p in per_run))) if per_run else []
         for steps in common:
             values = np.array([p[steps] for p in per_run])
