@@ -277,7 +277,7 @@ def plot_aggregate(
     ylim: tuple[float, float] | None = (-0.02, 1.02),
 ) -> Path:
     """Saves success against env steps, one panel per task and one line per variant: the mean with a band of
-    one standard deviation, the IQM dashed with its bootstrap interval shaded lightly, the paper's points
+    one standard deviation, the IQM dashed with its bootstrap interval shaded lightly, each seed's curve faintly, the paper's points
     (``reference[env]``: steps -> success) as crosses, or in the panel's title when they lie beyond 1.5x the
     runs' last evaluation. ``ylim``: the value axis' limits (``None``: fitted to the data, for columns that are
     not rates)."""
@@ -295,6 +295,9 @@ def plot_aggregate(
             ax.plot(
                 x, [r["iqm"] for r in sel], ls="--", color=line.get_color(), alpha=0.8, label="IQM, 95% CI"
             )
+            if sel[-1]["n"] > 1:  # each seed faintly: with few seeds the spread hides which run did what
+                per_seed = np.array([[float(v) for v in r["values"].split()] for r in sel])
+                ax.plot(x, per_seed, lw=0.7, color=line.get_color(), alpha=0.35)
             ax.fill_between(
                 x,
                 [r["iqm_ci_low"] for r in sel],
