@@ -8,6 +8,12 @@ many episodes reached the frontier.
 
     python recipes/diagnose_exploration.py outputs/<date>/<time>          # the run directory
     python recipes/diagnose_exploration.py run/checkpoint --episodes 120 --rows 0
+
+``--box NAME X0 X1 Y0 Y1`` (repeatable) reads the low-level buffer instead, every stored step, and counts per group of
+``--per`` training episodes (oldest first) those whose agent entered each box, e.g. AntMazeBottleneck's gap and the
+corridor past it::
+
+    python recipes/diagnose_exploration.py <run> --rows 0 --box gap 15.4 17 7 9 --box past 12 20 9 16 --per 100
 """
 
 from __future__ import annotations
@@ -19,7 +25,7 @@ from dhrl_utils import agent_from_checkpoint, build_replay_buffers
 from torchrl_dhrl.envs import MAZE_NAMES
 from torchrl_dhrl.envs.geometry import MazeGeometry
 
-from torchrl_dhrl.diagnostics import EpisodeProgress, episode_progress
+from torchrl_dhrl.diagnostics import EpisodeProgress, episode_progress, episodes_in_boxes
 from torchrl_dhrl.recipe import load_checkpoint
 
 
@@ -53,6 +59,30 @@ def exploration_from_checkpoint(
     return out, summary
 
 
+def boxes_from_checkpoint(path, boxes) -> tuple[torch.Tensor, torch.Tensor]:
+    """:func:`~torchrl_dhrl.diagnostics.episodes_in_boxes` over every step of a checkpoint's low-level buffer.
+
+    The position is the stored ``achieved_goal`` (x, y in the mazes), the episode the collector's ``traj_ids``.
+    """
+    cfg, agent = agent_from_checkpoint(path)
+    if cfg["env_name"] not in MAZE_NAMES:
+        raise ValueError(f"--box needs a maze run; {path} is a {cfg['env_name']} run.")
+    low_rb, _ = build_replay_buffers(cfg, agent, torch.device("cpu"))
+    low_rb.load_state_dict(load_checkpoint(path, components=("low_rb",))["low_rb"])
+    steps = low_rb.storage[: len(low_rb.storage)]
+    return episodes_in_boxes(steps["achieved_goal"][..., :2], steps["collector", "traj_ids"], boxes)
+
+
+def print_box_counts(names: list[str], ids: torch.Tensor, inside: torch.Tensor, per: int) -> None:
+    """Per group of ``per`` episodes (oldest first): how many entered each box."""
+    print(f"{'episodes':>12} " + " ".join(f"{name:>12}" for name in names))
+    for start in range(0, len(ids), per):
+        group = inside[start : start + per]
+        label = f"{start}-{start + len(group) - 1}"
+        print(f"{label:>12} " + " ".join(f"{int(c):>5} of {len(group):<4}" for c in group.sum(0).tolist()))
+    print(f"{'all':>12} " + " ".join(f"{int(c):>5} of {len(ids):<4}" for c in inside.sum(0).tolist()))
+
+
 def main(argv: list[str] | None = None) -> tuple[EpisodeProgress, dict]:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("checkpoint", help="a checkpoint or the run directory holding it")
@@ -64,7 +94,24 @@ def main(argv: list[str] | None = None) -> tuple[EpisodeProgress, dict]:
         default=0.9,
         help="'reached the frontier': this fraction of its progress or further",
     )
+    parser.add_argument(
+        "--box",
+        nargs=5,
+        action="append",
+        metavar=("NAME", "X0", "X1", "Y0", "Y1"),
+        help="count the training episodes whose agent entered this box (repeatable; reads the low-level buffer)",
+    )
+    parser.add_argument("--per", type=int, default=100, help="with --box: episodes per row")
     args = parser.parse_args(argv)
+    if args.box:
+        try:
+            bounds = torch.tensor([[float(v) for v in box[1:]] for box in args.box])
+        except ValueError as err:
+            parser.error(f"--box NAME X0 X1 Y0 Y1: the bounds must be numbers ({err})")
+        if args.per < 1:
+            parser.error(f"--per must be >= 1, got {args.per}")
+        ids, inside = boxes_from_checkpoint(args.checkpoint, bounds)
+        print_box_counts([box[0] for box in args.box], ids, inside, args.per)
     out, summary = exploration_from_checkpoint(args.checkpoint, episodes=args.episodes, near=args.near)
     if args.rows > 0:
         print(f"{'episode':>8} {'goal':>16} {'goal progress':>14} {'max progress':>13} {'end progress':>13}")

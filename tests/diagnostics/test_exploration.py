@@ -12,7 +12,7 @@ from tensordict import TensorDict
 from torchrl_dhrl.envs import AntAgent
 from torchrl_dhrl.envs.geometry import MazeGeometry
 
-from torchrl_dhrl.diagnostics import TrainingEpisodeLog, episode_progress
+from torchrl_dhrl.diagnostics import TrainingEpisodeLog, episode_progress, episodes_in_boxes
 
 
 @pytest.fixture(scope="module")
@@ -224,3 +224,27 @@ def test_the_recipe_logs_upside_down_for_the_ant(env, tracks_flips):
     log = build_episode_log(recipe_config(f"env={env}"))
     assert (log.upside_down is AntAgent.is_upside_down) is tracks_flips
     assert (log.upside_down is None) is not tracks_flips
+
+
+@pytest.mark.parametrize("seed", range(6))
+def test_episodes_in_boxes_against_a_direct_loop(seed):
+    generator = torch.Generator().manual_seed(seed)
+    n = int(torch.randint(1, 400, (1,), generator=generator))
+    positions = torch.randint(0, 9, (n, 2), generator=generator).float() / 2  # on a grid: ties with the box edges
+    episode_ids = torch.randint(-3, 40, (n,), generator=generator) * 7  # unordered, gaps, negative ids
+    boxes = torch.rand(5, 4, generator=generator) * 4
+    boxes = torch.stack([boxes[:, 0], boxes[:, 0] + boxes[:, 1], boxes[:, 2], boxes[:, 2] + boxes[:, 3]], -1)
+    boxes = torch.cat([boxes, torch.tensor([[1.0, 1.0, 2.0, 2.0], [3.0, 1.0, 0.0, 4.0]])])  # a point; min > max
+    ids, inside = episodes_in_boxes(positions, episode_ids, boxes)
+    expected_ids = sorted(set(episode_ids.tolist()))
+    assert ids.tolist() == expected_ids
+    for e, episode in enumerate(expected_ids):
+        steps = [positions[i].tolist() for i in range(n) if int(episode_ids[i]) == episode]
+        for b, (x0, x1, y0, y1) in enumerate(boxes.tolist()):
+            assert bool(inside[e, b]) == any(x0 <= x <= x1 and y0 <= y <= y1 for x, y in steps)
+    assert not inside[:, -1].any()  # an empty box holds nothing
+
+
+def test_episodes_in_boxes_errors():
+    with pytest.raises(ValueError, match="must match"):
+        episodes_in_boxes(torch.zeros(3, 2), torch.zeros(2), torch.zeros(1, 4))

@@ -209,6 +209,19 @@ def test_the_script_reads_a_run(tmp_path, capsys):
     assert all(math.isfinite(v) for v in out.max_progress.tolist())
     assert (out.max_progress <= summary["explored"] + 1e-6).all()
     assert summary["reached_frontier"] == int((out.max_progress >= 0.9 * summary["explored"]).sum())
+    # --box: every stored training episode entered the whole arena, none a box outside it, per group of 2
+    episodes_run = int(float(rows[-1]["episodes"]))
+    load_recipe("diagnose_exploration").main(
+        [str(run), "--rows", "0", "--per", "2", "--box", "arena", "-100", "100", "-100", "100"]
+        + ["--box", "outside", "50", "60", "50", "60"]
+    )
+    printed = capsys.readouterr().out.splitlines()
+    assert printed[0].split() == ["episodes", "arena", "outside"]
+    assert printed[1].split() == ["0-1", "2", "of", "2", "0", "of", "2"]
+    assert printed[-2].split() == ["all", str(episodes_run), "of", str(episodes_run), "0", "of", str(episodes_run)]
+    with pytest.raises(SystemExit):
+        load_recipe("diagnose_exploration").main([str(run), "--box", "gap", "a", "1", "2", "3"])
+    assert "the bounds must be numbers" in capsys.readouterr().err
 
 
 def test_script_on_a_pointmaze_run(tmp_path, capsys):

@@ -16,6 +16,7 @@ from .exploration import (
     EpisodeProgress,
     TrainingEpisodeLog,
     episode_progress,
+    episodes_in_boxes,
 )
 from .feasibility import (
     feasibility_fractions,
@@ -74,6 +75,7 @@ __all__ = [
     "TrainingEpisodeLog",
     "default_coverage_radius",
     "episode_progress",
+    "episodes_in_boxes",
     "feasibility_fractions",
     "graph_diagnosis",
     "graph_quality",

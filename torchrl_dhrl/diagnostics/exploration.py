@@ -4,7 +4,8 @@ The frontier of a maze run moves only when training episodes reach beyond it. :f
 measures, for the episodes stored in a high-level replay buffer, how far along the maze each episode's goal
 is and how far the agent got, both as obstacle-free path lengths from the start (``MazeGeometry.path_length``),
 next to the furthest point the stored data has ever reached. ``recipes/diagnose_exploration.py`` prints it for
-a saved run. :class:`TrainingEpisodeLog` follows the training episodes while a run trains: per epoch, how many
+a saved run; :func:`episodes_in_boxes` says which stored episodes ever entered given regions (a bottleneck's gap, the
+corridor past it), step by step. :class:`TrainingEpisodeLog` follows the training episodes while a run trains: per epoch, how many
 reached their goal, how many goals frontier-based goal shifting moved, and (mazes) how far along the maze they got.
 """
 
@@ -21,7 +22,7 @@ from torch import Tensor
 
 from torchrl_dhrl.envs.geometry import MazeGeometry, furthest_progress
 
-__all__ = ["EpisodeProgress", "TrainingEpisodeLog", "episode_progress"]
+__all__ = ["EpisodeProgress", "TrainingEpisodeLog", "episode_progress", "episodes_in_boxes"]
 
 
 class EpisodeProgress(NamedTuple):
@@ -42,6 +43,45 @@ class EpisodeProgress(NamedTuple):
     max_progress: Tensor
     end_progress: Tensor
     explored: float
+
+
+
+@torch.no_grad()
+def episodes_in_boxes(positions: Tensor, episode_ids: Tensor, boxes: Tensor) -> tuple[Tensor, Tensor]:
+    """Which episodes ever had a position inside each of ``boxes``.
+
+    Args:
+        positions (Tensor): ``[N, 2]`` the agent's x, y at every stored step (e.g. a low-level buffer's
+            ``observation[..., :2]``).
+        episode_ids (Tensor): ``[N]`` the episode of each step (e.g. the collector's ``traj_ids``), any integers.
+        boxes (Tensor): ``[B, 4]`` closed boxes ``(x_min, x_max, y_min, y_max)``; an empty box (min > max) holds nothing.
+
+    Returns:
+        ``(ids, inside)``: ``ids [E]`` the distinct episodes in increasing order (the collector numbers them as
+        they start, so oldest first) and ``inside [E, B]`` whether episode ``e`` had a step in box ``b``.
+
+    Examples:
+        >>> import torch
+        >>> positions = torch.tensor([[0.0, 0.0], [16.0, 7.5], [1.0, 1.0], [16.2, 9.2]])
+        >>> ids, inside = episodes_in_boxes(
+        ...     positions, torch.tensor([0, 0, 1, 1]), torch.tensor([[15.4, 17.0, 7.0, 9.0], [12.0, 20.0, 9.0, 16.0]])
+        ... )
+        >>> ids.tolist(), inside.tolist()
+        ([0, 1], [[True, False], [False, True]])
+    """
+    positions = torch.as_tensor(positions).reshape(-1, 2).float()
+    episode_ids = torch.as_tensor(episode_ids).reshape(-1)
+    boxes = torch.as_tensor(boxes, dtype=torch.float32).reshape(-1, 4)
+    if positions.shape[0] != episode_ids.shape[0]:
+        raise ValueError(
+            f"positions ({positions.shape[0]} steps) and episode_ids ({episode_ids.shape[0]}) must match."
+        )
+    x, y = positions[:, None, 0], positions[:, None, 1]  # [N, 1]
+    hit = (x >= boxes[:, 0]) & (x <= boxes[:, 1]) & (y >= boxes[:, 2]) & (y <= boxes[:, 3])  # [N, B]
+    ids, inverse = torch.unique(episode_ids, return_inverse=True)
+    inside = torch.zeros(len(ids), boxes.shape[0], dtype=torch.long)
+    inside.scatter_reduce_(0, inverse[:, None].expand_as(hit), hit.long(), "amax")
+    return ids, inside.bool()
 
 
 @torch.no_grad()
