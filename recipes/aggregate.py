@@ -141,7 +141,8 @@ def main(argv: list[str] | None = None) -> int:
                 table,
                 out / f"{name}.png",
                 reference=reference if metric == PAPER_METRIC else None,
-                metric_label="final-state success" if metric == PAPER_METRIC else metric,
+                metric_label=("final-state success" if metric == PAPER_METRIC else metric)
+                + (f", mean of the last {args.smooth}" if args.smooth > 1 else ""),
                 ylim=(-0.02, 1.02) if success else None,
             )
         )
