@@ -92,6 +92,31 @@ def test_a_swap_interrupted_between_its_renames_is_completed(tmp_path):
     assert _load(tmp_path) == 1 and sorted(p.name for p in tmp_path.iterdir()) == [CHECKPOINT_NAME]
 
 
+@pytest.mark.parametrize("cut", [0, 1, 0.5, -2])
+def test_a_stage_killed_while_writing_its_manifest_is_not_taken_for_a_checkpoint(tmp_path, cut):
+    """A kill between the manifest's ``open("w")`` and its last byte leaves it empty or truncated."""
+    module, counters = nn.Linear(512, 512), {"k": 1}
+    checkpoint = _registry(module, counters)
+    with torch.no_grad():
+        module.weight.fill_(1)
+        module.bias.fill_(1)
+    save_checkpoint(checkpoint, tmp_path / "full")
+    manifest = (tmp_path / "full" / "manifest.json").read_text()
+    length = int(cut * len(manifest)) if isinstance(cut, float) else cut % len(manifest)
+    stage = tmp_path / f".{CHECKPOINT_NAME}.stage-cafe"
+    os.replace(tmp_path / "full", stage)
+    (stage / "manifest.json").write_text(manifest[:length])
+    # the first save of a run killed so: no checkpoint yet, and the partial stage is not one
+    assert recover_checkpoint(tmp_path) is None and list(tmp_path.iterdir()) == []
+    # a later save killed so, after the previous checkpoint was renamed away: the previous one comes back
+    save_checkpoint(checkpoint, tmp_path / CHECKPOINT_NAME)
+    os.replace(tmp_path / CHECKPOINT_NAME, tmp_path / f".{CHECKPOINT_NAME}.backup-beef")
+    stage.mkdir()
+    (stage / "manifest.json").write_text(manifest[:length])
+    assert "previous" in recover_checkpoint(tmp_path)
+    assert _load(tmp_path) == 1 and sorted(p.name for p in tmp_path.iterdir()) == [CHECKPOINT_NAME]
+
+
 @pytest.mark.slow
 @pytest.mark.recipe
 def test_a_run_killed_while_training_resumes_to_the_straight_runs_metrics(tmp_path):

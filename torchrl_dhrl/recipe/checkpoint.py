@@ -346,7 +346,9 @@ def recover_checkpoint(run_dir: str | os.PathLike) -> str | None:
     :func:`save_checkpoint` stages the new checkpoint in ``.checkpoint.stage-*`` (its ``manifest.json`` written
     last), renames the current one to ``.checkpoint.backup-*``, the staged one into place, and removes the
     backup. A process killed between the two renames leaves no ``checkpoint``: the staged one is moved into
-    place when it is complete, else the backup is moved back. Incomplete stages and stale backups are removed.
+    place when it is complete, else the backup is moved back. Complete means a manifest that parses and
+    validates (:meth:`torchrl.checkpoint.Checkpoint.is_checkpoint`): a process killed while writing the
+    manifest leaves an empty or truncated one. Incomplete stages and stale backups are removed.
     Call it only while no save is running in ``run_dir`` (the recipe does at start-up).
 
     Returns:
@@ -355,11 +357,16 @@ def recover_checkpoint(run_dir: str | os.PathLike) -> str | None:
     Examples:
         >>> import tempfile
         >>> run = Path(tempfile.mkdtemp())
-        >>> (run / ".checkpoint.backup-1").mkdir()
-        >>> (run / ".checkpoint.backup-1" / "manifest.json").write_text("{}")
-        2
-        >>> recover_checkpoint(run)[:40], (run / "checkpoint" / "manifest.json").exists()
-        ('Recovered the checkpoint of an interrupt', True)
+        >>> checkpoint = Checkpoint()
+        >>> _ = checkpoint.register("counters", {"k": 1}, adapter=JSONCheckpointAdapter())
+        >>> _ = save_checkpoint(checkpoint, run / ".checkpoint.backup-1")  # renamed away, then killed
+        >>> (run / ".checkpoint.stage-2").mkdir()  # the next save, killed while writing its manifest
+        >>> (run / ".checkpoint.stage-2" / "manifest.json").write_text("")
+        0
+        >>> recover_checkpoint(run)
+        'Recovered the checkpoint of an interrupted save in ... (the previous one).'
+        >>> sorted(p.name for p in run.iterdir())
+        ['checkpoint']
     """
     run_dir = Path(run_dir)
     if not run_dir.is_dir():
@@ -369,7 +376,7 @@ def recover_checkpoint(run_dir: str | os.PathLike) -> str | None:
     backups = sorted(run_dir.glob(f".{CHECKPOINT_NAME}.backup-*"), key=lambda p: p.stat().st_mtime, reverse=True)
     note = None
     if not target.exists():
-        complete = [p for p in (*stages, *backups) if (p / "manifest.json").is_file()]
+        complete = [p for p in (*stages, *backups) if Checkpoint.is_checkpoint(p)]
         if complete:
             os.replace(complete[0], target)
             which = "new" if complete[0] in stages else "previous"
