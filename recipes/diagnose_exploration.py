@@ -22,11 +22,23 @@ import argparse
 
 import torch
 from dhrl_utils import agent_from_checkpoint, build_replay_buffers
+from tensordict import TensorDictBase
 from torchrl_dhrl.envs import MAZE_NAMES
 from torchrl_dhrl.envs.geometry import MazeGeometry
 
 from torchrl_dhrl.diagnostics import EpisodeProgress, episode_progress, episodes_in_boxes
 from torchrl_dhrl.recipe import load_checkpoint
+
+
+def stored_records(path, buffer: str) -> tuple[dict, TensorDictBase]:
+    """The configuration of a maze run's checkpoint and every record of its ``"low_rb"`` or ``"high_rb"`` buffer."""
+    cfg, agent = agent_from_checkpoint(path)
+    if cfg["env_name"] not in MAZE_NAMES:
+        raise ValueError(f"diagnose_exploration needs a maze run; {path} is a {cfg['env_name']} run.")
+    low_rb, high_rb = build_replay_buffers(cfg, agent, torch.device("cpu"))
+    rb = low_rb if buffer == "low_rb" else high_rb
+    rb.load_state_dict(load_checkpoint(path, components=(buffer,))[buffer])
+    return cfg, rb.storage[: len(rb.storage)]
 
 
 def exploration_from_checkpoint(
@@ -38,12 +50,7 @@ def exploration_from_checkpoint(
     ``beyond_mean_progress`` (how far those episodes got), ``reached_frontier`` (episodes that got to ``near``
     times the frontier's progress or further), ``episodes``.
     """
-    cfg, agent = agent_from_checkpoint(path)
-    if cfg["env_name"] not in MAZE_NAMES:
-        raise ValueError(f"diagnose_exploration needs a maze run; {path} is a {cfg['env_name']} run.")
-    _, high_rb = build_replay_buffers(cfg, agent, torch.device("cpu"))
-    high_rb.load_state_dict(load_checkpoint(path, components=("high_rb",))["high_rb"])
-    records = high_rb.storage[: len(high_rb.storage)]
+    cfg, records = stored_records(path, "high_rb")
     first = records["segment_index"].reshape(-1) == 0
     start = records["achieved_goal"][first].float().mean(0)  # where the episodes start
     geometry = MazeGeometry.from_maze(cfg["env_name"], margin=0.5)
@@ -64,12 +71,7 @@ def boxes_from_checkpoint(path, boxes) -> tuple[torch.Tensor, torch.Tensor]:
 
     The position is the stored ``achieved_goal`` (x, y in the mazes), the episode the collector's ``traj_ids``.
     """
-    cfg, agent = agent_from_checkpoint(path)
-    if cfg["env_name"] not in MAZE_NAMES:
-        raise ValueError(f"--box needs a maze run; {path} is a {cfg['env_name']} run.")
-    low_rb, _ = build_replay_buffers(cfg, agent, torch.device("cpu"))
-    low_rb.load_state_dict(load_checkpoint(path, components=("low_rb",))["low_rb"])
-    steps = low_rb.storage[: len(low_rb.storage)]
+    _, steps = stored_records(path, "low_rb")
     return episodes_in_boxes(steps["achieved_goal"][..., :2], steps["collector", "traj_ids"], boxes)
 
 
