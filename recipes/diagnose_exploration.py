@@ -36,7 +36,7 @@ def stored_records(path, buffer: str) -> tuple[dict, TensorDictBase]:
     if cfg["env_name"] not in MAZE_NAMES:
         raise ValueError(f"diagnose_exploration needs a maze run; {path} is a {cfg['env_name']} run.")
     low_rb, high_rb = build_replay_buffers(cfg, agent, torch.device("cpu"))
-    rb = low_rb if buffer == "low_rb" else high_rb
+    rb = {"low_rb": low_rb, "high_rb": high_rb}[buffer]  # a KeyError names any other buffer
     rb.load_state_dict(load_checkpoint(path, components=(buffer,))[buffer])
     return cfg, rb.storage[: len(rb.storage)]
 
