@@ -3,9 +3,9 @@
 Loads a checkpoint, rebuilds its agent (graph included), runs one deterministic evaluation on the test
 goals and prints the ``diag/...`` numbers the recipe logs every epoch (subgoals and waypoints in walls or
 outside the arena, graph edges through walls, rank correlation of the learned distances with the true
-obstacle-free path lengths, landmark coverage, the high level's subgoal at the start), a table of learned
-vs true distances for a few landmark pairs, and saves their scatter plot (``distance_scatter.png`` in the
-run directory unless ``--plot`` says otherwise). With ``--budgets`` it also rebuilds the graph from the
+obstacle-free path lengths, landmark coverage, the part of the graph a plan from the test start can use, the
+high level's subgoal at the start), a table of learned vs true distances for a few landmark pairs, and saves
+their scatter plot (``distance_scatter.png`` in the run directory unless ``--plot`` says otherwise). With ``--budgets`` it also rebuilds the graph from the
 checkpoint's low-level buffer with other landmark and candidate counts and prints how far each reaches into
 the maze, next to how far the buffer itself reaches (:func:`~torchrl_dhrl.training.landmark_budget_sweep`):
 does a larger graph help, or is exploration what limits it?
@@ -156,6 +156,22 @@ def main(argv: list[str] | None = None):
     for key, value in diagnosis.metrics.items():
         if key.startswith("diag/"):
             print(f"  {key:34s} {value:8.3f}")
+    reach = diagnosis.reach
+    if math.isfinite(reach["reachable_landmarks"]):
+        start, goal = ("({:.1f}, {:.1f})".format(*reach[k].tolist()) for k in ("start", "goal"))
+        count = round(reach["reachable_landmarks"] * metrics["graph/landmarks"])
+        bridge = (
+            "every landmark is reachable"
+            if math.isinf(reach["bridge_distance"])
+            else f"the smallest learned distance from a reachable landmark to an unreachable one: "
+            f"{reach['bridge_distance']:.1f} steps (the cutoff: {cfg['planner']['cutoff']:g})"
+        )
+        print(
+            f"\nPlans from the first test start {start} to its goal {goal}: {count} of {metrics['graph/landmarks']} "
+            f"landmarks reachable, the furthest {reach['reachable_progress']:.1f} along the maze (of every landmark: "
+            f"{metrics['diag/landmark_progress']:.1f}), the nearest to the goal {reach['goal_to_reachable']:.1f} "
+            f"from it; {bridge}"
+        )
     rows = pair_table(diagnosis, args.pairs)
     if rows:
         print(f"\nlearned vs true distances (true steps = length / oracle_speed {speed:g}):")

@@ -280,6 +280,9 @@ def test_recipe_logs_diag_columns_and_the_tool_reads_the_checkpoint(tmp_path, ca
         "diag/graph_distance_rank_corr",
         "diag/landmark_coverage",
         "diag/landmark_progress",
+        "diag/reachable_landmarks",
+        "diag/reachable_progress",
+        "diag/goal_to_reachable",
     )
     for row in rows:
         has_graph = int(row["graph/landmarks"]) > 0
@@ -311,6 +314,10 @@ def test_recipe_logs_diag_columns_and_the_tool_reads_the_checkpoint(tmp_path, ca
     assert budgets is None
     out = capsys.readouterr().out
     assert "diag/edges_crossing_walls" in out and "learned vs true distances" in out
+    assert "Plans from the first test start (" in out and "landmarks reachable" in out
+    reach = diagnosis.reach
+    assert reach["reachable_landmarks"] == diagnosis.metrics["diag/reachable_landmarks"]
+    assert 0.0 < reach["reachable_landmarks"] <= 1.0 and reach["bridge_distance"] >= 0.0
     assert plot.stat().st_size > 1000
     assert 1 <= len(table) <= 4 and all(row["true"] >= 0 for row in table)
     assert diagnosis.metrics["graph/landmarks"] == int(rows[-1]["graph/landmarks"])

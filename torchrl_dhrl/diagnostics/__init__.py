@@ -4,7 +4,8 @@
 (how far the training episodes got), ``subgoal_landscape`` (the high-level critic over the subgoal box),
 ``planning_ablations`` (success with parts of the hierarchy bypassed), ``feasibility`` (subgoals in walls),
 ``coverage`` (landmark coverage), ``graph_quality`` (edges against the true geometry, distance ranking),
-``landmark_budget`` (graph quality against the number of landmarks), ``statistics`` (rank correlation) and ``maze``
+``reachability`` (the part of the graph a plan from the start can use), ``landmark_budget`` (graph quality
+against the number of landmarks), ``statistics`` (rank correlation) and ``maze``
 (the ``diag/...`` metrics the recipe logs, and :func:`graph_diagnosis` of a trained agent). The true geometry they
 compare with is :mod:`torchrl_dhrl.envs.geometry`."""
 
@@ -52,6 +53,9 @@ from .reach import (
     summarize_reach,
     visible_offsets,
 )
+from .reachability import (
+    graph_reach,
+)
 from .statistics import (
     spearman_correlation,
 )
@@ -79,6 +83,7 @@ __all__ = [
     "feasibility_fractions",
     "graph_diagnosis",
     "graph_quality",
+    "graph_reach",
     "hierarchy_diagnostics",
     "landmark_budget_sweep",
     "landmark_coverage",

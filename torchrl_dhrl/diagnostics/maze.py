@@ -25,6 +25,7 @@ from torchrl_dhrl.envs.geometry import cached_maze_geometry
 from .coverage import default_coverage_radius
 from .feasibility import feasibility_fractions
 from .graph_quality import graph_quality
+from .reachability import graph_reach
 from .subgoal_landscape import landscape_summary, subgoal_box, subgoal_landscape
 
 __all__ = [
@@ -49,6 +50,9 @@ DIAG_KEYS = (
     "diag/graph_distance_rank_corr",
     "diag/landmark_coverage",
     "diag/landmark_progress",
+    "diag/reachable_landmarks",
+    "diag/reachable_progress",
+    "diag/goal_to_reachable",
     "diag/start_subgoal_x",
     "diag/start_subgoal_y",
     "diag/start_subgoal_feasible",
@@ -113,6 +117,9 @@ def maze_epoch_diagnostics(
       ``diag/graph_distance_rank_corr``, ``diag/landmark_coverage``, ``diag/landmark_progress``:
       :func:`graph_quality` (``NaN`` without a graph), the true path lengths on the grid of
       :meth:`MazeGeometry.from_maze` (cells of ``resolution``) around walls inflated by ``margin``;
+    * ``diag/reachable_landmarks``, ``diag/reachable_progress``, ``diag/goal_to_reachable``:
+      :func:`graph_reach` from the start state of the rollout's first episode, for its goal: the part of the
+      graph its plans can use (``NaN`` without a graph);
     * ``diag/start_subgoal_x``, ``diag/start_subgoal_y``, ``diag/start_subgoal_feasible``: the deterministic
       high-level proposal at the start state of the rollout's first episode, for its goal
       (:func:`start_subgoal`), and whether it is feasible (``1.0``/``0.0``).
@@ -167,6 +174,9 @@ def maze_epoch_diagnostics(
     quality = graph_quality(geometry, planner, coverage_radius=coverage_radius, max_sources=max_sources)
     metrics.update({f"diag/{k}": v for k, v in quality.items()})
     first = rollout.reshape(-1, rollout.shape[-1])[0, 0]
+    reach = graph_reach(geometry, planner, first["observation"], first["desired_goal"])
+    for key in ("reachable_landmarks", "reachable_progress", "goal_to_reachable"):
+        metrics[f"diag/{key}"] = reach[key]
     subgoal = start_subgoal(high_actor, first["observation"], first["desired_goal"])
     metrics["diag/start_subgoal_x"], metrics["diag/start_subgoal_y"] = subgoal[:2].tolist()
     metrics["diag/start_subgoal_feasible"] = float(geometry.feasible(subgoal[:2]).item())
@@ -195,11 +205,15 @@ class GraphDiagnosis(NamedTuple):
             ``learned`` (``landmark_distances``, steps) and ``graph`` (all-pairs shortest distances, steps)
             of the landmark pairs entering the rank correlations; empty tensors without a graph.
         landmark_goals (Tensor): ``[K, 2]``.
+        reach (dict): :func:`graph_reach` from the first test episode's start state, for its goal (with
+            ``bridge_distance``, which the ``diag/...`` metrics leave out), and that ``start`` and ``goal``
+            (``[2]`` tensors).
     """
 
     metrics: dict
     pairs: dict
     landmark_goals: Tensor
+    reach: dict
 
 
 def graph_diagnosis(
@@ -281,4 +295,8 @@ def graph_diagnosis(
         if pairs is not None
         else {name: torch.zeros(0) for name in names}
     )
-    return GraphDiagnosis(metrics, pairs, graph.landmark_goals.detach().cpu())
+    first = td.reshape(-1, td.shape[-1])[0, 0]
+    reach = graph_reach(geometry, agent.planner, first["observation"], first["desired_goal"])
+    reach["start"] = first["achieved_goal"].detach().float().cpu()[:2]
+    reach["goal"] = first["desired_goal"].detach().float().cpu()[:2]
+    return GraphDiagnosis(metrics, pairs, graph.landmark_goals.detach().cpu(), reach)
