@@ -117,5 +117,11 @@ def test_graph_reach_without_a_graph_or_a_goal():
     planner.graph.set_landmarks(goals, goals, euclid_steps)
     out = graph_reach(geometry, planner, torch.zeros(2))
     assert math.isnan(out["goal_to_reachable"]) and out["reachable_landmarks"] == 1.0
+    # a state no landmark connects to (its learned distances all infinite): nothing reachable
+    nowhere = GraphPlanner(LandmarkGraph(), lambda s, g: torch.full(g.shape[:-1], math.inf), goal_dim=2)
+    nowhere.graph.set_distance_matrix(goals, goals, torch.ones(2, 2))
+    out = graph_reach(geometry, nowhere, torch.zeros(2), torch.tensor([0.0, 8.0]))
+    assert out["reachable_landmarks"] == 0.0 and math.isnan(out["reachable_progress"])
+    assert out["goal_to_reachable"] == math.inf and out["bridge_distance"] == math.inf
     with pytest.raises(TypeError, match="GraphPlanner"):
         graph_reach(geometry, planner.graph, torch.zeros(2))

@@ -42,7 +42,7 @@ def graph_reach(
       landmark is reachable, ``NaN`` without ``goal``);
     * ``bridge_distance``: the smallest learned distance ``landmark_distances[i, j]`` (steps) from a
       reachable landmark ``i`` to an unreachable one ``j``: how far the graph is from an edge into the rest
-      (compare with ``cutoff``; ``inf`` when every landmark is reachable).
+      (compare with ``cutoff``; ``inf`` when every landmark is reachable, or none).
 
     All ``NaN`` without a graph.
 
