@@ -5,10 +5,11 @@ goals and prints the ``diag/...`` numbers the recipe logs every epoch (subgoals 
 outside the arena, graph edges through walls, rank correlation of the learned distances with the true
 obstacle-free path lengths, landmark coverage, the part of the graph a plan from the test start can use, the
 high level's subgoal at the start), a table of learned vs true distances for a few landmark pairs, and saves
-their scatter plot (``distance_scatter.png`` in the run directory unless ``--plot`` says otherwise). With ``--budgets`` it also rebuilds the graph from the
-checkpoint's low-level buffer with other landmark and candidate counts and prints how far each reaches into
-the maze, next to how far the buffer itself reaches (:func:`~torchrl_dhrl.training.landmark_budget_sweep`):
-does a larger graph help, or is exploration what limits it?
+their scatter plot (``distance_scatter.png`` in the run directory unless ``--plot`` says otherwise). With
+``--budgets`` it also rebuilds the graph from the checkpoint's low-level buffer with other landmark and
+candidate counts and prints how far each reaches into the maze, next to how far the buffer itself reaches
+(:func:`~torchrl_dhrl.training.landmark_budget_sweep`): does a larger graph help, or is exploration what
+limits it?
 
     python recipes/diagnose_graph.py outputs/<date>/<time>            # the run directory
     python recipes/diagnose_graph.py run/checkpoint --no-rollout --pairs 12 --plot /tmp/scatter.png
