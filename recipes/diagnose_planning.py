@@ -1,9 +1,10 @@
-"""Does a DHRL run's graph help? Its agent evaluated as trained, with other waypoint radii, without the graph,
-and the low level alone, on the same test goals (paired).
+"""Does a DHRL run's graph help? Its agent evaluated as trained, with other waypoint radii or graph cutoffs,
+with the oracle's edges, without the graph, and the low level alone, on the same test goals (paired).
 
     python recipes/diagnose_planning.py outputs/<date>/<time>             # the run directory
     python recipes/diagnose_planning.py run/checkpoint --reach-radii 0.25 0.5 --repeats 5
     python recipes/diagnose_planning.py run/checkpoint --oracle     # + the graph with the oracle distance
+    python recipes/diagnose_planning.py run/checkpoint --cutoffs 35 40   # + the learned graph at other cutoffs
 """
 
 from __future__ import annotations
@@ -20,6 +21,13 @@ def main(argv: list[str] | None = None) -> list[dict]:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("checkpoint", help="a checkpoint or the run directory holding it")
     parser.add_argument("--reach-radii", type=float, nargs="*", default=[], help="waypoint radii to try")
+    parser.add_argument(
+        "--cutoffs",
+        type=float,
+        nargs="*",
+        default=[],
+        help="graph cutoffs to try (steps; the same landmarks and learned distances, edges redone)",
+    )
     parser.add_argument("--repeats", type=int, default=5, help="batches of the run's evaluation episodes")
     parser.add_argument(
         "--oracle",
@@ -37,11 +45,13 @@ def main(argv: list[str] | None = None) -> list[dict]:
         env,
         env.max_episode_steps,
         reach_radii=args.reach_radii,
+        cutoffs=args.cutoffs,
         repeats=args.repeats,
         oracle=oracle_distance(cfg) if args.oracle else None,
     )
     print(
-        f"{cfg['env_name']}: {agent.planner.num_landmarks} landmarks, reach_radius {agent.planner.reach_radius:g}"
+        f"{cfg['env_name']}: {agent.planner.num_landmarks} landmarks, reach_radius {agent.planner.reach_radius:g}, "
+        f"cutoff {agent.planner.cutoff:g}"
     )
     print(f"{'variant':>20} {'episodes':>9} {'success':>8} {'any-time':>9} {'final dist':>11}")
     for row in rows:

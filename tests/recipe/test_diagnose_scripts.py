@@ -84,14 +84,17 @@ def test_variants_are_paired_and_leave_the_agent_unchanged(run_dir, monkeypatch)
 
 
 def test_cli_prints_a_row_per_variant(run_dir, capsys):
-    rows = load_recipe("diagnose_planning").main([str(run_dir), "--reach-radii", "0.3", "--repeats", "1"])
+    rows = load_recipe("diagnose_planning").main(
+        [str(run_dir), "--reach-radii", "0.3", "--cutoffs", "45", "--repeats", "1"]
+    )
     out = capsys.readouterr().out
     assert (
-        len(rows) == 5
+        len(rows) == 6
         and "goal as subgoal" in out
         and "no graph" in out
         and "flat" in out
         and "reach_radius=0.3" in out
+        and "cutoff=45" in out
     )
 
 

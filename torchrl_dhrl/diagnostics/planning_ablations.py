@@ -23,6 +23,7 @@ def planning_ablations(
     max_steps: int,
     *,
     reach_radii: Sequence[float] = (),
+    cutoffs: Sequence[float] = (),
     repeats: int = 1,
     oracle: TemporalDistance | None = None,
 ) -> list[dict]:
@@ -33,6 +34,10 @@ def planning_ablations(
 
     * ``"as trained"``: the full agent (high level, graph waypoints, low level);
     * ``"reach_radius=r"`` for each ``r`` of ``reach_radii``: waypoints count as reached within ``r``;
+    * ``"cutoff=c"`` for each ``c`` of ``cutoffs``: the graph's cutoff set to ``c`` (steps), its edges redone
+      from the same landmarks and the same learned distances, and a plan's entry and exit edges (state to
+      landmark, landmark to subgoal) allowed up to ``c``: whether the learned edges are merely too long for the
+      cutoff, or missing;
     * ``"goal as subgoal"``: the high level bypassed, the graph planning to the real goal
       (:func:`goal_as_subgoal`; replans keep the high level's ``c_h`` cadence);
     * with ``oracle``: ``"oracle graph"`` and ``"oracle graph, goal"``, the agent as trained and the goal as
@@ -44,7 +49,7 @@ def planning_ablations(
     A variant far better than ``"as trained"`` names the part that leads the agent astray (the graph's
     waypoints, the high level's subgoals); ``"goal as subgoal"`` failing too says that the graph cannot
     route to the goal either (e.g. a goal beyond the explored region: exploration, not the high level). The
-    agent and ``env`` are left as they were (graph, distance, radius and the env's state restored).
+    agent and ``env`` are left as they were (graph, cutoff, distance, radius and the env's state restored).
 
     Args:
         agent (DHRLAgent): the agent (e.g. a checkpoint's, rebuilt by ``recipes/dhrl_utils.py``).
@@ -53,6 +58,7 @@ def planning_ablations(
 
     Keyword Args:
         reach_radii (sequence of float): waypoint radii to try. Defaults to none.
+        cutoffs (sequence of float): graph cutoffs to try (steps, ``> 0``). Defaults to none.
         repeats (int): batches of ``env``'s episodes per variant. Defaults to ``1``.
         oracle (TemporalDistance, optional): a reference distance (e.g. the maze's
             :class:`~torchrl_dhrl.planner.LineOfSightDistance`) for the two oracle variants. Defaults to none.
@@ -76,10 +82,18 @@ def planning_ablations(
     """
     if repeats < 1:
         raise ValueError(f"`repeats` must be >= 1, got {repeats}.")
+    bad = [
+        c
+        for c in cutoffs
+        if isinstance(c, bool) or not (isinstance(c, (int, float)) and math.isfinite(c) and c > 0)
+    ]
+    if bad:
+        raise ValueError(f"`cutoffs` must be finite numbers > 0 (steps), got {bad}.")
     base = env.base_env if hasattr(env, "base_env") else env
     start = base.state_dict()
     planner, graph = agent.planner, agent.planner.graph
-    radius, distance, saved_graph = planner.reach_radius, planner.distance, graph.state_dict()
+    radius, distance, cutoff = planner.reach_radius, planner.distance, graph.cutoff
+    saved_graph = graph.state_dict()
     to_goal = goal_as_subgoal(agent.policy, planner)
 
     def oracle_graph() -> None:  # the same landmarks, FPS and edges redone with the oracle distance
@@ -93,8 +107,23 @@ def planning_ablations(
 
         return setup
 
+    def set_cutoff(c: float):
+        def setup() -> None:  # the same landmarks and learned distances, edges redone at the new cutoff
+            graph.cutoff = c
+            if graph.has_graph:
+                graph.set_distance_matrix(
+                    graph.landmark_states, graph.landmark_goals, graph.landmark_distances
+                )
+
+        return setup
+
+    def restore() -> None:
+        planner.reach_radius, planner.distance, graph.cutoff = radius, distance, cutoff
+        graph.load_state_dict(saved_graph)
+
     variants = [("as trained", agent.policy, None)]
     variants += [(f"reach_radius={r:g}", agent.policy, set_radius(float(r))) for r in reach_radii]
+    variants += [(f"cutoff={c:g}", agent.policy, set_cutoff(float(c))) for c in cutoffs]
     variants += [("goal as subgoal", to_goal, None)]
     if oracle is not None:
         variants += [
@@ -120,10 +149,8 @@ def planning_ablations(
                 }
             )
             if setup is not None:
-                planner.reach_radius, planner.distance = radius, distance
-                graph.load_state_dict(saved_graph)
+                restore()
     finally:
-        planner.reach_radius, planner.distance = radius, distance
-        graph.load_state_dict(saved_graph)
+        restore()
         base.load_state_dict(start)
     return rows
