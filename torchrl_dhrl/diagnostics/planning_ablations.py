@@ -35,9 +35,9 @@ def planning_ablations(
     * ``"as trained"``: the full agent (high level, graph waypoints, low level);
     * ``"reach_radius=r"`` for each ``r`` of ``reach_radii``: waypoints count as reached within ``r``;
     * ``"cutoff=c"`` for each ``c`` of ``cutoffs``: the graph's cutoff set to ``c`` (steps), its edges redone
-      from the same landmarks and the same learned distances, and a plan's entry and exit edges (state to
-      landmark, landmark to subgoal) allowed up to ``c``: whether the learned edges are merely too long for the
-      cutoff, or missing;
+      from the same landmarks and the same learned distances, and a plan's entry, exit and direct edges (state
+      to landmark, landmark to subgoal, state to subgoal) allowed up to ``c``: whether the learned edges are
+      merely too long for the cutoff, or missing;
     * ``"goal as subgoal"``: the high level bypassed, the graph planning to the real goal
       (:func:`goal_as_subgoal`; replans keep the high level's ``c_h`` cadence);
     * with ``oracle``: ``"oracle graph"`` and ``"oracle graph, goal"``, the agent as trained and the goal as
