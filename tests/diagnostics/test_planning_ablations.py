@@ -10,10 +10,10 @@ from torchrl_dhrl.diagnostics import planning_ablations
 from torchrl_dhrl.training import evaluation
 
 
-def test_oracle_variants_plan_with_the_oracle_on_the_same_landmarks_and_restore(monkeypatch):
-    from torchrl_dhrl.envs.geometry import obstacle_boxes
-
-    from torchrl_dhrl.planner import LineOfSightDistance
+def _pointmaze_agent_with_graph(**graph):
+    """A small PointMaze agent and its evaluation env, its graph (``graph``: LandmarkGraph settings, 12
+    landmarks) built with a stand-in for a trained critic's distance (an untrained one is about 0 everywhere:
+    one landmark)."""
     from torchrl_dhrl.recipe import make_agent, make_environment
 
     torch.manual_seed(0)
@@ -25,16 +25,24 @@ def test_oracle_variants_plan_with_the_oracle_on_the_same_landmarks_and_restore(
         high_critic={"num_cells": (16,)},
         low_actor={"num_cells": (16,)},
         low_critic={"num_cells": (16,)},
-        graph={"max_landmarks": 12},
+        graph={"max_landmarks": 12, **graph},
     )
     env = make_environment(
         "PointMaze", "cpu", num_envs=2, seed=0, eval=True, max_episode_steps=20, agent=agent
     )
     goals = torch.rand(200, 2) * 12 - 2
     states = torch.cat([goals, torch.zeros(200, 4)], -1)  # PointMaze: the achieved goal is obs[:2]
-    # a stand-in for a trained critic's distance (an untrained one is about 0 everywhere: one landmark)
     agent.planner.distance = lambda s, g: (g - s[..., :2]).norm(dim=-1) / 0.15
     agent.planner.build(states, goals)
+    return agent, env
+
+
+def test_oracle_variants_plan_with_the_oracle_on_the_same_landmarks_and_restore(monkeypatch):
+    from torchrl_dhrl.envs.geometry import obstacle_boxes
+
+    from torchrl_dhrl.planner import LineOfSightDistance
+
+    agent, env = _pointmaze_agent_with_graph()
     assert agent.planner.num_landmarks == 12
     learned, saved = agent.planner.distance, agent.planner.graph.state_dict()
     oracle = LineOfSightDistance(0.15, boxes=obstacle_boxes("PointMaze"), margin=0.5)
@@ -67,42 +75,13 @@ def test_oracle_variants_plan_with_the_oracle_on_the_same_landmarks_and_restore(
         torch.testing.assert_close(value, saved[key], rtol=0, atol=0)
 
 
-def _pointmaze_agent_with_graph(num_landmarks: int = 12):
-    from torchrl_dhrl.recipe import make_agent, make_environment
-
-    torch.manual_seed(0)
-    spec_env = make_environment("PointMaze", "cpu", num_envs=1, max_episode_steps=20)
-    agent = make_agent(
-        spec_env,
-        "cpu",
-        high_policy={
-            "subgoal_low": [-2.0, -2.0],
-            "subgoal_high": [10.0, 10.0],
-            "interval": 5,
-            "num_cells": (16,),
-        },
-        high_critic={"num_cells": (16,)},
-        low_actor={"num_cells": (16,)},
-        low_critic={"num_cells": (16,)},
-        graph={"max_landmarks": num_landmarks, "cutoff": 40.0},
-    )
-    env = make_environment(
-        "PointMaze", "cpu", num_envs=2, seed=0, eval=True, max_episode_steps=20, agent=agent
-    )
-    goals = torch.rand(200, 2) * 12 - 2
-    states = torch.cat([goals, torch.zeros(200, 4)], -1)  # PointMaze: the achieved goal is obs[:2]
-    agent.planner.distance = lambda s, g: (g - s[..., :2]).norm(dim=-1) / 0.15  # a trained critic's stand-in
-    agent.planner.build(states, goals)
-    return agent, env
-
-
 def test_cutoff_variants_redo_the_edges_of_the_same_landmarks_and_restore(monkeypatch):
     """Each ``cutoff=c`` variant plans on the trained landmarks and learned distances with the edges of
     DHRL's rule at ``c`` (checked by direct loops) and scipy's shortest paths over them; the cutoff and the
     graph are restored afterwards."""
     from scipy.sparse.csgraph import shortest_path
 
-    agent, env = _pointmaze_agent_with_graph()
+    agent, env = _pointmaze_agent_with_graph(cutoff=40.0)
     graph = agent.planner.graph
     saved = {k: v.clone() for k, v in graph.state_dict().items()}
     seen = []
@@ -155,7 +134,7 @@ def test_cutoff_variants_redo_the_edges_of_the_same_landmarks_and_restore(monkey
 
 @pytest.mark.parametrize("cutoffs", [[0.0], [-5.0], [math.nan], [math.inf], [True], [30.0, "40"]])
 def test_bad_cutoffs_are_refused_before_any_episode(monkeypatch, cutoffs):
-    agent, env = _pointmaze_agent_with_graph()
+    agent, env = _pointmaze_agent_with_graph(cutoff=40.0)
 
     def never(*args, **kwargs):
         raise AssertionError("an episode ran before the cutoffs were checked")
