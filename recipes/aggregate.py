@@ -19,17 +19,23 @@ train/frontier diag/landmark_coverage``: the first writes ``aggregate.csv``/``.p
 columns are printed as percentages, and only ``eval/success`` (final-state success) is set against the paper's.
 ``--smooth K`` takes each run's value at a point as the mean of its last K evaluations (10 test episodes make a coarse
 rate; the paper's curves are smoothed too).
+
+``--ignore KEY [...]`` adds configuration keys (``fnmatch`` patterns) that make no variant, to pool runs known to
+be alike in them: e.g. runs written with ``update_dtype=auto`` before the run directory recorded what ``auto``
+resolved to (``provenance.yaml``) with runs that set the value it resolved to. Each pattern must match a key.
 """
 
 from __future__ import annotations
 
 import argparse
+import fnmatch
 import sys
 from pathlib import Path
 
 from dhrl_utils import PAPER_SUCCESS
 
-from torchrl_dhrl.recipe import aggregate_runs, find_runs, plot_aggregate, write_aggregate_csv
+from torchrl_dhrl.recipe import IGNORED_KEYS, aggregate_runs, find_runs, plot_aggregate, write_aggregate_csv
+from torchrl_dhrl.recipe.aggregate import variant_of
 
 PAPER_METRIC = "eval/success"  # the paper's measure: final-state success over the test episodes
 
@@ -107,6 +113,13 @@ def main(argv: list[str] | None = None) -> int:
         default=1,
         help="each run's value at a point: the mean of its last K evaluations (default 1: none)",
     )
+    parser.add_argument(
+        "--ignore",
+        nargs="+",
+        default=[],
+        metavar="KEY",
+        help="configuration keys (fnmatch patterns) that make no variant, besides the run bookkeeping",
+    )
     args = parser.parse_args(argv)
     runs = find_runs(args.paths)
     if not runs:
@@ -127,12 +140,25 @@ def main(argv: list[str] | None = None) -> int:
             file=sys.stderr,
         )
         return 2
+    keys = {key for run in runs for key in run.config}
+    unmatched = [p for p in args.ignore if not any(fnmatch.fnmatchcase(key, p) for key in keys)]
+    if unmatched:
+        print(
+            f"aggregate.py: --ignore {' '.join(unmatched)}: matches no configuration key of the runs "
+            "(dotted keys such as update_dtype or planner.build_dtype)",
+            file=sys.stderr,
+        )
+        return 2
+    ignored = (*IGNORED_KEYS, *args.ignore)
     out = Path(args.out or args.paths[0])
     reference = {env: dict(points) for env, points in PAPER_SUCCESS.items()}
-    print(f"{len(runs)} runs: " + ", ".join(f"{r.env} seed {r.seed} ({r.path.name})" for r in runs))
+    print(
+        f"{len(runs)} runs: "
+        + ", ".join(f"{r.env} seed {r.seed} ({r.path.name}, {variant_of(r, runs, ignored)})" for r in runs)
+    )
     sections, written = [], []
     for i, metric in enumerate(args.metric):
-        table = aggregate_runs(runs, metric=metric, reps=args.reps, smooth=args.smooth)
+        table = aggregate_runs(runs, metric=metric, ignored=ignored, reps=args.reps, smooth=args.smooth)
         name = output_name(metric, first=i == 0)
         success = is_success(metric)
         written.append(write_aggregate_csv(table, out / f"{name}.csv"))

@@ -224,3 +224,62 @@ def test_an_older_run_is_labelled_with_the_distance_output_it_was_trained_with(t
         "low.distance_output=linear",
         "low.distance_output=softplus",
     ]
+
+
+def _provenance(path, *precisions):
+    """A run's provenance.yaml: one start per ``(update_dtype, build_dtype)`` resolved."""
+    starts = [
+        {"env_steps": 3000 * i, "precision": {"update_dtype": u, "planner.build_dtype": b}}
+        for i, (u, b) in enumerate(precisions)
+    ]
+    (path / "provenance.yaml").write_text(yaml.safe_dump(starts))
+
+
+def test_auto_precision_makes_the_variant_it_resolved_to(tmp_path):
+    """``update_dtype=auto``: the run's provenance says what it ran with; alike for every start, that is its
+    variant, so it pools with runs that set that value and splits from runs where auto chose otherwise."""
+    auto = {"update_dtype": "auto", "planner": {"build_dtype": "auto"}}
+    fp32 = {"update_dtype": "float32", "planner": {"build_dtype": "float32"}}
+    _provenance(_run(tmp_path, "a", _config("AntMaze", 0, **auto), [0.1]), ("float32", "float32"))
+    _run(tmp_path, "b", _config("AntMaze", 1, **fp32), [0.2])
+    _provenance(_run(tmp_path, "c", _config("AntMaze", 2, **auto), [0.3]), ("bfloat16", "bfloat16"))
+    _provenance(
+        _run(tmp_path, "d", _config("AntMaze", 3, **auto), [0.4]),
+        ("float32", "float32"),
+        ("bfloat16", "float32"),
+    )
+    _run(tmp_path, "e", _config("AntMaze", 4, **auto), [0.5])  # no provenance: auto stays
+    runs = find_runs([tmp_path])
+    assert [(r.config["update_dtype"], r.config["planner.build_dtype"]) for r in runs] == [
+        ("float32", "float32"),
+        ("float32", "float32"),
+        ("bfloat16", "bfloat16"),
+        ("auto", "float32"),  # resumed where auto chose otherwise: not one value
+        ("auto", "auto"),
+    ]
+    groups = {}
+    for r in runs:
+        groups.setdefault(variant_of(r, runs), []).append(r.path.name)
+    assert sorted(groups.values()) == [["a", "b"], ["c"], ["d"], ["e"]]
+
+
+@pytest.mark.recipe
+def test_ignore_pools_runs_and_an_unknown_key_exits_2(tmp_path, capsys):
+    _run(tmp_path, "a", _config("AntMaze", 0, update_dtype="auto"), [0.0, 1.0])
+    _run(tmp_path, "b", _config("AntMaze", 1, update_dtype="float32"), [0.5, 0.5])
+    assert aggregate_cli.main([str(tmp_path), "--reps", "50"]) == 0
+    table = list(csv.DictReader(open(tmp_path / "aggregate.csv")))
+    assert (
+        sorted((r["variant"], r["n"]) for r in table)
+        == [("update_dtype=auto", "1")] * 2 + [("update_dtype=float32", "1")] * 2
+    )
+    assert aggregate_cli.main([str(tmp_path), "--reps", "50", "--ignore", "update_*"]) == 0
+    table = list(csv.DictReader(open(tmp_path / "aggregate.csv")))
+    assert [(r["variant"], r["n"], float(r["mean"])) for r in table] == [
+        ("default", "2", 0.25),
+        ("default", "2", 0.75),
+    ]
+    capsys.readouterr()
+    assert aggregate_cli.main([str(tmp_path), "--ignore", "update_dtype", "planner.nothing"]) == 2
+    err = capsys.readouterr().err
+    assert "--ignore planner.nothing: matches no configuration key" in err and "update_dtype:" not in err

@@ -13,6 +13,7 @@ from torchrl_dhrl.recipe import (
     ConfigError,
     check_resume_config,
     load_checkpoint,
+    read_provenance,
 )
 
 pytestmark = pytest.mark.recipe
@@ -59,8 +60,14 @@ def fork_resumed(parent, tmp_path_factory):
     before = (parent / "checkpoint" / "manifest.json").read_bytes()
     _train(fork, "total_steps=360", f"fork={parent}")
     assert f"fork: {parent / 'checkpoint'}" in (fork / "config.yaml").read_text()
+    stopped = load_checkpoint(fork / "checkpoint", components=("counters",))["counters"]["env_steps"]
     _train(fork, "total_steps=480", f"resume={fork}")  # `fork` left out: the run keeps where it came from
     assert f"fork: {parent / 'checkpoint'}" in (fork / "config.yaml").read_text()
+    # the fork's provenance starts with the fork (not the parent's starts), its resume appended
+    starts = read_provenance(fork)
+    assert [s["env_steps"] for s in starts] == [240, stopped]
+    assert starts[0]["forked_from"] == str(parent / "checkpoint") and "forked_from" not in starts[1]
+    assert [s["env_steps"] for s in read_provenance(parent)] == [0]
     assert (parent / "checkpoint" / "manifest.json").read_bytes() == before  # the parent is untouched
     return fork
 

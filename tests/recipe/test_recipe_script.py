@@ -6,6 +6,8 @@ import shutil
 import signal
 import subprocess
 import sys
+from datetime import datetime
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -14,7 +16,7 @@ from _recipe import RECIPES, TIMING_COLUMNS, load_recipe, metrics_rows, recipe_c
 from tensordict import TensorDict
 from torchrl_dhrl.envs import ENV_NAMES
 
-from torchrl_dhrl.recipe import ConfigError, load_checkpoint
+from torchrl_dhrl.recipe import ConfigError, load_checkpoint, read_provenance
 from torchrl_dhrl.training import AdaptiveThreads
 
 pytestmark = pytest.mark.recipe
@@ -109,6 +111,20 @@ def test_resume_continues_exactly(tmp_path):
         busy = float(row["time/collect_s"]) + float(row["time/update_s"])
         rate = (int(row["env_steps"]) - 240) / busy
         assert float(row["env_steps_per_s"]) == pytest.approx(rate, rel=1e-4)
+    # the run directory records each start: the resume appended to the first, what they ran on and with
+    assert [s["env_steps"] for s in read_provenance(straight)] == [0]
+    starts = read_provenance(halves)
+    assert [s["env_steps"] for s in starts] == [0, 240]
+    assert datetime.fromisoformat(starts[0]["started"]) <= datetime.fromisoformat(starts[1]["started"])
+    repo = Path(__file__).resolve().parents[2]
+    git = subprocess.run(["git", "-C", str(repo), "rev-parse", "HEAD"], capture_output=True, text=True)
+    commit = git.stdout.strip() if (repo / ".git").exists() and git.returncode == 0 else None
+    for start in starts:
+        assert start["precision"] == {"update_dtype": "float32", "planner.build_dtype": "float32"}
+        assert start["code"]["commit"] == commit
+        assert start["versions"]["torch"] == torch.__version__
+        assert start["device"] == "cpu" and start["threads"] >= 1
+        assert start["machine"]["cores"] == os.cpu_count() and start["machine"]["cpu"]
 
 
 def test_a_0_2_0_checkpoint_resumes_exactly(tmp_path):
@@ -220,6 +236,7 @@ def test_bfloat16_updates_reach_both_updaters(tmp_path, monkeypatch):
         ("HighLevelLoss", torch.bfloat16),
     }
     assert not any(enabled for *_, enabled in seen)  # autocast covers the loss only, not sampling
+    assert read_provenance(tmp_path / "bf16")[0]["precision"]["update_dtype"] == "bfloat16"
     recipe.train(recipe_config(*overrides, "total_steps=240"), run_dir=tmp_path / "fp32")
     bf, fp = metrics_rows(tmp_path / "bf16"), metrics_rows(tmp_path / "fp32")
     for key in ("low/loss_policy_qvalue", "low/loss_graph_qvalue", "high/loss_qvalue"):

@@ -26,9 +26,11 @@ from matplotlib.figure import Figure
 from scipy.stats import trim_mean
 
 from .config import with_implied_keys
+from .run import read_provenance
 
 __all__ = [
     "IGNORED_KEYS",
+    "RESOLVED_KEYS",
     "RunRecord",
     "aggregate_runs",
     "bootstrap_iqm_ci",
@@ -62,6 +64,9 @@ IGNORED_KEYS = (
     "checkpoint.*",
     "hydra.*",
 )
+#: Keys whose ``auto`` is resolved per machine: a run's variant holds what they resolved to, where its
+#: provenance (:data:`~torchrl_dhrl.recipe.PROVENANCE_NAME`) says so alike for every start.
+RESOLVED_KEYS = ("update_dtype", "planner.build_dtype")
 #: Where a run directory may keep its configuration, in the order they are tried.
 CONFIG_FILES = ("config.yaml", ".hydra/config.yaml", "hydra/.hydra/config.yaml")
 
@@ -105,6 +110,9 @@ def read_run(path: str | Path) -> RunRecord:
     """The run in directory ``path``: ``metrics.csv`` and the first configuration file of :data:`CONFIG_FILES`.
 
     A run without a configuration file gets ``{"env_name": "unknown"}`` (grouped on its own by directory).
+    A key of :data:`RESOLVED_KEYS` set to ``auto`` takes the value it resolved to, where the run's
+    :data:`~torchrl_dhrl.recipe.PROVENANCE_NAME` records one value for every start (``auto`` stays for a run
+    without that record, or resumed on machines that resolved it differently).
     """
     path = Path(path)
     with open(path / "metrics.csv", newline="") as file:
@@ -115,6 +123,11 @@ def read_run(path: str | Path) -> RunRecord:
             # an older run's configuration lacks the keys added since: the values it was trained with
             config = _flatten(with_implied_keys(yaml.safe_load((path / name).read_text()) or {}))
             break
+    starts = read_provenance(path)
+    for key in RESOLVED_KEYS:
+        values = {str(start.get("precision", {}).get(key)) for start in starts}
+        if config.get(key) == "auto" and len(values) == 1 and "None" not in values:
+            config[key] = values.pop()
     return RunRecord(path, config, rows)
 
 

@@ -2,8 +2,9 @@
 
 :func:`start_run` checks everything that can be checked before a run builds or writes anything (the
 configuration, the device, the checkpoint to resume, the run directory, offscreen rendering) and prepares
-the run; :class:`GracefulStop` turns SIGINT and SIGTERM into a stop at the end of the current batch;
-:func:`log_metrics` and :func:`write_metrics_csv` record an epoch's metrics.
+the run; :func:`write_run_dir` writes its configuration and appends what the start runs on and with to its
+provenance (:func:`describe_start`); :class:`GracefulStop` turns SIGINT and SIGTERM into a stop at the end of the
+current batch; :func:`log_metrics` and :func:`write_metrics_csv` record an epoch's metrics.
 """
 
 from __future__ import annotations
@@ -12,9 +13,13 @@ import contextlib
 import copy
 import csv
 import dataclasses
+import datetime
 import gc
+import importlib.metadata
 import os
+import platform
 import signal
+import subprocess
 import sys
 import time
 from collections.abc import Mapping, Sequence
@@ -24,7 +29,7 @@ from typing import Any, NamedTuple
 import torch
 import yaml
 
-from torchrl_dhrl.training import AdaptiveThreads, ModuleTimer, start_threads
+from torchrl_dhrl.training import AdaptiveThreads, ModuleTimer, native_bfloat16, start_threads
 
 from .checkpoint import (
     CHECKPOINT_COMPONENTS,
@@ -41,18 +46,22 @@ from .config import (
     describe_precisions,
     resolve_device,
     resolve_speed,
+    run_precisions,
     validate_config,
 )
 
 __all__ = [
     "CONFIG_NAME",
+    "PROVENANCE_NAME",
     "RESUME_AUTO",
     "GracefulStop",
     "LoopTimer",
     "RunCounters",
     "RunStart",
+    "describe_start",
     "frozen_gc",
     "log_metrics",
+    "read_provenance",
     "start_run",
     "write_run_dir",
     "write_metrics_csv",
@@ -131,6 +140,10 @@ def frozen_gc():
 
 #: The run's configuration, as :func:`start_run` writes it into the run directory (YAML).
 CONFIG_NAME = "config.yaml"
+#: What each start of the run ran on and with (YAML, a list: one entry per start, a resume's appended).
+PROVENANCE_NAME = "provenance.yaml"
+#: The distributions whose versions a start records.
+PROVENANCE_PACKAGES = ("torchrl-dhrl", "torch", "torchrl", "tensordict", "mujoco", "numpy")
 #: ``resume=auto``: continue the run directory's own checkpoint when there is one, else start afresh (sweeps).
 RESUME_AUTO = "auto"
 
@@ -306,9 +319,105 @@ def start_run(
 
 
 def write_run_dir(start: RunStart) -> None:
-    """Creates the run directory of a :func:`start_run` and writes its configuration (:data:`CONFIG_NAME`)."""
+    """Creates the run directory of a :func:`start_run`, writes its configuration (:data:`CONFIG_NAME`) and
+    appends this start to its provenance (:data:`PROVENANCE_NAME`, :func:`describe_start`)."""
     start.run_dir.mkdir(parents=True, exist_ok=True)
     _write_config(start.config, start.run_dir / CONFIG_NAME)
+    # a resume goes on with the starts of the run it continues (its checkpoint's directory); a fork is a new run
+    starts = read_provenance(start.resume.parent) if start.resume is not None and not start.forking else []
+    _write_yaml([*starts, describe_start(start)], start.run_dir / PROVENANCE_NAME)
+
+
+def describe_start(start: RunStart) -> dict[str, Any]:
+    """What a start of a run runs on and with, for its run directory's :data:`PROVENANCE_NAME`.
+
+    ``config.yaml`` holds the keys as given, ``auto`` included; this record holds what they resolved to on
+    this machine, and what the keys cannot say: ``started`` (UTC), ``env_steps`` (where the start
+    continues: 0, a resumed or forked checkpoint's count; ``forked_from`` for a fork), ``code`` (the git
+    commit of the checkout ``torchrl_dhrl`` is imported from and whether its tracked files were modified,
+    ``None`` outside a git checkout, and the installed package's version), ``versions``
+    (:data:`PROVENANCE_PACKAGES` and Python), ``machine`` (architecture, CPU model, cores, whether the
+    device has native bfloat16), ``device``, ``threads`` and ``precision`` (``update_dtype`` and
+    ``planner.build_dtype`` as resolved, :func:`~torchrl_dhrl.recipe.run_precisions`). ``recipes/aggregate.py``
+    reads ``precision`` to tell an ``auto`` run's variant.
+    """
+    update, build = run_precisions(start.config, start.device)
+    record: dict[str, Any] = {
+        "started": datetime.datetime.now(datetime.timezone.utc).isoformat(timespec="seconds"),
+        "env_steps": int(start.state["counters"]["env_steps"]) if start.state is not None else 0,
+    }
+    if start.forking:
+        record["forked_from"] = str(start.resume)
+    record |= {
+        "code": {**_git_commit(Path(__file__).resolve().parents[2]), "version": _version("torchrl-dhrl")},
+        "versions": {"python": platform.python_version(), **{p: _version(p) for p in PROVENANCE_PACKAGES[1:]}},
+        "machine": {
+            "architecture": platform.machine(),
+            "cpu": _cpu_model(),
+            "cores": os.cpu_count(),
+            "native_bfloat16": bool(native_bfloat16(start.device)),
+        },
+        "device": torch.cuda.get_device_name(start.device) if start.device.type == "cuda" else str(start.device),
+        "threads": torch.get_num_threads(),
+        "precision": {"update_dtype": _dtype_text(update), "planner.build_dtype": _dtype_text(build)},
+    }
+    return record
+
+
+def read_provenance(run_dir: str | os.PathLike) -> list[dict[str, Any]]:
+    """The starts recorded in ``run_dir``'s :data:`PROVENANCE_NAME` (oldest first); ``[]`` when it has none
+    (a run older than the record, or none written yet).
+
+    Examples:
+        >>> import tempfile
+        >>> read_provenance(tempfile.mkdtemp())  # nothing started there yet
+        []
+    """
+    path = Path(run_dir) / PROVENANCE_NAME
+    if not path.is_file():
+        return []
+    starts = yaml.safe_load(path.read_text())
+    return [s for s in starts if isinstance(s, dict)] if isinstance(starts, list) else []
+
+
+def _dtype_text(dtype: torch.dtype | None) -> str:
+    return "float32" if dtype is None else str(dtype).removeprefix("torch.")
+
+
+def _version(distribution: str) -> str | None:
+    try:
+        return importlib.metadata.version(distribution)
+    except importlib.metadata.PackageNotFoundError:
+        return None
+
+
+def _cpu_model() -> str:
+    """The CPU's model name (Linux: ``/proc/cpuinfo``), else what :func:`platform.processor` says."""
+    with contextlib.suppress(OSError):
+        for line in Path("/proc/cpuinfo").read_text().splitlines():
+            if line.startswith("model name"):
+                return line.split(":", 1)[1].strip()
+    return platform.processor() or platform.machine()
+
+
+def _git_commit(root: Path) -> dict[str, Any]:
+    """``{"commit": sha, "modified": bool}`` of the git checkout at ``root``; ``None`` for both elsewhere."""
+    if not (root / ".git").exists():
+        return {"commit": None, "modified": None}
+    try:
+        commit = subprocess.run(
+            ["git", "-C", str(root), "rev-parse", "HEAD"], capture_output=True, text=True, timeout=10, check=True
+        ).stdout.strip()
+        status = subprocess.run(
+            ["git", "-C", str(root), "status", "--porcelain", "--untracked-files=no"],
+            capture_output=True,
+            text=True,
+            timeout=10,
+            check=True,
+        ).stdout
+    except (OSError, subprocess.SubprocessError):
+        return {"commit": None, "modified": None}
+    return {"commit": commit, "modified": bool(status.strip())}
 
 
 def _read_checkpoint(path: Path, what: str) -> dict:
@@ -328,8 +437,12 @@ def _read_checkpoint(path: Path, what: str) -> dict:
 
 def _write_config(cfg: Mapping[str, Any], path: Path) -> None:
     """The run's configuration as YAML (atomically), for tools that read run directories (``recipes/aggregate.py``)."""
+    _write_yaml(cfg, path)
+
+
+def _write_yaml(value: Any, path: Path) -> None:
     tmp = path.with_suffix(".yaml.tmp")
-    tmp.write_text(yaml.safe_dump(_plain(cfg), sort_keys=False))
+    tmp.write_text(yaml.safe_dump(_plain(value), sort_keys=False))
     tmp.replace(path)
 
 
