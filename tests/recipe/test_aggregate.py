@@ -283,3 +283,13 @@ def test_ignore_pools_runs_and_an_unknown_key_exits_2(tmp_path, capsys):
     assert aggregate_cli.main([str(tmp_path), "--ignore", "update_dtype", "planner.nothing"]) == 2
     err = capsys.readouterr().err
     assert "--ignore planner.nothing: matches no configuration key" in err and "update_dtype:" not in err
+
+
+def test_an_unreadable_provenance_names_its_file(tmp_path):
+    from torchrl_dhrl.recipe import read_provenance
+
+    (tmp_path / "provenance.yaml").write_text("- started: [unclosed\n")
+    with pytest.raises(ValueError, match=r"provenance.yaml: not readable as YAML; move it aside"):
+        read_provenance(tmp_path)
+    (tmp_path / "provenance.yaml").write_text("just text\n")  # not a list of starts: none recorded
+    assert read_provenance(tmp_path) == []

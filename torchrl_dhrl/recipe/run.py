@@ -41,6 +41,7 @@ from .checkpoint import (
 from .config import (
     FORK_MUTABLE_KEYS,
     ConfigError,
+    _dtype_name,
     check_known_keys,
     check_resume_config,
     describe_precisions,
@@ -359,7 +360,7 @@ def describe_start(start: RunStart) -> dict[str, Any]:
         },
         "device": torch.cuda.get_device_name(start.device) if start.device.type == "cuda" else str(start.device),
         "threads": torch.get_num_threads(),
-        "precision": {"update_dtype": _dtype_text(update), "planner.build_dtype": _dtype_text(build)},
+        "precision": {"update_dtype": _dtype_name(update), "planner.build_dtype": _dtype_name(build)},
     }
     return record
 
@@ -376,12 +377,11 @@ def read_provenance(run_dir: str | os.PathLike) -> list[dict[str, Any]]:
     path = Path(run_dir) / PROVENANCE_NAME
     if not path.is_file():
         return []
-    starts = yaml.safe_load(path.read_text())
+    try:
+        starts = yaml.safe_load(path.read_text())
+    except yaml.YAMLError as err:
+        raise ValueError(f"{path}: not readable as YAML; move it aside to start a new record.") from err
     return [s for s in starts if isinstance(s, dict)] if isinstance(starts, list) else []
-
-
-def _dtype_text(dtype: torch.dtype | None) -> str:
-    return "float32" if dtype is None else str(dtype).removeprefix("torch.")
 
 
 def _version(distribution: str) -> str | None:
