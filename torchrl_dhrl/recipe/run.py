@@ -404,20 +404,16 @@ def _git_commit(root: Path) -> dict[str, Any]:
     """``{"commit": sha, "modified": bool}`` of the git checkout at ``root``; ``None`` for both elsewhere."""
     if not (root / ".git").exists():
         return {"commit": None, "modified": None}
+
+    def git(*args: str) -> str:
+        command = ["git", "-C", str(root), *args]
+        return subprocess.run(command, capture_output=True, text=True, timeout=10, check=True).stdout.strip()
+
     try:
-        commit = subprocess.run(
-            ["git", "-C", str(root), "rev-parse", "HEAD"], capture_output=True, text=True, timeout=10, check=True
-        ).stdout.strip()
-        status = subprocess.run(
-            ["git", "-C", str(root), "status", "--porcelain", "--untracked-files=no"],
-            capture_output=True,
-            text=True,
-            timeout=10,
-            check=True,
-        ).stdout
+        commit, status = git("rev-parse", "HEAD"), git("status", "--porcelain", "--untracked-files=no")
     except (OSError, subprocess.SubprocessError):
         return {"commit": None, "modified": None}
-    return {"commit": commit, "modified": bool(status.strip())}
+    return {"commit": commit, "modified": bool(status)}
 
 
 def _read_checkpoint(path: Path, what: str) -> dict:
