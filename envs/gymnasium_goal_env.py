@@ -3,7 +3,8 @@
 A Gymnasium goal env (a ``Dict`` observation with ``observation``, ``achieved_goal`` and ``desired_goal``, as
 gymnasium-robotics' mazes, Fetch and hand tasks) is wrapped so that every part of torchrl-dhrl reads it: float32
 tensors, ``is_success`` ``[B, 1]`` (from ``info["is_success"]`` or ``info["success"]``, or within a distance),
-``step_count``, truncation after the env's own ``TimeLimit`` (``max_episode_steps``), and the simulator's state
+``step_count``, truncation after the env's own ``TimeLimit`` (``max_episode_steps``), the achieved goal put first
+in the observation where the env's own leaves it out (gymnasium-robotics' ant mazes), and the simulator's state
 in :meth:`~GymnasiumGoalEnv.state_dict` for exact resumes. ``make_env("gymnasium:<id>")`` builds one, so the
 recipe trains it with ``env=gymnasium env_name=gymnasium:<id>`` (``docs/goal_env.md``).
 """
@@ -117,6 +118,32 @@ def _goal_list(value: Any) -> bool:
     return array.size > 0 and array.ndim in (1, 2) and np.isfinite(array).all()
 
 
+def _holds_goal(env: Any, action_space: Any, options: Mapping[str, Any] | None = None, steps: int = 4) -> bool:
+    """Whether every entry of ``env``'s achieved goal is an entry of its observation (a distinct one each), at a
+    reset and after ``steps`` random actions (a fixed stream: a goal that equals some entry at one state only, e.g.
+    ``0.0`` at a reset, does not count)."""
+    rng = np.random.default_rng(0)
+    obs, _ = env.reset(options=options)
+    samples = [obs]
+    for _ in range(steps):
+        obs, _, terminated, truncated, _ = env.step(rng.uniform(action_space.low, action_space.high))
+        samples.append(obs)
+        if terminated or truncated:
+            break
+    observation = np.stack([np.asarray(o["observation"], dtype=np.float64).reshape(-1) for o in samples])
+    goal = np.stack([np.asarray(o["achieved_goal"], dtype=np.float64).reshape(-1) for o in samples])
+    used: set[int] = set()
+    for j in range(goal.shape[1]):
+        match = next(
+            (i for i in range(observation.shape[1]) if i not in used and np.array_equal(observation[:, i], goal[:, j])),
+            None,
+        )
+        if match is None:
+            return False
+        used.add(match)
+    return True
+
+
 def _options(value: Any) -> bool:
     return isinstance(value, Mapping) or (
         isinstance(value, Sequence) and not isinstance(value, str) and len(value) > 0
@@ -131,9 +158,18 @@ class GymnasiumGoalEnv(EnvBase):
     adapter counts the steps and truncates every episode after exactly ``max_episode_steps``, the env's own
     ``TimeLimit`` unless given). Observations, goals and actions are float32 tensors on ``device``;
     ``is_success`` comes from ``info["is_success"]`` or ``info["success"]`` (whichever the env writes), or, with
-    ``success_threshold``, from the distance between the achieved and the desired goal. An env that ends an
-    episode itself (``terminated``) is refused with a message: the recipe's collector needs episodes of one
-    length (most goal envs have a continuing mode, e.g. the mazes' ``continuing_task=True``, their default).
+    ``success_threshold``, from the distance between the achieved and the desired goal. Where the env's own
+    observation leaves out the achieved goal (gymnasium-robotics' ant mazes observe the torso without its x, y),
+    the adapter puts it first: ``observation[..., :goal_dim] == achieved_goal`` (``achieved_goal_in_observation``).
+
+    An env that ends an episode itself (``terminated``) is refused: the recipe's collector needs episodes of one
+    length (most goal envs have a continuing mode, e.g. the mazes' ``continuing_task=True``, their default). An
+    env that says so beforehand (its unwrapped env's ``continuing_task`` is ``False``) is refused at construction.
+    Any other is refused at the episode boundary after its first ``terminated`` step, so that a training loop can
+    stop there with a checkpoint (an exception inside a TorchRL collector shuts the collector down, and a
+    checkpoint in the middle of a batch would resume out of step with the episodes): the copy that terminated is
+    held at its last state (the same observation, reward and success; ``terminated`` stays ``False``) until the
+    episode truncates, :attr:`refusal` holds the message meanwhile, and the next step raises it.
 
     Args:
         env_id (str): a registered Gymnasium id (gymnasium-robotics' are registered on import), e.g.
@@ -154,10 +190,19 @@ class GymnasiumGoalEnv(EnvBase):
             rewards and observations) and the observed ``desired_goal`` are set to it. Defaults to ``None`` (the
             env's own goals).
         make_kwargs (dict, optional): keyword arguments of ``gymnasium.make``.
+        achieved_goal_in_observation (bool, optional): put the achieved goal first in the observation
+            (``observation = [achieved_goal, env observation]``, so ``goal_indices`` are ``0 .. goal_dim - 1``):
+            ``True`` always, ``False`` never, ``None`` (default) when the env's own observation does not hold it,
+            as found at construction from a reset and a few random steps of the first copy (every achieved-goal
+            entry equal to an observation entry at each of them).
 
     Attributes:
         max_episode_steps (int): the episode length (the contract's attribute).
         env_id (str): the Gymnasium id.
+        achieved_goal_in_observation (bool): whether the adapter puts the achieved goal first in the observation.
+        refusal (str or None): the message of an env that ended an episode itself, from that step until the next
+            step after the episode's end raises it (``None`` otherwise): a training loop reads it at its batch
+            boundaries to stop there.
 
     Examples:
         >>> env = GymnasiumGoalEnv("PointMaze_UMaze-v3", num_envs=2, seed=0)  # doctest: +SKIP
@@ -173,6 +218,7 @@ class GymnasiumGoalEnv(EnvBase):
         success_threshold=number(0.0, low_open=True, optional=True),
         goals=ArgumentCheck(_goal_list, "a goal (a list of numbers) or a non-empty list of goals", optional=True),
         make_kwargs=ArgumentCheck(lambda v: isinstance(v, Mapping), "a dict of gymnasium.make arguments", optional=True),
+        achieved_goal_in_observation=ArgumentCheck(lambda v: isinstance(v, bool), "a bool", optional=True),
     )
     def __init__(
         self,
@@ -186,12 +232,21 @@ class GymnasiumGoalEnv(EnvBase):
         success_threshold: float | None = None,
         goals: Sequence[float] | Sequence[Sequence[float]] | None = None,
         make_kwargs: Mapping[str, Any] | None = None,
+        achieved_goal_in_observation: bool | None = None,
     ) -> None:
         gym = _import_gymnasium(env_id)
         super().__init__(device=device or "cpu", batch_size=torch.Size([num_envs]))
         self.env_id = env_id
         self._envs = [gym.make(env_id, **dict(make_kwargs or {})) for _ in range(num_envs)]
         first = self._envs[0]
+        if getattr(first.unwrapped, "continuing_task", None) is False:  # it says so: refused before any step
+            for env in self._envs:
+                env.close()
+            raise GoalEnvError(
+                f"{env_id} has continuing_task=False (`make_kwargs`={dict(make_kwargs or {})}): it ends an episode "
+                "itself when its goal is reached, and every episode must last max_episode_steps steps; accepted: "
+                "continuing_task=True (the mazes' default: leave it out of `make_kwargs`, or set it there)."
+            )
         space = first.observation_space
         if not isinstance(space, gym.spaces.Dict) or any(k not in space.spaces for k in _GOAL_KEYS):
             raise GoalEnvError(
@@ -220,6 +275,12 @@ class GymnasiumGoalEnv(EnvBase):
         sizes = {key: int(np.prod(space.spaces[key].shape)) for key in _GOAL_KEYS}
         if sizes["achieved_goal"] != sizes["desired_goal"]:
             raise GoalEnvError(f"{env_id}: achieved_goal and desired_goal differ in size ({sizes}).")
+        if achieved_goal_in_observation is None:
+            options = self.reset_options[0] if self.reset_options else None
+            achieved_goal_in_observation = not _holds_goal(first.unwrapped, action, options)
+        self.achieved_goal_in_observation = bool(achieved_goal_in_observation)
+        if self.achieved_goal_in_observation:
+            sizes["observation"] += sizes["achieved_goal"]
         batch = self.batch_size
         self.observation_spec = Composite(
             observation=Unbounded((*batch, sizes["observation"]), dtype=torch.float32, device=self.device),
@@ -248,6 +309,9 @@ class GymnasiumGoalEnv(EnvBase):
         self._episodes = np.zeros(num_envs, dtype=np.int64)
         self._last: list[dict[str, np.ndarray] | None] = [None] * num_envs
         self._success = np.zeros(num_envs, dtype=bool)
+        self._held = np.zeros(num_envs, dtype=bool)  # ended its episode itself: held at its last state
+        self._rewards = np.zeros(num_envs, dtype=np.float32)
+        self.refusal: str | None = None
         if seed is not None:
             self.set_seed(seed)
 
@@ -274,6 +338,7 @@ class GymnasiumGoalEnv(EnvBase):
         self._seeds[i] = None
         self._episodes[i] += 1
         self._steps[i] = 0
+        self._held[i] = False
         self._last[i] = obs
         self._success[i] = self._is_success(obs, info)
 
@@ -291,8 +356,11 @@ class GymnasiumGoalEnv(EnvBase):
             values = np.stack([np.asarray(last[key], dtype=np.float32).reshape(-1) for last in self._last])
             return torch.as_tensor(values, device=self.device)
 
+        out = {key: stack(key) for key in _GOAL_KEYS}
+        if self.achieved_goal_in_observation:
+            out["observation"] = torch.cat([out["achieved_goal"], out["observation"]], dim=-1)
         return TensorDict(
-            {key: stack(key) for key in _GOAL_KEYS}
+            out
             | {
                 "is_success": torch.tensor(self._success, device=self.device).reshape(-1, 1),
                 "step_count": torch.tensor(self._steps, device=self.device).reshape(-1, 1),
@@ -313,20 +381,28 @@ class GymnasiumGoalEnv(EnvBase):
         return out.update({"done": false, "terminated": false.clone(), "truncated": false.clone()})
 
     def _step(self, tensordict: TensorDictBase) -> TensorDictBase:
+        if self.refusal is not None and not self._held.any():  # the episode it ended has ended: refused now
+            raise GoalEnvError(self.refusal)
         actions = tensordict.get("action").detach().cpu().numpy().astype(np.float64)
-        rewards = np.zeros(self.batch_size[0], dtype=np.float32)
         for i, env in enumerate(self._envs):
-            obs, reward, terminated, _, info = env.unwrapped.step(actions[i])
-            if terminated:
-                raise GoalEnvError(
-                    f"{self.env_id} ended an episode itself (terminated) after {self._steps[i] + 1} of "
-                    f"{self.max_episode_steps} steps; the recipe needs episodes of one length: make the env "
-                    "continuing (e.g. make_kwargs={'continuing_task': True} for the mazes)."
-                )
             self._steps[i] += 1
+            if self._held[i]:  # ended its episode itself: its last state until the episode's end
+                continue
+            obs, reward, terminated, _, info = env.unwrapped.step(actions[i])
             self._last[i] = obs
             self._success[i] = self._is_success(obs, info)
-            rewards[i] = float(reward)
+            self._rewards[i] = float(reward)
+            if terminated:
+                self._held[i] = True
+                if self.refusal is None:
+                    self.refusal = (
+                        f"{self.env_id} ended an episode itself (terminated) after {self._steps[i]} of "
+                        f"{self.max_episode_steps} steps; every episode must last max_episode_steps steps (the "
+                        "recipe's collector yields whole episodes of one length): make the env continuing, by a "
+                        "`make_kwargs` option of its own (the mazes' continuing_task=True) or in its code or a "
+                        "wrapper registered under its id, which never sets terminated."
+                    )
+        rewards = self._rewards.copy()
         out = self._output()
         truncated = torch.as_tensor(self._steps >= self.max_episode_steps, device=self.device).reshape(-1, 1)
         return out.update(
@@ -385,6 +461,8 @@ class GymnasiumGoalEnv(EnvBase):
             "success": self._success.copy(),
             "last": [None if last is None else {k: np.asarray(v).copy() for k, v in last.items()} for last in self._last],
             "seeds": list(self._seeds),
+            "held": self._held.copy(),
+            "rewards": self._rewards.copy(),
         }
 
     def load_state_dict(self, state_dict: Mapping[str, Any], *args, **kwargs) -> None:
@@ -399,6 +477,9 @@ class GymnasiumGoalEnv(EnvBase):
         self._success = np.array(state_dict["success"])
         self._last = [None if last is None else dict(last) for last in state_dict["last"]]
         self._seeds = list(state_dict["seeds"])
+        n = len(self._envs)  # (states saved before these two entries: no copy held)
+        self._held = np.array(state_dict.get("held", np.zeros(n, dtype=bool)))
+        self._rewards = np.array(state_dict.get("rewards", np.zeros(n, dtype=np.float32)))
 
     def close(self, *args, **kwargs) -> None:
         for env in self._envs:
@@ -406,7 +487,12 @@ class GymnasiumGoalEnv(EnvBase):
         super().close(*args, **kwargs)
 
     def __repr__(self) -> str:
-        return f"{type(self).__name__}({self.env_id!r}, num_envs={self.batch_size[0]}, max_episode_steps={self.max_episode_steps})"
+        return (
+            f"{type(self).__name__}({self.env_id!r}, num_envs={self.batch_size[0]}, "
+            f"max_episode_steps={self.max_episode_steps}"
+            + (", achieved_goal_in_observation=True" if self.achieved_goal_in_observation else "")
+            + ")"
+        )
 
 
 def goal_extent(env: EnvBase, *, episodes: int = 32, seed: int = 0) -> tuple[list[float], list[float]]:

@@ -46,8 +46,9 @@ Alg. 1 the paper                           here: the component (where)
 After every epoch the agent is evaluated on the test goals: 10 deterministic episodes, final-state success
 (any-time success is logged too), logged against env steps counted from the start, warm-up included, as the
 reference does. Everything is built by ``dhrl_utils.py`` from ``config/``; the run directory receives ``logs/``
-(CSV by default), ``checkpoint/`` (a ``torchrl.checkpoint`` directory), ``metrics.csv``, ``success_curve.png`` and
-``episodes/epoch_*.png``.
+(CSV by default), ``checkpoint/`` (a ``torchrl.checkpoint`` directory), ``agent/`` (the saved agent: the networks
+and the graph without the buffers, written with each checkpoint; ``recipes/evaluate.py`` re-evaluates it),
+``metrics.csv``, ``success_curve.png`` and ``episodes/epoch_*.png``.
 """
 
 from __future__ import annotations
@@ -67,6 +68,7 @@ from omegaconf import DictConfig
 
 from torchrl_dhrl.diagnostics import TrainingEpisodeLog
 from torchrl_dhrl.recipe import (
+    AGENT_NAME,
     CHECKPOINT_NAME,
     LOW_LEVEL_KEYS,
     CheckpointError,
@@ -87,6 +89,7 @@ from torchrl_dhrl.recipe import (
     policy_captured,
     rebuild_graph,
     restore_checkpoint,
+    save_agent,
     save_checkpoint,
     write_metrics_csv,
     write_run_dir,
@@ -149,9 +152,18 @@ def train(cfg: DictConfig | dict, run_dir: str | Path | None = None) -> dict:
         history=history,
     )
     checkpoint_path = run_dir / CHECKPOINT_NAME
+
+    def write_checkpoint():
+        """The checkpoint, then the saved agent from the same live objects (no buffer read again)."""
+        path = save_checkpoint(checkpoint, checkpoint_path)
+        save_agent(checkpoint, run_dir / AGENT_NAME)
+        return path
+
     try:  # the collector's workers stop however the run ends
         if start.resume is not None:
             restore_or_fork(start, checkpoint, counters, run)
+            if not start.forking and start.resume.parent == run_dir:  # a kill may have come between the two
+                save_agent(checkpoint, run_dir / AGENT_NAME)  # the saved agent of the checkpoint resumed
             if counters.env_steps >= cfg["total_steps"]:  # e.g. a finished job of a re-run sweep
                 print(
                     f"Already finished: {counters.env_steps} env steps (total_steps={cfg['total_steps']}); "
@@ -180,6 +192,20 @@ def train(cfg: DictConfig | dict, run_dir: str | Path | None = None) -> dict:
             try:
                 for batch in run.collector:  # Alg. 1 l.3-28: one whole episode per env, acted by the policy
                     timer.lap("collect")
+                    # an env that ended an episode itself (GymnasiumGoalEnv.refusal): stop at this batch boundary,
+                    # the batch unused, with a checkpoint that resumes once the env is fixed
+                    refusal = next(
+                        (r for env in (run.train_env, run.eval_env) if (r := getattr(env.base_env, "refusal", None))),
+                        None,
+                    )
+                    if refusal is not None:
+                        bar.close()
+                        write_checkpoint()
+                        plot_curve(cfg, history, run_dir, counters)
+                        raise SystemExit(
+                            f"Stopping: {refusal} Checkpoint written to {checkpoint_path}: once the env is fixed, "
+                            f"continue with resume={run_dir}"
+                        )
                     # ---- store (l.28): low-level [num_envs, T] batches; the builder cuts high-level ones
                     low_rb.extend(batch.select(*LOW_LEVEL_KEYS))
                     high_rb.extend(batch)
@@ -219,7 +245,7 @@ def train(cfg: DictConfig | dict, run_dir: str | Path | None = None) -> dict:
                             success=f"{metrics.get('eval/success', float('nan')):.2f}", epoch=epoch
                         )
                         if epoch % cfg["checkpoint"]["every_epochs"] == 0:
-                            save_checkpoint(checkpoint, checkpoint_path)
+                            write_checkpoint()
                     if counters.env_steps >= cfg["total_steps"]:
                         break
                     # a signal during this batch: stop here, every update of the batch done
@@ -228,7 +254,7 @@ def train(cfg: DictConfig | dict, run_dir: str | Path | None = None) -> dict:
                     timer.lap()
             except KeyboardInterrupt:
                 bar.close()
-                save_checkpoint(checkpoint, checkpoint_path)
+                write_checkpoint()
                 plot_curve(cfg, history, run_dir, counters)
                 print(
                     f"\nInterrupted: checkpoint written to {checkpoint_path}; continue with resume={run_dir}"
@@ -240,7 +266,7 @@ def train(cfg: DictConfig | dict, run_dir: str | Path | None = None) -> dict:
                     f"Stopping: {err}. The last good checkpoint is kept at {checkpoint_path}."
                 ) from err
         bar.close()
-        path = save_checkpoint(checkpoint, checkpoint_path)
+        path = write_checkpoint()
     finally:
         run.collector.shutdown()
     plot_curve(cfg, history, run_dir, counters)
@@ -253,7 +279,7 @@ def train(cfg: DictConfig | dict, run_dir: str | Path | None = None) -> dict:
         f"Done: {counters.env_steps} env steps, last success {summary.get('eval/success', float('nan')):.2f}. "
         + (
             f"Curve: {run_dir / 'success_curve.png'}, metrics: {run_dir / 'metrics.csv'}, "
-            f"pictures: {run_dir / 'episodes'}, checkpoint: {path}"
+            f"pictures: {run_dir / 'episodes'}, checkpoint: {path}, saved agent: {run_dir / AGENT_NAME}"
             if history
             else f"No epoch finished (no curve or metrics yet); checkpoint: {path}"
         )

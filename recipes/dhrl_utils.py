@@ -24,12 +24,13 @@ from torchrl_dhrl.envs.geometry import obstacle_boxes
 
 from torchrl_dhrl.diagnostics import TrainingEpisodeLog
 from torchrl_dhrl.objectives import make_optimizers
-from torchrl_dhrl.planner import LineOfSightDistance
+from torchrl_dhrl.planner import LineOfSightDistance, make_edge_rule
 from torchrl_dhrl.recipe import (
     GOAL_UNIT_KEYS,
     ConfigError,
     DHRLAgent,
     RunStart,
+    agent_checkpoint_file,
     check_known_keys,
     checkpoint_file,
     derive_goal_units,
@@ -106,7 +107,9 @@ def start_up(cfg: DictConfig | dict, run_dir: str | Path | None = None, *, write
 def resolve_goal_units(cfg: dict) -> dict:
     """The configuration with its keys in goal units derived from the env where they are ``null``, and
     ``goal_indices=auto`` read from it (:func:`~torchrl_dhrl.recipe.derive_goal_units`; ``env=gymnasium`` and
-    ``env=custom`` leave them so), printed as one line; the configuration as it is when nothing is to derive.
+    ``env=custom`` leave them so), printed as one line; the configuration as it is when nothing is to derive. A
+    ``gymnasium:<id>`` env is built here in any case, so that what it refuses (``continuing_task=False``) stops the
+    run before anything else is built, and a line says when the adapter puts the achieved goal into the observation.
 
     Raises:
         ConfigError: for an env of its own (registered, ``gymnasium:<id>``) run with the default env file's
@@ -123,7 +126,8 @@ def resolve_goal_units(cfg: dict) -> dict:
                 f"AntMaze's 24-unit maze: choose env=custom (a registered env) or env=gymnasium (gymnasium:<id>), "
                 "which derive them from the env, or set them for your env."
             )
-    if not derive:
+    gymnasium = gymnasium_id(name) is not None
+    if not derive and not gymnasium:
         return cfg
     validate_env_name(cfg)
     cfg = copy.deepcopy(cfg)
@@ -132,8 +136,19 @@ def resolve_goal_units(cfg: dict) -> dict:
             name, num_envs=1, seed=cfg["seed"], max_episode_steps=cfg["episode_length"],
             env_kwargs=gymnasium_kwargs(cfg),
         )
-    except (GoalEnvError, ValueError) as err:
-        raise ConfigError(f"env_name={name}: {err}") from err
+    except (GoalEnvError, ValueError) as err:  # the adapter's arguments named as the `gymnasium` keys
+        message = str(err).replace("`make_kwargs`", "`gymnasium.make_kwargs`") if gymnasium else err
+        raise ConfigError(f"env_name={name}: {message}") from err
+    base = getattr(env, "base_env", env)
+    if getattr(base, "achieved_goal_in_observation", False):
+        size, goal = base.observation_spec["observation"].shape[-1], base.observation_spec["achieved_goal"].shape[-1]
+        print(
+            f"{name}: its observation leaves out the achieved goal, so GymnasiumGoalEnv puts it first: "
+            f"observation[0:{goal}] = achieved_goal ({size} entries, the env's {size - goal} after it)."
+        )
+    if not derive:
+        env.close()
+        return cfg
     notes = derive_goal_units(cfg, env)
     env.close()
     print(f"Derived from {name}: {'; '.join(notes)}.")
@@ -270,8 +285,9 @@ def build_environment(cfg: dict, device: torch.device, *, eval: bool = False, ag
             step_threads=cfg.get("step_threads", 1),
             env_kwargs=gymnasium_kwargs(cfg, eval=eval),
         )
-    except GoalEnvError as err:
-        raise ConfigError(f"env_name={cfg['env_name']}: {err}") from err
+    except GoalEnvError as err:  # the adapter's arguments named as the `gymnasium` keys
+        message = str(err).replace("`make_kwargs`", "`gymnasium.make_kwargs`")
+        raise ConfigError(f"env_name={cfg['env_name']}: {message}") from err
 
 
 def gymnasium_kwargs(cfg: dict, *, eval: bool = False) -> dict[str, Any] | None:  # noqa: A002
@@ -307,6 +323,8 @@ def build_agent(cfg: dict, device: torch.device) -> DHRLAgent:
         **{part: args[part] for part in AGENT_PARTS},
         graph={
             **args["graph"],
+            # planner.edge_rule (absent from older checkpoints' configurations: the reference's cutoff rule)
+            "edge_rule": make_edge_rule(**args["edge_rule"]),
             "build_autocast_dtype": run_precisions(cfg, device)[1],
             # fixed-size planning tensors, reserved: for a captured or compiled policy, and for the high level's
             # capture-safe sampling (the gradual penalty's graph query)
@@ -492,10 +510,11 @@ def agent_from_checkpoint(path, device: str | torch.device = "cpu") -> tuple[dic
     """The configuration of a run's checkpoint and its agent, rebuilt and loaded (the graph with it).
 
     Args:
-        path (str or Path): a checkpoint or the run directory holding it.
+        path (str or Path): a checkpoint, a saved agent (``<run dir>/agent``) or the run directory holding
+            them (its checkpoint, else its saved agent: :func:`~torchrl_dhrl.recipe.agent_checkpoint_file`).
     """
     device = torch.device(device)
-    state = load_checkpoint(path, map_location=device, components=("config", "agent"))
+    state = load_checkpoint(agent_checkpoint_file(path), map_location=device, components=("config", "agent"))
     cfg = with_implied_keys(state["config"])  # an older checkpoint rebuilt with its own behaviour
     agent = build_agent(cfg, device)
     agent.load_state_dict(state["agent"])

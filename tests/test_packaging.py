@@ -121,3 +121,18 @@ def test_everything_the_readme_calls_public_is_importable_from_the_package():
         assert not hasattr(envs, alias), alias
     assert not hasattr(envs.GoalEnv, "maze") and not hasattr(envs.GymGoalEnv, "maze")
     assert "count_hops" in importlib.import_module("torchrl_dhrl.planner").__all__
+
+
+def test_the_version_is_the_changelog_s_latest_release():
+    """pyproject's version, ``torchrl_dhrl.__version__`` and the CHANGELOG's newest dated release agree, and no doc
+    cites a version the CHANGELOG does not release."""
+    import torchrl_dhrl
+
+    pyproject = (ROOT / "pyproject.toml").read_text()
+    version = re.search(r'^version = "([^"]+)"', pyproject, re.M).group(1)
+    released = re.findall(r"^## \[(\d+\.\d+\.\d+)\] - \d{4}-\d{2}-\d{2}$", (ROOT / "CHANGELOG.md").read_text(), re.M)
+    assert version == torchrl_dhrl.__version__ == released[0]
+    for doc in [ROOT / "README.md", *sorted((ROOT / "docs").glob("*.md")), ROOT / "recipes/config/config.yaml"]:
+        # the project's own versions, as the docs cite them ("from 0.4.0", "before 0.4.0", "since 0.2.0")
+        for cited in re.findall(r"\b(?:from|before|since|in) (0\.\d+\.\d+)\b", doc.read_text()):
+            assert cited in released, f"{doc.name} cites {cited}, which the CHANGELOG does not release"

@@ -20,7 +20,7 @@ from torchrl_dhrl.planner import *  # noqa: F403
 from torchrl_dhrl.planner import __all__ as _planner_all
 from torchrl_dhrl.training import LossUpdater, NonFiniteLossError, evaluate
 
-__version__ = "0.3.0"
+__version__ = "0.4.0"
 
 __all__ = [
     "AngleFeatures",

@@ -1,8 +1,13 @@
 """GymnasiumGoalEnv: a Gymnasium goal env (gymnasium-robotics' PointMaze_UMaze-v3) as an env of the goal-env contract,
-its exact state, its goal space; and check_goal_env's float32 and truncation checks."""
+its exact state, its goal space, the achieved goal put into an observation that leaves it out (AntMaze_UMaze-v5), the
+refusal of an env that ends episodes itself; and check_goal_env's float32 and truncation checks."""
 
 from __future__ import annotations
 
+import re
+
+import gymnasium as gym
+import numpy as np
 import pytest
 import torch
 from torchrl.envs import TransformedEnv
@@ -19,6 +24,47 @@ from torchrl_dhrl.envs import (
 
 pytest.importorskip("gymnasium_robotics")
 UMAZE = "PointMaze_UMaze-v3"
+ANT_UMAZE = "AntMaze_UMaze-v5"
+TERMINATING = "DhrlTestTerminatingPoint-v0"
+
+
+class TerminatingPoint(gym.Env):
+    """A tiny Gymnasium goal env that ends an episode itself and has no ``continuing_task`` attribute to say so
+    beforehand: a point in [-1, 1]^2 moving 0.1 per action unit, terminated at step ``terminate_at`` of its episodes
+    from the ``from_episode``-th on (resets of this instance, counted from 1), unless the class is ``fixed``."""
+
+    fixed = False  # "the user fixed the env's code": it never terminates
+
+    def __init__(self, terminate_at: int = 3, from_episode: int = 1):
+        box = gym.spaces.Box(-np.inf, np.inf, (2,), np.float64)
+        self.observation_space = gym.spaces.Dict(observation=box, achieved_goal=box, desired_goal=box)
+        self.action_space = gym.spaces.Box(-1.0, 1.0, (2,), np.float32)
+        self.terminate_at, self.from_episode = terminate_at, from_episode
+        self.episodes, self.steps = 0, 0
+        self.pos, self.goal = np.zeros(2), np.zeros(2)
+
+    def _obs(self):
+        return {"observation": self.pos.copy(), "achieved_goal": self.pos.copy(), "desired_goal": self.goal.copy()}
+
+    def reset(self, *, seed=None, options=None):
+        super().reset(seed=seed)
+        self.episodes, self.steps = self.episodes + 1, 0
+        self.pos, self.goal = self.np_random.uniform(-0.5, 0.5, 2), self.np_random.uniform(-1.0, 1.0, 2)
+        return self._obs(), {}
+
+    def step(self, action):
+        self.pos = np.clip(self.pos + 0.1 * np.asarray(action, dtype=np.float64), -1.0, 1.0)
+        self.steps += 1
+        terminated = not self.fixed and self.episodes >= self.from_episode and self.steps >= self.terminate_at
+        reward = float(self.compute_reward(self.pos, self.goal, {}))
+        return self._obs(), reward, terminated, False, {"is_success": reward == 0.0}
+
+    def compute_reward(self, achieved_goal, desired_goal, info):
+        return -(np.linalg.norm(np.asarray(achieved_goal) - desired_goal, axis=-1) > 0.2).astype(np.float64)
+
+
+if TERMINATING not in gym.registry:
+    gym.register(TERMINATING, entry_point=TerminatingPoint, max_episode_steps=40)
 
 
 def test_the_adapter_meets_the_contract():
@@ -89,13 +135,65 @@ def test_bad_arguments_and_envs_are_refused():
         GymnasiumGoalEnv("NoSuchMaze-v0")
     with pytest.raises(GoalEnvError, match="Dict observation"):
         GymnasiumGoalEnv("Pendulum-v1")
-    env = GymnasiumGoalEnv(UMAZE, 1, seed=0, make_kwargs={"continuing_task": False})
-    env.reset()
-    with pytest.raises(GoalEnvError, match="ended an episode itself"):
-        for _ in range(300):  # reach the goal by brute force: from the goal's own cell, push towards it
-            td = env._output()
-            direction = (td["desired_goal"] - td["achieved_goal"]).clamp(-1, 1)
-            env.step(td.set("action", direction))
+    with pytest.raises(ValueError, match="`achieved_goal_in_observation` must be None or a bool"):
+        GymnasiumGoalEnv(UMAZE, achieved_goal_in_observation="yes")
+
+
+def test_an_env_that_says_it_ends_episodes_itself_is_refused_at_construction():
+    """The maze says so (``continuing_task=False``): refused before a step, naming the argument and what is accepted
+    (it used to train until an episode first reached its goal, which can be hours in)."""
+    with pytest.raises(GoalEnvError, match=r"^PointMaze_UMaze-v3 has continuing_task=False \(`make_kwargs`=\{'continuing_task': "
+                       r"False\}\).*accepted: continuing_task=True"):
+        GymnasiumGoalEnv(UMAZE, 1, seed=0, make_kwargs={"continuing_task": False})
+    assert GymnasiumGoalEnv(UMAZE, 1, seed=0, make_kwargs={"continuing_task": True}).max_episode_steps == 300
+
+
+def test_an_env_that_cannot_say_so_is_refused_at_the_end_of_the_episode_it_ended_naming_the_fix():
+    """No ``continuing_task`` to tell beforehand: the copy that terminated is held at its last state to the episode's
+    end (a whole episode, which a training loop stores), ``refusal`` says why meanwhile (a loop stops there with a
+    checkpoint), and the next step raises it."""
+    env = GymnasiumGoalEnv(TERMINATING, 2, seed=0, make_kwargs={"terminate_at": 3, "from_episode": 3})
+    assert not hasattr(env._envs[0].unwrapped, "continuing_task") and not env.achieved_goal_in_observation
+    # copy 0 resets for the 3rd time (with the construction's reset) in the 2nd episode, copy 1 in the 3rd
+    actions = torch.full((2, 2), 0.5)
+    td = env.reset()
+    for _ in range(40):
+        td = env.step(td.set("action", actions))["next"]
+    assert env.refusal is None and td["truncated"].all()
+    td = env.reset()
+    out = [td := env.step(td.set("action", actions))["next"] for _ in range(40)]
+    message = (r"ended an episode itself \(terminated\) after 3 of 40 steps.*make the env continuing, by a "
+               r"`make_kwargs` option of its own .* or in its code or a wrapper")
+    assert re.search(message, env.refusal)
+    held = torch.stack([o["observation"][0] for o in out[2:]])
+    assert (held == held[0]).all() and not (out[2]["observation"][1] == out[3]["observation"][1]).all()
+    assert not any(o["terminated"].any() for o in out) and out[-1]["truncated"].all()
+    assert [o["step_count"][0, 0].item() for o in out] == list(range(1, 41))
+    assert all(torch.equal(o["reward"][0], out[2]["reward"][0]) for o in out[2:])
+    td = env.reset()
+    with pytest.raises(GoalEnvError, match=message):
+        env.step(td.set("action", actions))
+
+
+def test_the_achieved_goal_goes_first_into_an_observation_that_leaves_it_out():
+    """AntMaze_UMaze-v5 observes the torso without its x, y (105 entries): the adapter prepends the achieved goal,
+    so ``goal_indices`` are ``[0, 1]``; PointMaze_UMaze-v3's observation [x, y, vx, vy] holds it and stays as it is."""
+    env = make_env(f"gymnasium:{ANT_UMAZE}", num_envs=2, seed=0)
+    assert env.achieved_goal_in_observation and env.observation_spec["observation"].shape == (2, 107)
+    check_env_specs(env)
+    check_goal_env(env, goal_indices=[0, 1], steps=3)
+    td = env.rollout(5)
+    assert td["next", "observation"].shape == (2, 5, 107)
+    assert torch.equal(td["next", "observation"][..., :2], td["next", "achieved_goal"])
+    assert torch.equal(td["observation"][..., :2], td["achieved_goal"])  # the resets' too
+    assert goal_indices_of(env) == [0, 1]
+    bare = GymnasiumGoalEnv(ANT_UMAZE, 1, seed=0, achieved_goal_in_observation=False)
+    assert bare.observation_spec["observation"].shape == (1, 105) and goal_indices_of(bare) is None
+    point = GymnasiumGoalEnv(UMAZE, 2, seed=0)
+    assert not point.achieved_goal_in_observation and point.observation_spec["observation"].shape == (2, 4)
+    forced = GymnasiumGoalEnv(UMAZE, 2, seed=0, achieved_goal_in_observation=True)
+    obs = forced.rollout(3)["next", "observation"]
+    assert obs.shape == (2, 3, 6) and torch.equal(obs[..., :2], obs[..., 2:4])  # [goal, x, y, vx, vy]
 
 
 def test_check_goal_env_wants_float32_and_the_true_episode_length():
@@ -139,3 +237,32 @@ def test_the_recipe_names_a_bad_test_goal_key():
     cfg["gymnasium"]["eval_goals"] = "north"
     with pytest.raises(ConfigError, match=r"^`gymnasium.eval_goals` must be None or a goal"):
         check_components(cfg, goal_dim=2, error=ConfigError)
+
+
+@pytest.mark.recipe
+def test_a_run_refused_at_a_late_terminated_step_stops_with_a_checkpoint_that_resumes(tmp_path, monkeypatch):
+    """An env that cannot say beforehand that it ends episodes (no ``continuing_task``) terminates in the 4th batch,
+    after 3 epochs and before any periodic checkpoint: the run stops at that batch's end (the batch unused) naming the
+    fix, with a checkpoint, and once the env is fixed (in its code: the same configuration) it resumes to its end."""
+    from _recipe import load_recipe, metrics_rows, recipe_config
+
+    from torchrl_dhrl.recipe import checkpoint_file
+
+    recipe = load_recipe()
+    overrides = (
+        "env=gymnasium", f"env_name=gymnasium:{TERMINATING}", "preset=smoke", "device=cpu", "logger.backend=none",
+        "plots.every_epochs=0", "threads=1", "checkpoint.every_epochs=5", "schedule.eval_flat=false",
+        # copy 0 of the training env resets for the 5th time (with the construction's reset) in the 4th batch
+        "gymnasium.make_kwargs={terminate_at:3,from_episode:5}", "goal_indices=[0,1]",
+        "high.subgoal_low=[-1.2,-1.2]", "high.subgoal_high=[1.2,1.2]", "high.subgoal_noise=0.2",
+        "low.reward_threshold=0.2", "planner.reach_radius=0.2", "fgs.noise=0.3",
+    )
+    run_dir = tmp_path / "run"
+    with pytest.raises(SystemExit, match=r"ended an episode itself \(terminated\) after 3 of 40 steps.*resume="
+    ):
+        recipe.train(recipe_config(*overrides), run_dir=run_dir)
+    assert checkpoint_file(run_dir).exists()
+    assert [row["env_steps"] for row in metrics_rows(run_dir)] == ["80", "160", "240"]
+    monkeypatch.setattr(TerminatingPoint, "fixed", True)
+    recipe.train(recipe_config(*overrides, f"resume={run_dir}"), run_dir=run_dir)
+    assert [row["env_steps"] for row in metrics_rows(run_dir)] == ["80", "160", "240", "320", "400", "480"]

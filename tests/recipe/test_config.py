@@ -194,6 +194,10 @@ def test_a_checkpoint_older_than_a_key_is_compared_with_the_value_it_was_trained
         "right_flipped_after",
         "reference_engine",
         "fork",
+        "planner.edge_rule",
+        "high.critic_candidates",
+        "high.candidate_noise",
+        "high.landmark_candidates",
     }
     filled = with_implied_keys(saved)
     assert filled["low"]["distance_output"] == filled["high"]["distance_output"] == "softplus"

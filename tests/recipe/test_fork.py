@@ -7,6 +7,7 @@ import pytest
 import torch
 from _recipe import TIMING_COLUMNS, load_recipe, metrics_rows, recipe_config
 
+from torchrl_dhrl.planner import ConnectedEdgeRule
 from torchrl_dhrl.recipe import (
     FORK_MUTABLE_KEYS,
     RESUME_MUTABLE_KEYS,
@@ -106,6 +107,10 @@ def test_every_forkable_hyperparameter_is_in_effect(parent, tmp_path, monkeypatc
         "high.far_from_graph_factor": 1.0,
         "schedule.eval_every_epochs": 2,
         "schedule.eval_flat": False,
+        "planner.edge_rule": "connected",
+        "high.critic_candidates": 4,
+        "high.candidate_noise": 0.5,
+        "high.landmark_candidates": True,
     }
     # every experiment key a fork may change is checked here (a key added to the tuple needs its check)
     assert set(new) | {"fork", "seed"} == set(FORK_MUTABLE_KEYS) - set(RESUME_MUTABLE_KEYS)
@@ -114,6 +119,11 @@ def test_every_forkable_hyperparameter_is_in_effect(parent, tmp_path, monkeypatc
         section, name = key.split(".")
         assert saved[section][name] != value, key  # a real change
     _train(tmp_path, "total_steps=480", f"fork={parent}", *(f"{k}={str(v).lower()}" for k, v in new.items()))
+    agent = built["parts"].agent
+    assert isinstance(agent.planner.graph.edge_rule, ConnectedEdgeRule)  # used from the fork's next build on
+    selector = agent.high_policy.selector
+    assert selector.num_candidates == 4 and selector.landmark_candidates is True
+    assert selector.sigma.eq(0.5).all()
     relabel = built["parts"].high_rb.relabel[1]  # HindsightSubgoalRelabel
     assert relabel.subgoal_test_ratio == 0.5
     assert relabel.subgoal_test_threshold == 2.5

@@ -2,6 +2,7 @@
 ablation switches and the command line."""
 
 import os
+import shlex
 import shutil
 import signal
 import subprocess
@@ -125,6 +126,8 @@ def test_resume_continues_exactly(tmp_path):
         assert start["versions"]["torch"] == torch.__version__
         assert start["device"] == "cpu" and start["threads"] >= 1
         assert start["machine"]["cores"] == os.cpu_count() and start["machine"]["cpu"]
+        # the command this process was started with, as a shell would split it again
+        assert shlex.split(start["command"]) == [Path(sys.executable).name, *sys.argv]
 
 
 def test_a_0_2_0_checkpoint_resumes_exactly(tmp_path):

@@ -151,6 +151,46 @@ def test_the_gymnasium_command_of_the_docs_trains_and_leaves_no_stray_hydra_dire
     assert sorted(p.name for p in tmp_path.iterdir()) == ["umaze"]  # no outputs/<date>/<time>
 
 
+@pytest.mark.recipe
+def test_an_ant_maze_whose_observation_leaves_out_the_goal_starts_and_trains(tmp_path, capsys):
+    """AntMaze_UMaze-v5 observes the torso without its x, y: the run used to stop at once (`low.relative_goal` needs
+    `goal_indices`, got None); the adapter now puts the achieved goal first, and the recipe says so."""
+    pytest.importorskip("gymnasium_robotics")
+    cfg = recipe_config("env=gymnasium", "env_name=gymnasium:AntMaze_UMaze-v5", *SMOKE, "episode_length=10",
+                        "total_steps=20")
+    recipe.train(cfg, run_dir=tmp_path / "run")
+    printed = capsys.readouterr().out
+    assert (
+        "gymnasium:AntMaze_UMaze-v5: its observation leaves out the achieved goal, so GymnasiumGoalEnv puts it first: "
+        "observation[0:2] = achieved_goal (107 entries, the env's 105 after it)." in printed
+    )
+    assert "Derived from gymnasium:AntMaze_UMaze-v5: goal_indices=[0, 1]" in printed and "Done: 20 env steps" in printed
+    assert yaml.safe_load((tmp_path / "run" / "config.yaml").read_text())["goal_indices"] == [0, 1]
+
+
+GOAL_UNITS = ("goal_indices=[0,1]", "high.subgoal_low=[-2.0,-2.0]", "high.subgoal_high=[2.0,2.0]",
+              "high.subgoal_noise=0.3", "low.reward_threshold=0.45", "planner.reach_radius=0.45", "fgs.noise=0.5")
+
+
+@pytest.mark.parametrize("given", [(), GOAL_UNITS], ids=["derived", "given"])
+def test_a_maze_made_to_end_its_episodes_is_refused_at_start_up(tmp_path, capsys, given):
+    """`continuing_task:false` used to start and train, and to be refused only when an episode first reached its goal
+    (hours in): the maze says so beforehand, and the run stops before anything is built or written, goal units
+    derived or not."""
+    pytest.importorskip("gymnasium_robotics")
+    cfg = recipe_config("env=gymnasium", "env_name=gymnasium:PointMaze_UMaze-v3", *SMOKE,
+                        "gymnasium.make_kwargs={continuing_task:false}", *given)
+    with pytest.raises(ConfigError, match=(
+        r"^env_name=gymnasium:PointMaze_UMaze-v3: PointMaze_UMaze-v3 has continuing_task=False "
+        r"\(`gymnasium.make_kwargs`=\{'continuing_task': False\}\): it ends an episode itself .* accepted: "
+        r"continuing_task=True \(the mazes' default: leave it out of `gymnasium.make_kwargs`, or set it there\)\.$"
+    )) as refused:
+        recipe.train(cfg, run_dir=tmp_path / "run")
+    assert "\n" not in str(refused.value)
+    assert "Threads:" not in capsys.readouterr().out  # refused before start_run's checks and lines
+    assert not (tmp_path / "run").exists()
+
+
 def test_goal_units_the_env_cannot_tell_are_named(user_env):
     from torchrl_dhrl.envs import make_env
 

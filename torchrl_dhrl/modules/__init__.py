@@ -9,11 +9,12 @@ from .critics import GoalConditionedCritic, GoalConditionedCriticNet, distance_t
 from .ensemble import EnsembleLinear, EnsembleMLP
 from .exploration import GaussianUniformExplorationModule
 from .policies import HighLevelPolicy, make_low_level_policy
-from .subgoal import NO_SUBGOAL, SubgoalScheduler
+from .subgoal import NO_SUBGOAL, CriticGuidedSubgoal, SubgoalScheduler
 
 __all__ = [
     "DEFAULT_NUM_CELLS",
     "NO_SUBGOAL",
+    "CriticGuidedSubgoal",
     "EnsembleLinear",
     "EnsembleMLP",
     "GaussianUniformExplorationModule",

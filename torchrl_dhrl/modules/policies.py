@@ -2,10 +2,11 @@
 
 from __future__ import annotations
 
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 
 import torch
-from tensordict.nn import TensorDictSequential
+from tensordict import TensorDictBase
+from tensordict.nn import TensorDictModuleBase, TensorDictSequential
 from tensordict.utils import NestedKey
 from torch import nn
 from torchrl.envs import TensorDictPrimer
@@ -15,7 +16,7 @@ from torchrl_dhrl.checks import checked, flag, layer_sizes, number, vector
 from ._utils import relative_goal_needs_indices
 from .actors import DEFAULT_NUM_CELLS, HighLevelActor
 from .exploration import GaussianUniformExplorationModule
-from .subgoal import INTERVAL, SubgoalScheduler
+from .subgoal import CANDIDATES, INTERVAL, CriticGuidedSubgoal, SubgoalScheduler
 
 
 def _subgoal_box(subgoal_low, subgoal_high) -> None:
@@ -36,20 +37,30 @@ def _subgoal_box_size(goal_dim, subgoal_low) -> None:
 
 
 class HighLevelPolicy(TensorDictSequential):
-    """The acting high-level policy: ``pi_hi`` -> subgoal noise -> hold for ``c_h`` steps.
+    """The acting high-level policy: ``pi_hi`` -> [critic-guided choice] -> subgoal noise -> hold for ``c_h`` steps.
 
-    A :class:`~tensordict.nn.TensorDictSequential` of three small modules, exposed as
-    attributes:
+    A :class:`~tensordict.nn.TensorDictSequential` of three small modules (four with critic-guided
+    subgoals), exposed as attributes:
 
     * :attr:`actor` -- a :class:`HighLevelActor` writing the deterministic proposal to
       ``proposal_key`` (this is the network to give to
       :class:`~torchrl_dhrl.objectives.HighLevelLoss`);
+    * :attr:`selector` -- only with ``critic_candidates > 0`` or ``landmark_candidates=True`` (``None``
+      otherwise): a :class:`CriticGuidedSubgoal` that scores the proposal together with
+      ``critic_candidates`` Gaussian perturbations of it (std ``candidate_noise``, clipped to the box) and,
+      optionally, the graph's landmarks, in one call of the high-level critic, and replaces the proposal by
+      the best (ties: the actor's own). It needs the ``critic`` (and ``landmarks``), given here or set on
+      :attr:`selector` later (:func:`~torchrl_dhrl.recipe.make_agent` does). It runs before the noise, which
+      then explores around the best candidate; eagerly it scores only in the steps where some env is issued a
+      new subgoal (see :class:`CriticGuidedSubgoal`). Our improvement, off by default: the reference issues
+      the actor's subgoal;
     * :attr:`exploration` -- absolute Gaussian noise in goal units, clipped to the subgoal
       box, active only under ``ExplorationType.RANDOM`` (off under ``DETERMINISTIC``);
     * :attr:`scheduler` -- a :class:`SubgoalScheduler` that adopts the (noisy) proposal only
       every ``interval`` steps and at reset, so noise only matters on issuing steps.
 
-    It writes ``subgoal``, ``new_subgoal`` (bool ``[1]``) and ``subgoal_step`` (int64 ``[1]``).
+    It writes ``subgoal``, ``new_subgoal`` (bool ``[1]``) and ``subgoal_step`` (int64 ``[1]``), and with
+    a :attr:`selector` ``subgoal_candidate`` (int64 ``[1]``, the chosen candidate; ``0``: the actor's).
     Append :meth:`make_primer` to the env so the held subgoal crosses steps and resets
     (:func:`torchrl.modules.utils.get_primers_from_module` finds it too).
 
@@ -74,6 +85,17 @@ class HighLevelPolicy(TensorDictSequential):
         new_subgoal_key (NestedKey): Defaults to ``"new_subgoal"``.
         counter_key (NestedKey): Defaults to ``"subgoal_step"``.
         step_count_key (NestedKey, optional): Defaults to ``"step_count"``.
+        critic_candidates (int): ``K``, perturbed candidates scored by the critic; ``0`` with
+            ``landmark_candidates=False``: no :attr:`selector`, the reference's policy. Defaults to ``0``.
+        candidate_noise (float or Tensor, optional): std of the perturbations in goal units; ``None``:
+            ``noise_sigma``. Defaults to ``None``.
+        landmark_candidates (bool): the graph's landmarks join the candidates. Defaults to ``False``.
+        critic (TensorDictModule, optional): the high-level critic that scores the candidates (see
+            :class:`CriticGuidedSubgoal`); not a submodule.
+        critic_params (TensorDictBase, optional): the parameters to evaluate ``critic`` with.
+        landmarks (callable, optional): ``() -> (goals [L, goal_dim], valid [L] or None)`` or ``None``.
+        candidate_key (NestedKey): where the chosen candidate's index is written. Defaults to
+            ``"subgoal_candidate"``.
 
     Examples:
         >>> import torch
@@ -84,6 +106,19 @@ class HighLevelPolicy(TensorDictSequential):
         >>> flags = [policy(td)["new_subgoal"].all().item() for _ in range(6)]
         >>> flags
         [True, False, False, True, False, False]
+        >>> policy.selector is None
+        True
+
+        Critic-guided subgoals: the critic scores the actor's subgoal and 8 perturbations of it.
+
+        >>> from torchrl_dhrl.modules import GoalConditionedCritic
+        >>> critic = GoalConditionedCritic(6, 2, action_low=[-4.0, -4.0], action_high=[20.0, 20.0],
+        ...     goal_key="desired_goal", action_key="subgoal", relative_goal=False, num_cells=(32,))
+        >>> guided = HighLevelPolicy(6, 2, [-4.0, -4.0], [20.0, 20.0], interval=3, num_cells=(32,),
+        ...     critic_candidates=8, candidate_noise=1.0, critic=critic)
+        >>> out = guided(td.clone())
+        >>> out["subgoal_candidate"].shape, bool(((out["subgoal"] >= -4) & (out["subgoal"] <= 20)).all())
+        (torch.Size([2, 1]), True)
     """
 
     @checked(
@@ -96,6 +131,9 @@ class HighLevelPolicy(TensorDictSequential):
         noise_sigma=number(0.0),
         relative_goal=flag(),
         num_cells=layer_sizes(),
+        critic_candidates=CANDIDATES,
+        candidate_noise=number(0.0, optional=True),
+        landmark_candidates=flag(),
     )
     def __init__(
         self,
@@ -117,6 +155,13 @@ class HighLevelPolicy(TensorDictSequential):
         new_subgoal_key: NestedKey = "new_subgoal",
         counter_key: NestedKey = "subgoal_step",
         step_count_key: NestedKey | None = "step_count",
+        critic_candidates: int = 0,
+        candidate_noise: float | torch.Tensor | None = None,
+        landmark_candidates: bool = False,
+        critic: TensorDictModuleBase | None = None,
+        critic_params: TensorDictBase | None = None,
+        landmarks: Callable[[], tuple[torch.Tensor, torch.Tensor | None] | None] | None = None,
+        candidate_key: NestedKey = "subgoal_candidate",
     ) -> None:
         actor = HighLevelActor(
             observation_dim,
@@ -148,19 +193,42 @@ class HighLevelPolicy(TensorDictSequential):
             counter_key=counter_key,
             step_count_key=step_count_key,
         )
-        super().__init__(actor, exploration, scheduler)
+        if not critic_candidates and not landmark_candidates:  # the reference's policy, module for module
+            super().__init__(actor, exploration, scheduler)
+            return
+        selector = CriticGuidedSubgoal(
+            actor.low,
+            actor.high,
+            num_candidates=critic_candidates,
+            noise_sigma=noise_sigma if candidate_noise is None else candidate_noise,
+            landmark_candidates=landmark_candidates,
+            critic=critic,
+            critic_params=critic_params,
+            landmarks=landmarks,
+            due=scheduler.due,  # eagerly, nothing scored in the steps that issue no subgoal
+            observation_key=observation_key,
+            goal_key=goal_key,
+            proposal_key=proposal_key,
+            index_key=candidate_key,
+        )
+        super().__init__(actor, selector, exploration, scheduler)
 
     @property
     def actor(self) -> HighLevelActor:
         return self.module[0]
 
     @property
+    def selector(self) -> CriticGuidedSubgoal | None:
+        """The critic-guided choice among subgoal candidates, ``None`` when off (the reference's policy)."""
+        return self.module[1] if len(self.module) == 4 else None
+
+    @property
     def exploration(self) -> GaussianUniformExplorationModule:
-        return self.module[1]
+        return self.module[-2]
 
     @property
     def scheduler(self) -> SubgoalScheduler:
-        return self.module[2]
+        return self.module[-1]
 
     def make_primer(self) -> TensorDictPrimer:
         """The :class:`~torchrl.envs.TensorDictPrimer` to append to the env (see :meth:`SubgoalScheduler.make_primer`)."""

@@ -1,6 +1,9 @@
-"""The high-level cadence: issue a new subgoal every ``c_h`` env steps (and at reset), hold it in between."""
+"""The high-level cadence (a new subgoal every ``c_h`` env steps and at reset, held in between) and the
+critic-guided choice of the subgoal among candidates."""
 
 from __future__ import annotations
+
+from collections.abc import Callable, Sequence
 
 import torch
 from tensordict import TensorDictBase
@@ -9,10 +12,16 @@ from tensordict.utils import NestedKey
 from torchrl.data import Categorical, Composite, Unbounded
 from torchrl.envs import TensorDictPrimer
 
-from torchrl_dhrl.checks import checked, integer
+from torchrl_dhrl._unregistered import UnregisteredAttributes
+from torchrl_dhrl.checks import checked, flag, integer, number
+
+from ._utils import resolve_box
+from .critics import critic_values, stacked_critic_values
 
 #: The accepted high-level intervals ``c_h`` (env steps per subgoal).
 INTERVAL = integer(1, what="the high-level interval")
+#: The accepted numbers of perturbed candidates of a critic-guided subgoal (0: none).
+CANDIDATES = integer(0, what="perturbed subgoal candidates scored by the high-level critic")
 
 #: Value of the subgoal counter after a reset: no subgoal is in force yet.
 NO_SUBGOAL = -1
@@ -96,8 +105,8 @@ class SubgoalScheduler(TensorDictModuleBase):
         )
         self.out_keys = [subgoal_key, new_subgoal_key, counter_key]
 
-    def forward(self, tensordict: TensorDictBase) -> TensorDictBase:
-        proposal = tensordict.get(self.proposal_key)
+    def _issue(self, tensordict: TensorDictBase, proposal: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        """``(issue, counter)``: which envs adopt the proposal at this call (bool ``[*batch, 1]``) and the counter read."""
         flag_shape = (*proposal.shape[:-1], 1)
         counter = tensordict.get(self.counter_key, None)
         if counter is None:
@@ -111,6 +120,15 @@ class SubgoalScheduler(TensorDictModuleBase):
             step_count = tensordict.get(self.step_count_key, None)
             if step_count is not None:
                 issue = issue | (step_count.reshape(flag_shape) == 0)
+        return issue, counter
+
+    def due(self, tensordict: TensorDictBase) -> torch.Tensor:
+        """Which envs the next call issues a new subgoal to: bool ``[*batch, 1]`` (reads the proposal for its shape)."""
+        return self._issue(tensordict, tensordict.get(self.proposal_key))[0]
+
+    def forward(self, tensordict: TensorDictBase) -> TensorDictBase:
+        proposal = tensordict.get(self.proposal_key)
+        issue, counter = self._issue(tensordict, proposal)
         held = tensordict.get(self.subgoal_key, None)
         subgoal = proposal if held is None else torch.where(issue, proposal, held)
         tensordict.set(self.subgoal_key, subgoal)
@@ -153,3 +171,260 @@ class SubgoalScheduler(TensorDictModuleBase):
 
     def extra_repr(self) -> str:
         return f"interval={self.interval}, subgoal_key={self.subgoal_key!r}, counter_key={self.counter_key!r}"
+
+
+def _static_shapes_only(device: torch.device) -> bool:
+    """Whether the call is traced by ``torch.compile`` or captured into a CUDA graph: no host read, no skipped work."""
+    return torch.compiler.is_compiling() or (
+        device.type == "cuda" and torch.cuda.is_current_stream_capturing()
+    )
+
+
+class CriticGuidedSubgoal(UnregisteredAttributes, TensorDictModuleBase):
+    """Replaces the actor's subgoal by the best of it and ``K`` candidates, scored by the high-level critic.
+
+    Sits between the high-level actor and its exploration noise (:class:`HighLevelPolicy` with
+    ``critic_candidates > 0`` or ``landmark_candidates=True``): it reads the actor's deterministic proposal
+    (``proposal_key``), the state and the final goal, and scores together, in one critic call on a
+    ``[*batch, N]`` batch,
+
+    * the proposal itself (candidate ``0``),
+    * ``num_candidates`` Gaussian perturbations of it, ``proposal + noise_sigma * N(0, I)`` clipped to the subgoal
+      box (candidates ``1..K``; drawn with the global generator of the proposal's device, one
+      ``torch.randn(*batch, K, goal_dim)`` per call), and
+    * with ``landmark_candidates``, the goals of the graph's landmarks, clipped to the box (candidates
+      ``K + 1..``), given by the :attr:`landmarks` callable.
+
+    The score of a candidate is the smallest value over the critic's members (the twin's pessimistic value: an
+    argmax over candidates favours those it overestimates), ``Q(s, candidate | g)``; a NaN score and an invalid
+    landmark row score ``-inf``. The best candidate is written back at ``proposal_key``, and its index at
+    ``index_key`` (int64 ``[*batch, 1]``; ``0``: the actor's own). **Ties** go to the actor's own subgoal, and
+    among the other candidates to the lowest index. Exploration noise, if any, is added afterwards (it explores
+    around the best), and the :class:`SubgoalScheduler` adopts the result only when a new subgoal is due.
+
+    The choice acts in every exploration mode (also under ``ExplorationType.DETERMINISTIC``: it is part of the
+    policy, not of its exploration) and is deterministic given the generator's state.
+
+    Static shapes, no host read (``torch.compile``, CUDA-graph capture): ``N = 1 + K + L`` is fixed, ``L`` being
+    the number of landmark rows the callable returns (a fixed-size graph's ``max_landmarks`` rows, with a
+    ``valid`` mask). Eagerly, when a :attr:`due` callable says that no env of the batch is issued a new subgoal at
+    this call (one host read), nothing is drawn or scored and the proposal passes unchanged (index ``0``); traced
+    or captured, every call scores.
+
+    Args:
+        subgoal_low (Tensor or sequence of float): lower corner of the subgoal box.
+        subgoal_high (Tensor or sequence of float): upper corner of the subgoal box.
+
+    Keyword Args:
+        num_candidates (int): ``K``, the perturbed candidates. Defaults to ``8``.
+        noise_sigma (float or Tensor): std of the perturbations in goal units (per axis with a tensor).
+            Defaults to ``2.0``.
+        landmark_candidates (bool): the landmarks join the candidates. Defaults to ``False``.
+        critic (TensorDictModule, optional): the high-level critic, reading ``(observation, goal, subgoal)`` from
+            its three ``in_keys`` in that order (e.g. a :class:`~torchrl_dhrl.modules.GoalConditionedCritic`, or
+            ``HighLevelLoss.critic_network``); required to act. Not a submodule (not in ``state_dict()`` nor
+            ``parameters()``): it belongs to the learner. Settable.
+        critic_params (TensorDictBase, optional): parameters to evaluate the critic with, laid out as
+            ``TensorDict.from_module(critic)`` (e.g. ``HighLevelLoss.critic_network_params``, stacked along dim
+            0 for a single-member critic); ``None``: the critic's own. Settable.
+        landmarks (callable, optional): ``() -> (goals [L, goal_dim], valid [L] bool or None)``, or ``None`` while
+            there is no landmark; required with ``landmark_candidates``. E.g. the planner's
+            ``graph.planning_tensors(...)`` goals and valid mask (this module does not import the planner).
+            Settable.
+        due (callable, optional): ``tensordict -> bool [*batch, 1]``, the envs issued a new subgoal at this call
+            (:meth:`SubgoalScheduler.due`); ``None``: score at every call. Settable.
+        observation_key (NestedKey): Defaults to ``"observation"``.
+        goal_key (NestedKey): the final goal. Defaults to ``"desired_goal"``.
+        proposal_key (NestedKey): read and overwritten. Defaults to ``"subgoal_proposal"``.
+        index_key (NestedKey, optional): where the chosen index is written; ``None``: nowhere. Defaults to
+            ``"subgoal_candidate"``.
+        value_key (NestedKey): where a critic other than a ``GoalConditionedCritic`` writes its value.
+            Defaults to ``"state_action_value"``.
+
+    Examples:
+        >>> import torch
+        >>> from tensordict import TensorDict
+        >>> from tensordict.nn import TensorDictModule
+        >>> # a critic that values subgoals by their distance to the goal
+        >>> critic = TensorDictModule(lambda s, g, sg: -(sg - g).norm(dim=-1, keepdim=True),
+        ...     in_keys=["observation", "desired_goal", "subgoal"], out_keys=["state_action_value"])
+        >>> guide = CriticGuidedSubgoal([-4.0, -4.0], [20.0, 20.0], num_candidates=16, critic=critic)
+        >>> td = TensorDict({"observation": torch.zeros(3, 6), "desired_goal": torch.full((3, 2), 8.0),
+        ...                  "subgoal_proposal": torch.zeros(3, 2)}, [3])
+        >>> _ = torch.manual_seed(0)
+        >>> out = guide(td.clone())
+        >>> bool(((out["subgoal_proposal"] - 8.0).norm(dim=-1) < 8.0 * 2 ** 0.5).all())
+        True
+        >>> out["subgoal_candidate"].shape
+        torch.Size([3, 1])
+        >>> guide.landmark_candidates = True
+        >>> guide.landmarks = lambda: (torch.tensor([[8.0, 8.0], [30.0, 0.0]]), None)
+        >>> guide(td.clone())["subgoal_candidate"].reshape(-1).tolist()  # the first landmark: 1 + K
+        [17, 17, 17]
+    """
+
+    _unregistered = ("critic", "critic_params", "landmarks", "due")
+
+    @checked(num_candidates=CANDIDATES, noise_sigma=number(0.0), landmark_candidates=flag())
+    def __init__(
+        self,
+        subgoal_low: torch.Tensor | Sequence[float],
+        subgoal_high: torch.Tensor | Sequence[float],
+        *,
+        num_candidates: int = 8,
+        noise_sigma: float | torch.Tensor = 2.0,
+        landmark_candidates: bool = False,
+        critic: TensorDictModuleBase | None = None,
+        critic_params: TensorDictBase | None = None,
+        landmarks: Callable[[], tuple[torch.Tensor, torch.Tensor | None] | None] | None = None,
+        due: Callable[[TensorDictBase], torch.Tensor] | None = None,
+        observation_key: NestedKey = "observation",
+        goal_key: NestedKey = "desired_goal",
+        proposal_key: NestedKey = "subgoal_proposal",
+        index_key: NestedKey | None = "subgoal_candidate",
+        value_key: NestedKey = "state_action_value",
+    ) -> None:
+        super().__init__()
+        low, high = resolve_box(low=subgoal_low, high=subgoal_high, name="subgoal")
+        self.register_buffer("low", low)
+        self.register_buffer("high", high)
+        self.register_buffer(
+            "sigma", torch.as_tensor(noise_sigma, dtype=torch.float32).expand_as(low).clone()
+        )
+        self.num_candidates = int(num_candidates)
+        self.landmark_candidates = landmark_candidates
+        self.critic = critic
+        self.critic_params = critic_params
+        self.landmarks = landmarks
+        self.due = due
+        self.observation_key = observation_key
+        self.goal_key = goal_key
+        self.proposal_key = proposal_key
+        self.index_key = index_key
+        self.value_key = value_key
+        self.in_keys = [proposal_key, observation_key, goal_key]
+        self.out_keys = [proposal_key] + ([index_key] if index_key is not None else [])
+
+    @property
+    def landmark_candidates(self) -> bool:
+        """Whether the landmarks join the candidates (settable)."""
+        return self._landmark_candidates
+
+    @landmark_candidates.setter
+    def landmark_candidates(self, value: bool) -> None:
+        flag()("landmark_candidates", value)
+        if not value and self.num_candidates == 0:
+            raise ValueError(
+                "A CriticGuidedSubgoal needs candidates: `num_candidates` >= 1 or `landmark_candidates=True`."
+            )
+        self._landmark_candidates = value
+
+    def candidates(self, proposal: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor | None]:
+        """``(candidates [*batch, N, goal_dim], valid [N] bool or None)``: the proposal, its perturbations, the landmarks.
+
+        Draws the perturbations (``torch.randn(*batch, K, goal_dim)``) from the global generator of the proposal's
+        device.
+        """
+        device, dtype = proposal.device, proposal.dtype
+        batch, dim = proposal.shape[:-1], proposal.shape[-1]
+        if self.low.shape[-1] != dim:
+            raise ValueError(
+                f"{self.proposal_key!r} has last dimension {dim}, the subgoal box has {self.low.shape[-1]}."
+            )
+        low = self.low.to(device=device, dtype=dtype)
+        high = self.high.to(device=device, dtype=dtype)
+        parts = [proposal.unsqueeze(-2)]
+        if self.num_candidates:
+            noise = torch.randn(*batch, self.num_candidates, dim, device=device, dtype=dtype)
+            perturbed = proposal.unsqueeze(-2) + self.sigma.to(device=device, dtype=dtype) * noise
+            parts.append(torch.maximum(torch.minimum(perturbed, high), low))
+        valid = None
+        if self.landmark_candidates:
+            if self.landmarks is None:
+                raise RuntimeError(
+                    "`landmark_candidates=True` needs the `landmarks` callable (() -> (goals [L, goal_dim], valid "
+                    "[L] or None)): set it, e.g. to the planner graph's planning tensors."
+                )
+            found = self.landmarks()
+            if found is not None:
+                goals, mask = found
+                goals = goals.to(device=device, dtype=dtype)
+                if goals.ndim != 2 or goals.shape[-1] != dim:
+                    raise ValueError(
+                        f"The landmark goals must have shape [L, {dim}], got {tuple(goals.shape)}."
+                    )
+                goals = torch.maximum(torch.minimum(goals, high), low)
+                parts.append(goals.expand(*batch, *goals.shape))
+                if mask is not None:
+                    own = torch.ones(1 + self.num_candidates, dtype=torch.bool, device=device)
+                    valid = torch.cat([own, mask.to(device=device, dtype=torch.bool)])
+        return torch.cat(parts, -2), valid
+
+    def _values(
+        self, observation: torch.Tensor, goal: torch.Tensor, candidates: torch.Tensor
+    ) -> torch.Tensor:
+        """The critic's members' values of the candidates: ``[E, *batch, N]``."""
+        if self.critic is None:
+            raise RuntimeError(
+                "A CriticGuidedSubgoal scores its candidates with the high-level critic: set `critic` (e.g. "
+                "HighLevelLoss.critic_network, with `critic_params` = its critic_network_params)."
+            )
+        shape = candidates.shape[:-1]
+        observation = observation.unsqueeze(-2).expand(*shape, observation.shape[-1])
+        goal = goal.unsqueeze(-2).expand(*shape, goal.shape[-1])
+        params = self.critic_params
+        if params is not None and params.batch_dims > 0:  # a single-member critic's stacked twin
+            return stacked_critic_values(self.critic, params, observation, goal, candidates, self.value_key)
+        return critic_values(self.critic, observation, goal, candidates, self.value_key, params=params)
+
+    @torch.no_grad()
+    def scores(
+        self,
+        observation: torch.Tensor,
+        goal: torch.Tensor,
+        candidates: torch.Tensor,
+        valid: torch.Tensor | None = None,
+    ) -> torch.Tensor:
+        """``[*batch, N]``: the smallest member value of each candidate, ``-inf`` where NaN or not ``valid``."""
+        score = self._values(observation, goal, candidates).amin(0)
+        score = torch.where(torch.isnan(score), float("-inf"), score)
+        if valid is not None:
+            score = torch.where(valid, score, float("-inf"))
+        return score
+
+    @staticmethod
+    def select(scores: torch.Tensor) -> torch.Tensor:
+        """``[*batch]`` int64: the best candidate of each row; ties: ``0`` (the actor's), then the lowest index."""
+        best = scores.argmax(-1)
+        own = scores[..., 0] >= scores.gather(-1, best.unsqueeze(-1)).squeeze(-1)
+        return torch.where(own, torch.zeros_like(best), best)
+
+    def forward(self, tensordict: TensorDictBase) -> TensorDictBase:
+        proposal = tensordict.get(self.proposal_key)
+        batch, dim = proposal.shape[:-1], proposal.shape[-1]
+        if (
+            self.due is not None
+            and not _static_shapes_only(proposal.device)
+            and not bool(self.due(tensordict).any())
+        ):  # eagerly, no env is issued a subgoal at this call: the proposal would not be adopted anywhere
+            if self.index_key is not None:
+                tensordict.set(
+                    self.index_key, torch.zeros(*batch, 1, dtype=torch.long, device=proposal.device)
+                )
+            return tensordict
+        candidates, valid = self.candidates(proposal)
+        scores = self.scores(
+            tensordict.get(self.observation_key), tensordict.get(self.goal_key), candidates, valid
+        )
+        index = self.select(scores)
+        best = candidates.gather(-2, index.reshape(*batch, 1, 1).expand(*batch, 1, dim)).squeeze(-2)
+        tensordict.set(self.proposal_key, best)
+        if self.index_key is not None:
+            tensordict.set(self.index_key, index.unsqueeze(-1))
+        return tensordict
+
+    def extra_repr(self) -> str:
+        return (
+            f"num_candidates={self.num_candidates}, landmark_candidates={self.landmark_candidates}, "
+            f"noise_sigma={self.sigma.tolist()}"
+        )

@@ -4,8 +4,9 @@ configuration keys (not imported by ``import torchrl_dhrl``; pipelines compose t
 ``config`` (schema and value checks, :class:`ConfigError`), ``routing`` (each configuration key to the constructor
 argument of its name, the components' own checks run on them before anything is built), ``run`` (start-up, resume and fork, run directory,
 :class:`GracefulStop`, :class:`LoopTimer`, metrics files), ``checkpoint`` (one ``torchrl.checkpoint`` registry of
-everything a run carries), ``builders`` (factories of the agent, envs, buffers, updaters, collector and logger),
-``epoch`` (the epoch end: graph rebuild, evaluation, pictures), ``plots`` and ``aggregate`` (many runs' curves)."""
+everything a run carries, and the run's saved agent), ``builders`` (factories of the agent, envs, buffers, updaters, collector and logger),
+``epoch`` (the epoch end: graph rebuild, evaluation, pictures), ``plots`` and ``aggregate`` (many runs' curves),
+``protocol`` (the results protocol: success per seed over a window before each budget, in whole episodes)."""
 
 from .aggregate import (
     IGNORED_KEYS,
@@ -32,16 +33,20 @@ from .builders import (
     observation_transforms,
 )
 from .checkpoint import (
+    AGENT_COMPONENTS,
+    AGENT_NAME,
     CHECKPOINT_COMPONENTS,
     CHECKPOINT_NAME,
     CheckpointError,
     CollectorCheckpointAdapter,
+    agent_checkpoint_file,
     checkpoint_file,
     holds_state,
     load_checkpoint,
     make_checkpoint,
     recover_checkpoint,
     restore_checkpoint,
+    save_agent,
     save_checkpoint,
 )
 from .config import (
@@ -86,6 +91,7 @@ from .plots import (
     plot_success_curve,
     success_curve_series,
 )
+from .protocol import Protocol, episodes_succeeded, report_points, summarize_point, window_success
 from .routing import RECIPE_KEYS, RENAMED, TARGETS, ConfigRoutingError, check_components, component_arguments
 from .run import (
     CONFIG_NAME,
@@ -105,7 +111,9 @@ from .run import (
 )
 
 __all__ = [
+    "AGENT_COMPONENTS",
     "AGENT_DEFAULTS",
+    "AGENT_NAME",
     "ConfigRoutingError",
     "RECIPE_KEYS",
     "RENAMED",
@@ -141,6 +149,7 @@ __all__ = [
     "SWITCHES",
     "REFERENCE_PATH",
     "UPDATE_DTYPES",
+    "agent_checkpoint_file",
     "aggregate_runs",
     "bootstrap_iqm_ci",
     "check_known_keys",
@@ -179,10 +188,16 @@ __all__ = [
     "resolve_speed",
     "restore_checkpoint",
     "run_precisions",
+    "save_agent",
     "save_checkpoint",
     "start_run",
     "write_run_dir",
     "PROVENANCE_NAME",
+    "Protocol",
+    "episodes_succeeded",
+    "report_points",
+    "summarize_point",
+    "window_success",
     "describe_start",
     "read_provenance",
     "success_curve_series",

@@ -290,55 +290,50 @@ def plot_aggregate(
     ylim: tuple[float, float] | None = (-0.02, 1.02),
 ) -> Path:
     """Saves success against env steps, one panel per task and one line per variant: the mean with a band of
-    one standard deviation, the IQM dashed with its bootstrap interval shaded lightly, each seed's curve faintly, the paper's points
-    (``reference[env]``: steps -> success) as crosses, or in the panel's title when they lie beyond 1.5x the
-    runs' last evaluation. ``ylim``: the value axis' limits (``None``: fitted to the data, for columns that are
-    not rates)."""
+    one standard deviation, the IQM dashed with its bootstrap interval shaded lightly and each seed's curve
+    faintly where a variant has several seeds (one seed: its curve alone). The x-axis spans the runs' own
+    steps; the paper's points (``reference[env]``: steps -> success) are drawn by
+    :func:`~torchrl_dhrl.recipe.plots.draw_paper_reference` (crosses within those steps, a labelled horizontal
+    line for a budget beyond them), and each panel's legend sits below it. ``ylim``: the value axis' limits
+    (``None``: fitted to the data, for columns that are not rates)."""
+    from .plots import draw_paper_reference  # here: plots imports the env and planner packages
+
     envs = sorted({row["env"] for row in table})
-    fig = Figure(figsize=(5.5 * max(len(envs), 1), 4))
-    axes = fig.subplots(1, max(len(envs), 1), squeeze=False)[0]
-    for ax, env in zip(axes, envs, strict=False):
+    fig = Figure(figsize=(5.5 * max(len(envs), 1), 5), layout="constrained")
+    panels = fig.subfigures(1, max(len(envs), 1), squeeze=False)[0]
+    for panel, env in zip(panels, envs, strict=False):
+        ax = panel.subplots()
         rows = [row for row in table if row["env"] == env]
         for variant in sorted({row["variant"] for row in rows}):
             sel = sorted((row for row in rows if row["variant"] == variant), key=lambda r: r["env_steps"])
             x = np.array([r["env_steps"] for r in sel])
+            n = sel[-1]["n"]
             mean, std = np.array([r["mean"] for r in sel]), np.array([r["std"] for r in sel])
-            line = ax.plot(x, mean, marker="o", ms=3, label=f"{variant} (n={sel[-1]['n']}): mean ± std")[0]
-            ax.fill_between(x, mean - std, mean + std, color=line.get_color(), alpha=0.2)
-            ax.plot(
-                x, [r["iqm"] for r in sel], ls="--", color=line.get_color(), alpha=0.8, label="IQM, 95% CI"
-            )
-            if sel[-1]["n"] > 1:  # each seed faintly: with few seeds the spread hides which run did what
+            label = f"{variant} (n={n}): mean ± std" if n > 1 else f"{variant} (n=1)"
+            line = ax.plot(x, mean, marker="o", ms=3, label=label, zorder=3)[0]
+            if n > 1:  # the spread over seeds, and each seed faintly: few seeds' spread hides which did what
+                ax.fill_between(x, mean - std, mean + std, color=line.get_color(), alpha=0.2)
+                iqm_line = [r["iqm"] for r in sel]
+                ax.plot(x, iqm_line, ls="--", color=line.get_color(), alpha=0.8, label="IQM, 95% CI")
                 per_seed = np.array([[float(v) for v in r["values"].split()] for r in sel])
                 ax.plot(x, per_seed, lw=0.7, color=line.get_color(), alpha=0.35)
-            ax.fill_between(
-                x,
-                [r["iqm_ci_low"] for r in sel],
-                [r["iqm_ci_high"] for r in sel],
-                color=line.get_color(),
-                alpha=0.07,
-            )
-        title = env
-        if reference and env in reference:
-            # the paper's points within reach of these runs are drawn; later ones are named in the title
-            reach = 1.5 * max(row["env_steps"] for row in rows)
-            near = {s: v for s, v in reference[env].items() if s <= reach}
-            far = {s: v for s, v in reference[env].items() if s > reach}
-            if near:
-                ax.scatter(
-                    list(near), list(near.values()), marker="x", color="k", zorder=3, label="paper (DHRL)"
+                ax.fill_between(
+                    x,
+                    [r["iqm_ci_low"] for r in sel],
+                    [r["iqm_ci_high"] for r in sel],
+                    color=line.get_color(),
+                    alpha=0.07,
                 )
-            if far:
-                title += (
-                    " (paper: " + ", ".join(f"{100 * v:.1f}% at {s / 1e6:g}M" for s, v in far.items()) + ")"
-                )
-        ax.set_title(title, fontsize=10)
+        draw_paper_reference(
+            ax, (reference or {}).get(env), [row["env_steps"] for row in rows], label="paper (DHRL)"
+        )
+        ax.set_title(env, fontsize=10)
         ax.set_xlabel("env steps (warm-up included)")
         ax.set_ylabel(metric_label)
         if ylim is not None:
             ax.set_ylim(*ylim)
         ax.grid(alpha=0.3)
-        ax.legend(loc="upper left", fontsize=7)
+        panel.legend(loc="outside lower center", fontsize=7, frameon=False)
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
     fig.savefig(path, dpi=100, bbox_inches="tight")

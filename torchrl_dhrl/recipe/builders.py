@@ -149,7 +149,8 @@ def make_agent(
     Keyword Args:
         high_policy (mapping): :class:`~torchrl_dhrl.modules.HighLevelPolicy`'s arguments: ``subgoal_low``,
             ``subgoal_high`` (the subgoal box, goal space), ``interval`` (``c_h``), ``noise_sigma``,
-            ``num_cells``, ...
+            ``num_cells``, ... With ``critic_candidates`` or ``landmark_candidates`` its selector scores the
+            candidates with the high-level loss's critic (its current parameters) and the planner's landmarks.
         goal_indices (sequence of int, optional): where the achieved goal sits in the observation.
         low_actor (mapping, optional): :class:`~torchrl_dhrl.modules.LowLevelActor`'s (``relative_goal``,
             ``num_cells``, ...). ``relative_goal`` defaults to ``False`` here (it needs ``goal_indices``).
@@ -243,8 +244,19 @@ def make_agent(
         landmark_graph.reserve(
             obs_dim, goal_dim, dtype=env.observation_spec["observation"].dtype, device=device
         )
+    if high.selector is not None:  # critic-guided subgoals: the high-level critic as trained scores them
+        high.selector.critic = high_loss_module.critic_network
+        high.selector.critic_params = high_loss_module.critic_network_params
+        high.selector.landmarks = functools.partial(_landmark_goals, graph_planner)
     policy = TensorDictSequential(high, graph_planner, TensorDictSequential(actor, exploration_module))
     return DHRLAgent(high, actor, exploration_module, sqgc, high_loss_module, graph_planner, policy)
+
+
+def _landmark_goals(planner: GraphPlanner) -> tuple[torch.Tensor, torch.Tensor | None] | None:
+    """The goals of the landmarks ``planner`` plans on and which rows are landmarks (``None``: all; a fixed-size
+    graph's padding rows are not), for the high level's subgoal candidates; ``None`` without a graph."""
+    tensors = planner.graph.planning_tensors(planner.capturable)
+    return None if tensors is None else (tensors.goals, tensors.valid)
 
 
 def observation_transforms(angle_features: Sequence[int] | None = None) -> list:

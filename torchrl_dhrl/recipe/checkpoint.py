@@ -26,6 +26,12 @@ holding a dictionary with the same entries (and ``carrier`` apart from ``collect
 :func:`load_checkpoint` returns their entries under the component names above and
 :func:`restore_checkpoint` resumes them (the collector's copy of the policy is ignored); new checkpoints are
 always written in the directory layout.
+
+**The saved agent.** :func:`save_agent` writes ``<run dir>/agent``, a checkpoint of ``config``, ``agent``,
+``counters`` and ``history`` only (:data:`AGENT_COMPONENTS`): what re-evaluates and diagnoses a run, without
+the replay buffers, envs, optimisers or random states (megabytes where a long run's checkpoint takes
+hundreds, for committing with a run's results). The recipe writes it each time it writes its checkpoint; :func:`load_checkpoint` reads it as any
+checkpoint, and :func:`agent_checkpoint_file` falls back on it for a run directory without ``checkpoint``.
 """
 
 from __future__ import annotations
@@ -47,6 +53,9 @@ from torchrl.checkpoint import (
 from torchrl.checkpoint import CheckpointError as _TorchRLCheckpointError
 
 __all__ = [
+    "AGENT_COMPONENTS",
+    "AGENT_NAME",
+    "agent_checkpoint_file",
     "recover_checkpoint",
     "holds_state",
     "CHECKPOINT_COMPONENTS",
@@ -57,6 +66,7 @@ __all__ = [
     "load_checkpoint",
     "make_checkpoint",
     "restore_checkpoint",
+    "save_agent",
     "save_checkpoint",
 ]
 
@@ -79,6 +89,10 @@ CHECKPOINT_COMPONENTS = (
     "history",
     "rng",
 )
+#: The name of a run directory's saved agent (:func:`save_agent`), a ``torchrl.checkpoint`` directory too.
+AGENT_NAME = "agent"
+#: The components of a saved agent: the networks, their targets and the graph, with what describes them.
+AGENT_COMPONENTS = ("config", "agent", "counters", "history")
 #: Components that describe the run rather than its state: saved, not restored (checked before resuming).
 _NOT_RESTORED = ("config",)
 #: Restored after every other component, so that no restoring step can draw from the restored streams.
@@ -294,6 +308,72 @@ def save_checkpoint(checkpoint: Checkpoint, path: str | os.PathLike) -> Path:
     return checkpoint.save(Path(path), metadata={"torchrl_dhrl": __version__})
 
 
+def save_agent(source: Checkpoint | str | os.PathLike, out: str | os.PathLike | None = None) -> Path:
+    """Writes a run's saved agent: a ``torchrl.checkpoint`` directory of :data:`AGENT_COMPONENTS` only, and
+    returns its path.
+
+    It holds ``config``, ``agent`` (the networks, their target copies and the graph: landmarks, distances,
+    shortest paths), ``counters`` and ``history``, without the replay buffers, envs, collector, optimisers or
+    random states: what :func:`~dhrl_utils.agent_from_checkpoint`, ``recipes/evaluate.py`` and the
+    diagnostics need, small enough to commit (the agent's tensors in one consolidated TensorDict file). It
+    is written atomically, as :func:`save_checkpoint` writes: a crash while writing leaves the previous one
+    (and :func:`recover_checkpoint` completes an interrupted swap). It cannot be resumed.
+
+    Args:
+        source (Checkpoint, str or os.PathLike): the live registry of :func:`make_checkpoint` (the recipe's
+            way, right after :func:`save_checkpoint`: the states are read from the objects, the buffers are
+            not touched), or a checkpoint or the run directory holding it (see :func:`checkpoint_file`; only
+            the four components are read).
+        out (str or os.PathLike, optional): where to write it. Defaults to :data:`AGENT_NAME` beside the
+            checkpoint of a path ``source`` (``<run dir>/agent``); required with a registry.
+
+    Raises:
+        ValueError: a registry without ``out``, or without a ``config`` or an ``agent`` component.
+        FileNotFoundError, CheckpointError: as :func:`load_checkpoint`, for a path ``source``.
+
+    Examples:
+        >>> import tempfile, torch
+        >>> from pathlib import Path
+        >>> from torchrl.checkpoint import Checkpoint, JSONCheckpointAdapter, StateDictCheckpointAdapter
+        >>> from torchrl_dhrl.recipe import AGENT_NAME, load_checkpoint, save_agent, save_checkpoint
+        >>> run = Path(tempfile.mkdtemp())
+        >>> ckpt = Checkpoint()
+        >>> for name, value in (("config", {"seed": 0}), ("counters", {"env_steps": 80}), ("history", [])):
+        ...     _ = ckpt.register(name, value, adapter=JSONCheckpointAdapter())
+        >>> _ = ckpt.register("agent", torch.nn.Linear(2, 1), adapter=StateDictCheckpointAdapter())
+        >>> _ = ckpt.register("low_rb", torch.nn.Linear(64, 64), adapter=StateDictCheckpointAdapter())
+        >>> _ = save_checkpoint(ckpt, run / "checkpoint")
+        >>> path = save_agent(ckpt, run / AGENT_NAME)  # from the live objects, as the recipe does
+        >>> sorted(load_checkpoint(path)), load_checkpoint(path)["counters"]
+        (['agent', 'config', 'counters', 'history'], {'env_steps': 80})
+        >>> save_agent(run) == path  # or from a run directory's checkpoint
+        True
+    """
+    from torchrl_dhrl import __version__
+
+    if isinstance(source, Checkpoint):
+        if out is None:
+            raise ValueError("save_agent: `out` is required with a registry (it knows no run directory).")
+        held = source.components
+        missing = [name for name in ("config", "agent") if name not in held]
+        if missing:
+            raise ValueError(f"save_agent: the registry has no {' or '.join(map(repr, missing))} component.")
+        values = {name: held[name] for name in AGENT_COMPONENTS if name in held}
+    else:
+        path = checkpoint_file(source)
+        values = load_checkpoint(path, components=AGENT_COMPONENTS, required_keys=("config", "agent"))
+        values["agent"] = _StateHolder(values["agent"])
+        out = path.parent / AGENT_NAME if out is None else out
+    saved = Checkpoint()
+    for name, value in values.items():
+        if name == "agent":  # one file for the tensors, not one per tensor: a few files to commit
+            adapter = StateDictCheckpointAdapter(payload_format="consolidated")
+        else:
+            adapter = _JSONStateAdapter() if hasattr(value, "state_dict") else JSONCheckpointAdapter()
+        saved.register(name, value, adapter=adapter)
+    return saved.save(Path(out), metadata={"torchrl_dhrl": __version__})
+
+
 def restore_checkpoint(
     checkpoint: Checkpoint, path: str | os.PathLike, map_location: str | torch.device | None = None
 ) -> None:
@@ -348,7 +428,8 @@ def recover_checkpoint(run_dir: str | os.PathLike) -> str | None:
     backup. A process killed between the two renames leaves no ``checkpoint``: the staged one is moved into
     place when it is complete, else the backup is moved back. Complete means a manifest that parses and
     validates (:meth:`torchrl.checkpoint.Checkpoint.is_checkpoint`): a process killed while writing the
-    manifest leaves an empty or truncated one. Incomplete stages and stale backups are removed.
+    manifest leaves an empty or truncated one. Incomplete stages and stale backups are removed. The saved
+    agent (``agent``, :func:`save_agent`) is recovered in the same way.
     Call it only while no save is running in ``run_dir`` (the recipe does at start-up).
 
     Returns:
@@ -371,17 +452,24 @@ def recover_checkpoint(run_dir: str | os.PathLike) -> str | None:
     run_dir = Path(run_dir)
     if not run_dir.is_dir():
         return None
-    target = run_dir / CHECKPOINT_NAME
-    stages = sorted(run_dir.glob(f".{CHECKPOINT_NAME}.stage-*"), key=lambda p: p.stat().st_mtime, reverse=True)
-    backups = sorted(run_dir.glob(f".{CHECKPOINT_NAME}.backup-*"), key=lambda p: p.stat().st_mtime, reverse=True)
+    pairs = ((CHECKPOINT_NAME, "checkpoint"), (AGENT_NAME, "saved agent"))
+    notes = [_recover(run_dir, name, what) for name, what in pairs]
+    return " ".join(note for note in notes if note) or None
+
+
+def _recover(run_dir: Path, name: str, what: str) -> str | None:
+    """:func:`recover_checkpoint` of the checkpoint directory ``run_dir/name``."""
+    target = run_dir / name
+    stages = sorted(run_dir.glob(f".{name}.stage-*"), key=lambda p: p.stat().st_mtime, reverse=True)
+    backups = sorted(run_dir.glob(f".{name}.backup-*"), key=lambda p: p.stat().st_mtime, reverse=True)
     note = None
     if not target.exists():
         complete = [p for p in (*stages, *backups) if Checkpoint.is_checkpoint(p)]
         if complete:
             os.replace(complete[0], target)
             which = "new" if complete[0] in stages else "previous"
-            note = f"Recovered the checkpoint of an interrupted save in {run_dir} (the {which} one)."
-    for leftover in (*stages, *backups, *run_dir.glob(f".{CHECKPOINT_NAME}.archive-*")):
+            note = f"Recovered the {what} of an interrupted save in {run_dir} (the {which} one)."
+    for leftover in (*stages, *backups, *run_dir.glob(f".{name}.archive-*")):
         if leftover.is_dir():
             shutil.rmtree(leftover, ignore_errors=True)
         elif leftover.exists():
@@ -409,8 +497,8 @@ def checkpoint_file(path: str | os.PathLike) -> Path:
     """The checkpoint ``path`` designates: ``path`` itself when it is a checkpoint, else the checkpoint of the
     run directory ``path``.
 
-    A checkpoint is a ``torchrl.checkpoint`` directory (holding ``manifest.json``) or a 0.2.0 file; a run
-    directory's is ``path/checkpoint``, or ``path/checkpoint.pt`` when only that 0.2.0 file is there. (In
+    A checkpoint is a ``torchrl.checkpoint`` directory (holding ``manifest.json``; a saved agent,
+    ``path/agent``, is one too) or a 0.2.0 file; a run directory's is ``path/checkpoint``, or ``path/checkpoint.pt`` when only that 0.2.0 file is there. (In
     0.2.0 this returned ``path/checkpoint.pt`` for every directory.) The path is returned whether it exists
     or not.
 
@@ -429,6 +517,27 @@ def checkpoint_file(path: str | os.PathLike) -> Path:
         return path
     current, legacy = path / CHECKPOINT_NAME, path / LEGACY_CHECKPOINT_NAME
     return legacy if legacy.exists() and not current.exists() else current
+
+
+def agent_checkpoint_file(path: str | os.PathLike) -> Path:
+    """The checkpoint to read a run's agent from: :func:`checkpoint_file`'s, or, for a run directory that holds
+    none, its saved agent (:data:`AGENT_NAME`, :func:`save_agent`): a run's results kept without the full
+    checkpoint still re-evaluate. A checkpoint (or a saved agent) given itself is returned as it is.
+
+    Examples:
+        >>> import tempfile
+        >>> from pathlib import Path
+        >>> run = Path(tempfile.mkdtemp())
+        >>> agent_checkpoint_file(run) == run / "checkpoint"  # nothing there: where the checkpoint goes
+        True
+        >>> (run / "agent").mkdir()  # only the saved agent kept
+        >>> agent_checkpoint_file(run) == run / "agent"
+        True
+    """
+    path = Path(path)
+    found = checkpoint_file(path)
+    saved = path / AGENT_NAME
+    return saved if found != path and not found.exists() and saved.exists() else found
 
 
 def load_checkpoint(

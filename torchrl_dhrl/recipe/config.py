@@ -109,6 +109,10 @@ FORK_MUTABLE_KEYS = RESUME_MUTABLE_KEYS + (
     "high.far_from_graph_factor",
     "schedule.eval_every_epochs",
     "schedule.eval_flat",
+    "planner.edge_rule",
+    "high.critic_candidates",
+    "high.candidate_noise",
+    "high.landmark_candidates",
 )
 #: Keys added after runs were checkpointed without them, with the value those runs were trained with: a
 #: saved configuration without the key means that value (:func:`with_implied_keys`), so a checkpoint of an
@@ -120,6 +124,10 @@ IMPLIED_WHEN_ABSENT = {
     "right_flipped_after": None,  # runs from before the switch: a flipped ant stayed flipped
     "reference_engine": False,  # runs from before the switch: MuJoCo 3's margins and capsule inertias
     "fork": None,  # runs from before the key: started afresh
+    "planner.edge_rule": "cutoff",  # runs from before the switch: the reference's edges
+    "high.critic_candidates": 0,  # runs from before the switch: the actor's subgoal issued as it is
+    "high.candidate_noise": None,
+    "high.landmark_candidates": False,
 }
 #: Keys the recipe reads itself with a fixed set of values (the first is the default; see docs/faithfulness.md).
 #: The components check the values of the keys they take (:mod:`torchrl_dhrl.recipe.routing`).

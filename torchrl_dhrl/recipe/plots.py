@@ -16,6 +16,7 @@ from torchrl_dhrl.planner import GraphPlanner
 
 __all__ = [
     "SUCCESS_CURVE_SERIES",
+    "draw_paper_reference",
     "graph_path_to_goal",
     "plot_distance_scatter",
     "plot_episode",
@@ -122,9 +123,10 @@ def plot_success_curve(
 ) -> Path:
     """Saves success rate (final state and any time) against env steps, with the training episodes' success and
     the landmark coverage where logged (:func:`success_curve_series`); ``reference`` maps steps to the paper's
-    success rates, drawn as crosses; ``forks``, the env steps where the run was forked from another's
-    checkpoint (``fork=``), as dotted vertical lines."""
-    fig = Figure(figsize=(6, 4))
+    success rates (:func:`draw_paper_reference`: crosses within the run's steps, a labelled horizontal line for
+    a budget beyond them, so the x-axis spans the run's own steps); ``forks``, the env steps where the run was
+    forked from another's checkpoint (``fork=``), as dotted vertical lines. The legend sits below the axes."""
+    fig = Figure(figsize=(6, 5), layout="constrained")
     ax = fig.subplots()
     styles = {label: style for _, label, style in SUCCESS_CURVE_SERIES}
     for label, (steps, values) in success_curve_series(history).items():
@@ -134,19 +136,112 @@ def plot_success_curve(
             values,
             ls=styles[label],
             marker="o" if evaluation else None,
+            ms=4,
             alpha=1.0 if evaluation else 0.7,
             label=label,
+            zorder=3 if evaluation else 2,
         )
-    if reference:
-        ax.scatter(list(reference), list(reference.values()), marker="x", color="k", zorder=3, label="paper")
+    run_steps = [h["env_steps"] for h in history if "env_steps" in h and _finite(h["env_steps"])]
+    draw_paper_reference(ax, reference, run_steps)
     for i, step in enumerate(forks):
         ax.axvline(step, color="0.4", ls=":", lw=1.2, label="forked" if i == 0 else None)
     ax.set_xlabel("env steps (warm-up included)")
     ax.set_ylabel("success rate / fraction")
     ax.set_ylim(-0.02, 1.02)
     ax.grid(alpha=0.3)
-    ax.legend(loc="upper left", fontsize="small")
+    fig.legend(loc="outside lower center", ncol=2, fontsize="small", frameon=False)
     return _save(fig, ax, path, title)
+
+
+def _steps_text(step: float, millions: bool = True) -> str:
+    """``250000`` -> ``"0.25M"`` (the paper's budgets), or ``"250k"`` with ``millions=False``."""
+    if not step:
+        return "0"
+    return f"{step / 1e6:g}M" if millions else f"{step / 1e3:g}k"
+
+
+def draw_paper_reference(
+    ax,
+    reference: Mapping[float, float] | None,
+    steps: Sequence[float],
+    *,
+    margin: float = 0.03,
+    label: str = "paper",
+) -> tuple[float, float] | None:
+    """Draws the paper's success rates (``reference``: env steps -> success) on ``ax`` without stretching its
+    x-axis beyond the run's own ``steps``, and sets the x-axis to those steps; returns its limits.
+
+    The x-axis runs from 0 (or the run's first step, where that is past a fifth of its last) to the run's last
+    step, with ``margin`` (a fraction of the range) either side. A paper point within the run's steps (or
+    up to 5% of the range past the last, the axis then stretched to it) is a black cross at its step; one
+    beyond them is a dashed horizontal line at its success rate, marked by a triangle at the right edge,
+    with its figure in the legend (``"paper: 96.9% at 0.25M, beyond this run"``). The x ticks read
+    ``0.25M``/``90k``. Without ``steps`` the paper's points are crosses and the axis is left alone.
+
+    Examples:
+        >>> from matplotlib.figure import Figure
+        >>> ax = Figure().subplots()
+        >>> _ = ax.plot([9000, 84000], [0.0, 1.0])
+        >>> low, high = draw_paper_reference(ax, {250_000: 0.969, 500_000: 0.998}, [9000, 84000])
+        >>> high < 90_000
+        True
+        >>> [line.get_label() for line in ax.get_lines() if line.get_label().startswith("paper")]
+        ['paper: 96.9% at 0.25M, beyond this run', 'paper: 99.8% at 0.5M, beyond this run']
+    """
+    import matplotlib.ticker as mticker  # here: the package's import does not pull matplotlib in
+
+    reference = dict(reference or {})
+    steps = [float(s) for s in steps if _finite(s)]
+    if not steps:
+        if reference:
+            texts = ", ".join(f"{100 * v:.1f}% at {_steps_text(s)}" for s, v in sorted(reference.items()))
+            ax.scatter(
+                list(reference),
+                list(reference.values()),
+                marker="x",
+                color="k",
+                zorder=4,
+                label=f"{label}: {texts}",
+            )
+        return None
+    first, last = min(steps), max(steps)
+    low = 0.0 if first >= 0 and first <= 0.2 * last else first
+    span = (last - low) or max(abs(last), 1.0)
+    reach = last + 0.05 * span
+    near = {s: v for s, v in sorted(reference.items()) if low <= s <= reach}
+    far = {s: v for s, v in sorted(reference.items()) if s not in near}
+    if near:
+        texts = ", ".join(f"{100 * v:.1f}% at {_steps_text(s)}" for s, v in near.items())
+        ax.scatter(
+            list(near), list(near.values()), marker="x", s=50, color="k", zorder=4, label=f"{label}: {texts}"
+        )
+    edge = ax.get_yaxis_transform()  # x in axes fraction, y in data
+    for i, (step, value) in enumerate(far.items()):
+        where = "beyond" if step > last else "before"
+        ax.axhline(
+            value,
+            color="k",
+            lw=1.0,
+            alpha=0.55,
+            ls=("--", ":", "-.")[i % 3],
+            zorder=1.5,
+            label=f"{label}: {100 * value:.1f}% at {_steps_text(step)}, {where} this run",
+        )
+        ax.plot(
+            [1.0 if step > last else 0.0],
+            [value],
+            marker=">" if step > last else "<",
+            color="k",
+            ms=6,
+            transform=edge,
+            clip_on=False,
+            zorder=4,
+        )
+    limits = (low - margin * span, max([last, *near]) + margin * span)
+    ax.set_xlim(*limits)
+    millions = limits[1] >= 2e5  # one unit on the whole axis
+    ax.xaxis.set_major_formatter(mticker.FuncFormatter(lambda x, _: _steps_text(x, millions)))
+    return limits
 
 
 def plot_distance_scatter(

@@ -35,6 +35,7 @@ from torchrl_dhrl.planner import (
     GraphPlanner,
     LandmarkGraph,
     LineOfSightDistance,
+    make_edge_rule,
 )
 from torchrl_dhrl.training import LossUpdater
 
@@ -99,7 +100,9 @@ TARGETS: dict[str, dict[str, Target]] = {
         "high_updater": Target(LossUpdater),
     },
     "planner": {
-        "graph": Target(LandmarkGraph),
+        # planner.edge_rule names the rule: make_edge_rule builds it (checked there), the recipe gives it the graph
+        "graph": Target(LandmarkGraph, exclude=("edge_rule",)),
+        "edge_rule": Target(make_edge_rule),
         "planner": Target(GraphPlanner),
         "distance": Target(GoalDistance),
         "oracle": Target(LineOfSightDistance),

@@ -18,6 +18,7 @@ import gc
 import importlib.metadata
 import os
 import platform
+import shlex
 import signal
 import subprocess
 import sys
@@ -334,7 +335,8 @@ def describe_start(start: RunStart) -> dict[str, Any]:
 
     ``config.yaml`` holds the keys as given, ``auto`` included; this record holds what they resolved to on
     this machine, and what the keys cannot say: ``started`` (UTC), ``env_steps`` (where the start
-    continues: 0, a resumed or forked checkpoint's count; ``forked_from`` for a fork), ``code`` (the git
+    continues: 0, a resumed or forked checkpoint's count; ``forked_from`` for a fork), ``command`` (the
+    interpreter's name and the process's arguments, as a shell would take them), ``code`` (the git
     commit of the checkout ``torchrl_dhrl`` is imported from and whether its tracked files were modified,
     ``None`` outside a git checkout, and the installed package's version), ``versions``
     (:data:`PROVENANCE_PACKAGES` and Python), ``machine`` (architecture, CPU model, cores, whether the
@@ -350,6 +352,7 @@ def describe_start(start: RunStart) -> dict[str, Any]:
     if start.forking:
         record["forked_from"] = str(start.resume)
     record |= {
+        "command": shlex.join([Path(sys.executable).name, *sys.argv]),
         "code": {**_git_commit(Path(__file__).resolve().parents[2]), "version": _version("torchrl-dhrl")},
         "versions": {"python": platform.python_version(), **{p: _version(p) for p in PROVENANCE_PACKAGES[1:]}},
         "machine": {

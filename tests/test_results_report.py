@@ -1,0 +1,67 @@
+"""The committed results tables are what ``recipes/report.py`` renders from the committed runs; every run folder
+of ``results/index.yaml`` carries its provenance; every relative link of the docs resolves."""
+
+from __future__ import annotations
+
+import re
+import shutil
+from pathlib import Path
+
+import pytest
+import yaml
+from _recipe import load_recipe
+
+ROOT = Path(__file__).resolve().parents[1]
+report = load_recipe("report")
+
+
+def test_committed_tables_are_the_rendered_ones():
+    stale = [str(p.relative_to(ROOT)) for p, text in report.render(ROOT).items() if p.read_text() != text]
+    assert not stale, f"run `python recipes/report.py`: {stale} differ from what it renders"
+
+
+def test_check_mode_names_a_table_edited_by_hand(tmp_path, capsys):
+    (tmp_path / "docs").mkdir()
+    shutil.copy(ROOT / "README.md", tmp_path / "README.md")
+    shutil.copy(ROOT / "docs" / "results.md", tmp_path / "docs" / "results.md")
+    shutil.copytree(ROOT / "results", tmp_path / "results")
+    assert report.main(["--check"], root=tmp_path) == 0
+    readme = tmp_path / "README.md"
+    readme.write_text(readme.read_text().replace("| AntMaze |", "| AntMaze (typed by hand) |", 1))
+    assert report.main(["--check"], root=tmp_path) == 1
+    assert "README.md: differs" in capsys.readouterr().err
+    assert report.main([], root=tmp_path) == 0 and report.main(["--check"], root=tmp_path) == 0
+
+
+def test_every_indexed_run_has_metrics_config_and_provenance():
+    for entry in yaml.safe_load((ROOT / "results" / "index.yaml").read_text()):
+        folder = ROOT / "results" / entry["folder"]
+        for name in [*entry["runs"], *(entry.get("baseline") or {}).get("runs", [])]:
+            run = folder / name
+            assert (run / "metrics.csv").is_file(), run
+            starts = yaml.safe_load((run / "provenance.yaml").read_text())
+            assert starts and all(s["code"]["commit"] and s["command"] for s in starts), run
+            if not name.startswith("sac"):
+                assert (run / "config.yaml").is_file(), run
+
+
+def test_results_holds_only_indexed_folders():
+    indexed = {entry["folder"] for entry in yaml.safe_load((ROOT / "results" / "index.yaml").read_text())}
+    folders = {p.name for p in (ROOT / "results").iterdir() if p.is_dir()}
+    assert folders == indexed
+
+
+@pytest.mark.parametrize("doc", ["README.md", "docs", "results", "benchmarks/README.md", "CHANGELOG.md"])
+def test_relative_links_resolve(doc):
+    paths = [ROOT / doc] if doc.endswith(".md") else sorted((ROOT / doc).rglob("*.md"))
+    broken = []
+    for path in paths:
+        text = re.sub(r"```.*?```", "", path.read_text(), flags=re.S)  # links inside code blocks are code
+        for target in re.findall(r"\]\(([^)\s#]+)", text):
+            if (
+                "://" not in target
+                and not target.startswith("mailto:")
+                and not (path.parent / target).exists()
+            ):
+                broken.append(f"{path.relative_to(ROOT)}: {target}")
+    assert not broken, broken

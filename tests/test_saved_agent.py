@@ -1,0 +1,184 @@
+"""The saved agent of a run (``<run dir>/agent``, :func:`~torchrl_dhrl.recipe.save_agent`): written by the recipe
+with each checkpoint (and on SIGTERM), small, the same agent as the checkpoint's; re-evaluated by
+``recipes/evaluate.py`` (success in whole episodes, as a direct evaluation with the same seeds); written
+atomically."""
+
+from __future__ import annotations
+
+import math
+import os
+import shutil
+import signal
+
+import numpy as np
+import pytest
+import torch
+import yaml
+from _recipe import load_recipe, recipe_config
+from torch.utils._pytree import tree_flatten_with_path
+from torchrl.checkpoint import Checkpoint, JSONCheckpointAdapter, StateDictCheckpointAdapter
+from torchrl_dhrl.envs.simulation import GoalSimulation
+
+from torchrl_dhrl.recipe import (
+    AGENT_COMPONENTS,
+    AGENT_NAME,
+    CHECKPOINT_NAME,
+    CheckpointError,
+    ConfigError,
+    load_checkpoint,
+    recover_checkpoint,
+    save_agent,
+)
+from torchrl_dhrl.training import evaluate
+
+pytestmark = pytest.mark.recipe
+
+#: Two epochs of the smoke preset on Reacher3D (random test goals: the episodes differ), the graph built in the
+#: second; the test episodes in batches of 10 envs.
+OVERRIDES = (
+    "env=Reacher3D", "preset=smoke", "total_steps=160", "schedule.eval_episodes=10", "schedule.eval_flat=false",
+    "logger.backend=none", "plots.every_epochs=0",
+)
+#: A success radius (m) at which this tiny agent succeeds in some test episodes and fails in others (0.25 as trained).
+WIDE_SUCCESS = 0.85
+
+
+@pytest.fixture(scope="module")
+def run_dir(tmp_path_factory):
+    path = tmp_path_factory.mktemp("run")
+    load_recipe().train(recipe_config(*OVERRIDES), run_dir=path)
+    return path
+
+
+def _size(path) -> int:
+    return sum(p.stat().st_size for p in path.rglob("*") if p.is_file())
+
+
+def _assert_same_states(a, b) -> None:
+    """Equal leaf for leaf: the same keys, tensors of the same dtype and values, the same other values."""
+    (leaves_a, _), (leaves_b, _) = tree_flatten_with_path(a), tree_flatten_with_path(b)
+    assert [k for k, _ in leaves_a] == [k for k, _ in leaves_b]
+    for (key, x), (_, y) in zip(leaves_a, leaves_b, strict=True):
+        if torch.is_tensor(x):
+            torch.testing.assert_close(x, y, rtol=0, atol=0, equal_nan=True, msg=str(key))  # dtype too
+        else:
+            assert x == y or (x != x and y != y), key  # NaN metrics in the history
+
+
+def test_the_recipe_writes_a_small_saved_agent_equal_to_the_checkpoints(run_dir, tmp_path):
+    agent_dir = run_dir / AGENT_NAME
+    assert sorted(load_checkpoint(agent_dir)) == sorted(AGENT_COMPONENTS)
+    assert 2 * _size(agent_dir) < _size(run_dir / CHECKPOINT_NAME)  # no buffers, envs, optimisers
+    full = load_checkpoint(run_dir, components=AGENT_COMPONENTS)  # a run directory: its full checkpoint
+    saved = load_checkpoint(agent_dir)
+    for name in AGENT_COMPONENTS:
+        _assert_same_states(saved[name], full[name])
+    assert saved["counters"]["env_steps"] == 160
+    dhrl_utils = load_recipe("dhrl_utils")
+    _, from_saved = dhrl_utils.agent_from_checkpoint(agent_dir)
+    _, from_full = dhrl_utils.agent_from_checkpoint(run_dir / CHECKPOINT_NAME)
+    assert from_saved.planner.has_graph and from_saved.planner.num_landmarks > 0
+    _assert_same_states(from_saved.state_dict(), from_full.state_dict())
+    # from the checkpoint on disk (a run saved before the agent was): the same states
+    copy = save_agent(run_dir, out=tmp_path / AGENT_NAME)
+    _assert_same_states(load_checkpoint(copy), saved)
+    # a run directory kept with its saved agent only (results committed without the checkpoint)
+    kept = tmp_path / "kept"
+    shutil.copytree(agent_dir, kept / AGENT_NAME)
+    _, from_kept = dhrl_utils.agent_from_checkpoint(kept)
+    _assert_same_states(from_kept.state_dict(), from_full.state_dict())
+
+
+def _wide_success(monkeypatch) -> None:
+    """Success within WIDE_SUCCESS of the goal, for every env built from now on (the reward is left as it is)."""
+    real = GoalSimulation.evaluate
+
+    def evaluate_wide(self):
+        reward, _ = real(self)
+        return reward, np.linalg.norm(self.achieved_goal - self.desired_goal, axis=-1) <= WIDE_SUCCESS
+
+    monkeypatch.setattr(GoalSimulation, "evaluate", evaluate_wide)
+
+
+def test_evaluate_script_counts_whole_episodes_as_a_direct_evaluation(run_dir, tmp_path, monkeypatch):
+    _wide_success(monkeypatch)
+    record = load_recipe("evaluate").main([str(run_dir / AGENT_NAME), "--episodes", "20", "--seed", "3"])
+    written = yaml.safe_load((run_dir / "final_eval.yaml").read_text())
+    assert written == record
+    assert written["episodes"] == 20 and isinstance(written["successes"], int)
+    assert written["success"] == written["successes"] / 20 and written["env_steps"] == 160
+    assert written["seed"] == 3 and "--episodes 20" in written["command"]
+    assert {"commit", "modified"} <= set(written["code"]) and written["versions"]["torch"] and written["date"]
+    # independently: the full checkpoint's agent, the recipe's test env, batch k of 10 envs seeded with 3 + k
+    dhrl_utils = load_recipe("dhrl_utils")
+    cfg, agent = dhrl_utils.agent_from_checkpoint(run_dir / CHECKPOINT_NAME)
+    env = dhrl_utils.build_environment(cfg, torch.device("cpu"), eval=True, agent=agent)
+    assert env.batch_size.numel() == cfg["schedule"]["eval_episodes"] == 10
+    rates = []
+    for k in range(2):
+        dhrl_utils.seed_everything(3 + k, env)
+        rates.append(evaluate(env, agent.policy, env.max_episode_steps).success)
+    successes = round(sum(rates) * 10)  # the rates are float32 means of 10 episodes
+    assert math.isclose(sum(rates) * 10, successes, abs_tol=1e-4)
+    assert 0 < successes < 20  # a count that can be wrong
+    assert written["successes"] == successes
+    # at least --episodes, in whole batches; the low level alone recorded with --flat; --out
+    out = tmp_path / "eval.yaml"
+    flat = load_recipe("evaluate").main([str(run_dir), "--episodes", "1", "--flat", "--out", str(out)])
+    assert flat["episodes"] == 10 and isinstance(flat["flat_successes"], int) and 0 <= flat["flat_success"] <= 1
+    assert flat["agent"] == str((run_dir / CHECKPOINT_NAME).resolve())  # a run directory: its checkpoint
+    assert yaml.safe_load(out.read_text()) == flat
+
+
+def test_sigterm_writes_the_saved_agent_with_the_checkpoint(tmp_path, monkeypatch):
+    recipe = load_recipe()
+    real_end_epoch = recipe.end_epoch
+
+    def end_epoch_then_sigterm(*args, **kwargs):
+        metrics = real_end_epoch(*args, **kwargs)
+        os.kill(os.getpid(), signal.SIGTERM)  # GracefulStop: stop after this batch, with a checkpoint
+        return metrics
+
+    monkeypatch.setattr(recipe, "end_epoch", end_epoch_then_sigterm)
+    with pytest.raises(KeyboardInterrupt):
+        # no checkpoint of the schedule before the stop
+        recipe.train(recipe_config(*OVERRIDES, "checkpoint.every_epochs=100"), run_dir=tmp_path)
+    saved, full = load_checkpoint(tmp_path / AGENT_NAME), load_checkpoint(tmp_path, components=AGENT_COMPONENTS)
+    assert saved["counters"]["env_steps"] == full["counters"]["env_steps"] == 80
+    _assert_same_states(saved["agent"], full["agent"])
+    # a saved agent does not resume
+    with pytest.raises(ConfigError, match="low_rb"):
+        load_recipe("dhrl_utils").start_up(
+            recipe_config(*OVERRIDES, f"resume={tmp_path / AGENT_NAME}"), tmp_path / "resumed", write=False
+        )
+
+
+def test_a_failing_save_leaves_the_previous_saved_agent(run_dir, tmp_path, monkeypatch):
+    run = tmp_path / "run"
+    shutil.copytree(run_dir / CHECKPOINT_NAME, run / CHECKPOINT_NAME)
+    path = save_agent(run)
+    assert path == run / AGENT_NAME
+    before = {p.relative_to(path): p.read_bytes() for p in path.rglob("*") if p.is_file()}
+
+    def crash(self, component, path, **kwargs):
+        raise RuntimeError("disk full")
+
+    monkeypatch.setattr(StateDictCheckpointAdapter, "save", crash)
+    with pytest.raises(RuntimeError, match="disk full"):
+        save_agent(run)
+    monkeypatch.undo()
+    assert {p.relative_to(path): p.read_bytes() for p in path.rglob("*") if p.is_file()} == before
+    assert sorted(p.name for p in run.iterdir()) == [AGENT_NAME, CHECKPOINT_NAME]  # no stage left behind
+    # killed between its two renames: the next start puts it back
+    os.replace(path, run / f".{AGENT_NAME}.backup-feed")
+    assert "saved agent" in recover_checkpoint(run)
+    assert sorted(p.name for p in run.iterdir()) == [AGENT_NAME, CHECKPOINT_NAME]
+    _assert_same_states(load_checkpoint(path), load_checkpoint(run, components=AGENT_COMPONENTS))
+    registry = Checkpoint()
+    registry.register("config", {"seed": 0}, adapter=JSONCheckpointAdapter())
+    with pytest.raises(ValueError, match="`out` is required"):
+        save_agent(registry)
+    with pytest.raises(ValueError, match="no 'agent' component"):
+        save_agent(registry, tmp_path / AGENT_NAME)
+    with pytest.raises(CheckpointError, match="lacks 'agent'"):  # a checkpoint without the agent
+        save_agent(registry.save(tmp_path / "config_only"))
