@@ -99,16 +99,27 @@ def sqgc_batch(n: int, obs: int = OBS, goal: int = GOAL, act: int = ACT, amax: f
 
 
 def _ours(kind: str, device: torch.device):
-    actor = LowLevelActor(OBS, GOAL, action_max=AMAX, action_dim=ACT, goal_key="goal", num_cells=CELLS)
+    actor = LowLevelActor(
+        OBS, GOAL, action_max=AMAX, action_dim=ACT, goal_key="goal", num_cells=CELLS, goal_indices=(0, 1)
+    )
 
     def critic():
         if kind == "generic":
             mlp = MLP(OBS + GOAL + ACT, 1, num_cells=list(CELLS), activation_class=nn.ReLU)
             return ValueOperator(mlp, in_keys=["observation", "goal", "action"])
-        return GoalConditionedCritic(OBS, GOAL, action_max=AMAX, action_dim=ACT, num_cells=CELLS, gamma=GAMMA)
+        return GoalConditionedCritic(
+            OBS,
+            GOAL,
+            action_max=AMAX,
+            action_dim=ACT,
+            num_cells=CELLS,
+            gamma=GAMMA,
+            relative_goal=True,
+            goal_indices=(0, 1),
+        )
 
     if kind == "td3":
-        loss = HighLevelLoss(actor, critic())
+        loss = HighLevelLoss(actor, critic(), action_l2=0.01)
         loss.set_keys(goal="goal", action="action")
     else:
         fuse = None if kind in ("bf16", "generic") else kind in ("fused", "cudagraph")  # None: the default
@@ -269,7 +280,9 @@ def yardsticks(shape: str, dtype: str, device: torch.device, iters: int, repeats
 
     def recipe_update(compile_: bool):
         torch.manual_seed(0)
-        actor = LowLevelActor(obs, goal, action_max=amax, action_dim=act, goal_key="goal", num_cells=cells)
+        actor = LowLevelActor(
+            obs, goal, action_max=amax, action_dim=act, goal_key="goal", num_cells=cells, goal_indices=(0, 1)
+        )
 
         def critic():
             return GoalConditionedCritic(

@@ -280,8 +280,10 @@ def bench_rebuild(args, gen):
 def trained_like_distance(args, side, gen):
     """A GoalDistance of the library's modules, its critic regressed onto the geometric distance."""
     torch.manual_seed(1)
-    actor = LowLevelActor(29, 2, action_max=30.0, action_dim=8)
-    critic = GoalConditionedCritic(29, 2, action_max=30.0, action_dim=8)
+    actor = LowLevelActor(29, 2, action_max=30.0, action_dim=8, goal_indices=(0, 1))
+    critic = GoalConditionedCritic(
+        29, 2, action_max=30.0, action_dim=8, relative_goal=True, goal_indices=(0, 1)
+    )
     net = critic.module
     optim = torch.optim.Adam(net.parameters(), lr=1e-3)
 

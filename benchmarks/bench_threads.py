@@ -46,10 +46,21 @@ def _update_fn(batch: int):
     from torchrl_dhrl.objectives import SQGCLoss, make_optimizers
 
     torch.manual_seed(0)
-    actor = LowLevelActor(OBS, GOAL, action_max=AMAX, action_dim=ACT, goal_key="goal", num_cells=CELLS)
+    actor = LowLevelActor(
+        OBS, GOAL, action_max=AMAX, action_dim=ACT, goal_key="goal", num_cells=CELLS, goal_indices=(0, 1)
+    )
 
     def critic():
-        return GoalConditionedCritic(OBS, GOAL, action_max=AMAX, action_dim=ACT, num_cells=CELLS, gamma=GAMMA)
+        return GoalConditionedCritic(
+            OBS,
+            GOAL,
+            action_max=AMAX,
+            action_dim=ACT,
+            num_cells=CELLS,
+            gamma=GAMMA,
+            relative_goal=True,
+            goal_indices=(0, 1),
+        )
 
     loss = SQGCLoss(actor, critic(), critic())
     optims = make_optimizers(loss)

@@ -220,8 +220,9 @@ class MazeGeometry:
         #: ``[H, W]`` bool, free cells
         self.free = ~self.in_walls(self.cell_centers, margin=self.margin)
         self._free_index = self.free.flatten().nonzero().squeeze(-1)
-        self._segments = LineOfSightDistance(1.0, boxes=self.boxes, margin=self.margin)
-        self._walls = LineOfSightDistance(1.0, boxes=self.boxes)
+        # segment tests of (x, y) points (crosses_obstacle): the goals are the states
+        self._segments = LineOfSightDistance(1.0, boxes=self.boxes, margin=self.margin, goal_indices=(0, 1))
+        self._walls = LineOfSightDistance(1.0, boxes=self.boxes, goal_indices=(0, 1))
 
     @classmethod
     def from_maze(

@@ -78,10 +78,6 @@ def _specs(env: EnvBase) -> dict:
     }
 
 
-def _expected_shape(batch: torch.Size, feature: tuple, sizes: dict[str, int]) -> tuple[int, ...]:
-    return (*batch, *(sizes.get(f, f) for f in feature))
-
-
 def _check_spec(env: EnvBase, key: str, specs: dict, sizes: dict[str, int]) -> None:
     where, kind, feature = GOAL_ENV_KEYS[key]
     composite = specs[where]

@@ -9,12 +9,12 @@ Usage::
                                                   # branch a run from its checkpoint (an A/B from one state)
     python recipes/dhrl_antmaze.py env=AntMaze low.sqgc=false                 # ablations, see docs/faithfulness.md
 
-The loop is Appendix A's Algorithm 1, "Overview of DHRL", with the collector yielding one whole episode per env
+The loop is Appendix A's Algorithm 6, "Overview of DHRL", with the collector yielding one whole episode per env
 and the updates of its env steps run after it (as many as the paper's interleaved ones: one low-level update per
 env step, one high-level update every 10; ``schedule.*``). Each line of the algorithm, and what carries it:
 
 ====== =================================== ===============================================================
-Alg. 1 the paper                           here: the component (where)
+Alg. 6 the paper                           here: the component (where)
 ====== =================================== ===============================================================
 2      ``Dist(s, g)`` from ``Q_graph``      ``GoalDistance`` (planner/distances.py) on ``SQGCLoss``'s graph
                                            critics; ``planner.distance=oracle``: ``LineOfSightDistance``
@@ -190,7 +190,7 @@ def train(cfg: DictConfig | dict, run_dir: str | Path | None = None) -> dict:
         capture_reported: set[str] = set()
         with GracefulStop() as stop, frozen_gc():
             try:
-                for batch in run.collector:  # Alg. 1 l.3-28: one whole episode per env, acted by the policy
+                for batch in run.collector:  # Alg. 6 l.3-28: one whole episode per env, acted by the policy
                     timer.lap("collect")
                     # an env that ended an episode itself (GymnasiumGoalEnv.refusal): stop at this batch boundary,
                     # the batch unused, with a checkpoint that resumes once the env is fixed
@@ -329,7 +329,7 @@ def end_epoch(
     low_out,
     high_out,
 ) -> dict:
-    """The epoch end (Alg. 1 l.30-31, and the evaluation): rebuilds the graph when due, evaluates the agent on the
+    """The epoch end (Alg. 6 l.30-31, and the evaluation): rebuilds the graph when due, evaluates the agent on the
     test goals, draws the graph and a test episode; returns the epoch's metrics row."""
     schedule = cfg["schedule"]
     counters.epochs = epoch

@@ -89,7 +89,7 @@ def to_dict(cfg: DictConfig | dict) -> dict:
 
 
 def start_up(cfg: DictConfig | dict, run_dir: str | Path | None = None, *, write: bool = True) -> RunStart:
-    """:func:`~torchrl_dhrl.training.start_run` of the composed configuration, with ``config/config.yaml`` as
+    """:func:`~torchrl_dhrl.recipe.start_run` of the composed configuration, with ``config/config.yaml`` as
     the schema: every check before anything is built or written, then the run directory.
 
     Returns:
@@ -265,7 +265,7 @@ def far_from_graph_threshold(cfg: dict) -> float:
 
 
 def build_environment(cfg: dict, device: torch.device, *, eval: bool = False, agent: DHRLAgent | None = None):  # noqa: A002
-    """:func:`~torchrl_dhrl.training.make_environment` of the configuration: ``num_envs`` training envs (seed
+    """:func:`~torchrl_dhrl.recipe.make_environment` of the configuration: ``num_envs`` training envs (seed
     ``seed``, goal shifting with ``fgs.enabled``) or ``schedule.eval_episodes`` envs on the test goals (seed
     ``seed + 10000``); without ``agent``, the bare env after the goal-env contract check."""
     try:
@@ -476,7 +476,7 @@ def sweep_defaults(cfg: DictConfig, hydra_cfg: DictConfig) -> None:
 
 
 def evaluation_kwargs(cfg: dict) -> dict[str, Any]:
-    """The keyword arguments of :func:`~torchrl_dhrl.training.evaluate_epoch` of the configuration."""
+    """The keyword arguments of :func:`~torchrl_dhrl.recipe.evaluate_epoch` of the configuration."""
     return {
         "env_name": cfg["env_name"],
         "reward_threshold": cfg["low"]["reward_threshold"],

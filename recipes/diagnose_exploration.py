@@ -44,7 +44,7 @@ def stored_records(path, buffer: str) -> tuple[dict, TensorDictBase]:
 def exploration_from_checkpoint(
     path, *, episodes: int = 60, near: float = 0.9
 ) -> tuple[EpisodeProgress, dict]:
-    """:func:`~torchrl_dhrl.training.episode_progress` of a recipe checkpoint's last ``episodes`` training episodes.
+    """:func:`~torchrl_dhrl.diagnostics.episode_progress` of a recipe checkpoint's last ``episodes`` training episodes.
 
     Returns the progress and a summary: ``explored``, ``goals_beyond`` (goals past the frontier),
     ``beyond_mean_progress`` (how far those episodes got), ``reached_frontier`` (episodes that got to ``near``

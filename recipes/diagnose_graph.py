@@ -8,7 +8,7 @@ high level's subgoal at the start), a table of learned vs true distances for a f
 their scatter plot (``distance_scatter.png`` in the run directory unless ``--plot`` says otherwise). With
 ``--budgets`` it also rebuilds the graph from the checkpoint's low-level buffer with other landmark and
 candidate counts and prints how far each reaches into the maze, next to how far the buffer itself reaches
-(:func:`~torchrl_dhrl.training.landmark_budget_sweep`): does a larger graph help, or is exploration what
+(:func:`~torchrl_dhrl.diagnostics.landmark_budget_sweep`): does a larger graph help, or is exploration what
 limits it?
 
     python recipes/diagnose_graph.py outputs/<date>/<time>            # the run directory
@@ -43,7 +43,7 @@ def graph_diagnosis_from_checkpoint(
     resolution: float | None = None,
     device: str | torch.device = "cpu",
 ) -> tuple[GraphDiagnosis, dict]:
-    """:func:`~torchrl_dhrl.training.graph_diagnosis` of a recipe checkpoint's agent (rebuilt from its
+    """:func:`~torchrl_dhrl.diagnostics.graph_diagnosis` of a recipe checkpoint's agent (rebuilt from its
     configuration, graph included) on its evaluation envs; returns the diagnosis and the configuration.
 
     Raises:
@@ -64,7 +64,7 @@ def graph_diagnosis_from_checkpoint(
 
 
 def budget_table(path, budgets, *, draws: int = 3, seed: int = 0, device: str | torch.device = "cpu"):
-    """:func:`~torchrl_dhrl.training.landmark_budget_sweep` of a recipe checkpoint: its agent's learned
+    """:func:`~torchrl_dhrl.diagnostics.landmark_budget_sweep` of a recipe checkpoint: its agent's learned
     distance and its low-level buffer, the progress measured from the maze's start; returns the rows and the
     buffer's progress."""
     cfg, agent = agent_from_checkpoint(path, device)

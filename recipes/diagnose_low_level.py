@@ -33,12 +33,12 @@ def reach_test_from_checkpoint(
     repeats: int = 1,
     per_offset: bool = False,
 ) -> list[dict]:
-    """:func:`~torchrl_dhrl.training.reach_test` for the low-level actor of a recipe checkpoint.
+    """:func:`~torchrl_dhrl.diagnostics.reach_test` for the low-level actor of a recipe checkpoint.
 
     Defaults follow the run's config: radii ``(0.25, 0.5, 1, 1.5) x cutoff x oracle_speed`` (the goal-space
     span of a graph edge, at the env's nominal speed), ``max_steps = 3 x cutoff``, the planner's
     ``reach_radius`` and ``oracle_margin``, the run's ``angle_features``. ``start``, ``repeats`` and
-    ``per_offset`` as in :func:`~torchrl_dhrl.training.reach_test`.
+    ``per_offset`` as in :func:`~torchrl_dhrl.diagnostics.reach_test`.
 
     Args:
         path (str or Path): a checkpoint or the run directory holding it.

@@ -122,10 +122,11 @@ def test_checked_runs_before_the_body_and_with_the_defaults():
 # Bad values of the components' hyperparameters: the dry run refuses exactly what the constructor refuses, with
 # the same message, before anything is built.
 COMPONENTS = [
-    (LowLevelActor, {"observation_dim": 6, "goal_dim": 2, "action_dim": 2, "action_max": 1.0, "num_cells": (8,)},
+    (LowLevelActor, {"observation_dim": 6, "goal_dim": 2, "action_dim": 2, "action_max": 1.0, "num_cells": (8,),
+                     "goal_indices": (0, 1)},
      [("num_cells", [0]), ("num_cells", 8), ("relative_goal", 1), ("goal_indices", None)]),
     (GoalConditionedCritic, {"observation_dim": 6, "goal_dim": 2, "action_dim": 2, "action_max": 1.0,
-                             "num_cells": (8,)},
+                             "num_cells": (8,), "relative_goal": True, "goal_indices": (0, 1)},
      [("gamma", 1.0), ("gamma", 0.0), ("distance_output", "relu"), ("num_nets", 0), ("goal_indices", None)]),
     (GaussianUniformExplorationModule, {"low": -1.0, "high": 1.0},
      [("sigma", -0.1), ("uniform_prob", 1.5), ("uniform_prob", -0.1)]),
@@ -135,7 +136,7 @@ COMPONENTS = [
      [("interval", 0), ("noise_sigma", -1.0), ("subgoal_low", [2.0, 0.0]), ("subgoal_low", [0.0]),
       ("subgoal_low", ["a", "b"]), ("goal_dim", 3)]),
     (LandmarkGraph, {}, [("cutoff", 0.0), ("max_landmarks", 1), ("early_stop", -1.0), ("min_landmarks", -1)]),
-    (LineOfSightDistance, {"speed": 0.15}, [("speed", 0.0), ("margin", -0.5)]),
+    (LineOfSightDistance, {"speed": 0.15, "goal_indices": (0, 1)}, [("speed", 0.0), ("margin", -0.5)]),
     (make_low_level_buffer, {"buffer_size": 100, "batch_size": 10, "reward_threshold": 0.5},
      [("her_ratio", 1.5), ("batch_size", 101), ("reward_threshold", 0.0), ("buffer_size", 0)]),
     (make_high_level_buffer, {"buffer_size": 100, "batch_size": 10, "reward_threshold": 0.5},

@@ -161,7 +161,7 @@ def _cuda_agent(capturable_planner):
             "num_cells": (32,),
         },
         high_critic={"num_cells": (32,)},
-        low_actor={"num_cells": (32,)},
+        low_actor={"num_cells": (32,), "relative_goal": False},
         low_critic={"num_cells": (32,)},
         capturable_planner=capturable_planner,
     )
@@ -225,8 +225,8 @@ def test_captured_eval_policy_evaluates_like_the_eager_policy():
 
 def _low_nets():
     torch.manual_seed(0)
-    actor = LowLevelActor(6, 2, action_max=2.0, action_dim=3, num_cells=(64, 64))
-    kw = dict(action_max=2.0, action_dim=3, num_cells=(64, 64), gamma=0.99)
+    actor = LowLevelActor(6, 2, action_max=2.0, action_dim=3, num_cells=(64, 64), goal_indices=(0, 1))
+    kw = dict(action_max=2.0, action_dim=3, num_cells=(64, 64), gamma=0.99, relative_goal=True, goal_indices=(0, 1))
     return SQGCLoss(
         actor, GoalConditionedCritic(6, 2, **kw), GoalConditionedCritic(6, 2, **kw), target_noise_std=0.0
     )
@@ -280,7 +280,7 @@ def test_high_level_loss_on_cuda_matches_cpu():
         5, 2, action_low=low, action_high=high, relative_goal=False, goal_key="desired_goal",
         action_key="subgoal", num_cells=(64, 64), gamma=0.99,
     )  # fmt: skip
-    cpu = HighLevelLoss(policy.actor, critic, target_noise_std=0.0)
+    cpu = HighLevelLoss(policy.actor, critic, target_noise_std=0.0, action_l2=0.01)
     gpu = copy.deepcopy(cpu).to(CUDA)
     g = torch.Generator().manual_seed(2)
     data = TensorDict(
@@ -316,6 +316,7 @@ def _updater_run(cudagraphs, steps=13, nan=False, autocast_dtype=None):
         target_update_interval=3,
         cudagraphs=cudagraphs,
         autocast_dtype=autocast_dtype,
+        actor_after_critic_step=False,
     )
     return loss, updater, updater.run(steps)
 
@@ -411,7 +412,14 @@ def test_cudagraph_updates_capture_sampling():
     loss = _loss().to(CUDA)
     start = {k: v.clone() for k, v in loss.state_dict().items()}
     rb, _, stream = _filled_buffer(2, 50, 3, 10, window=6, seed=0, device=CUDA)
-    updater = LossUpdater(loss, rb, make_optimizers(loss), target_update_interval=3, cudagraphs=True)
+    updater = LossUpdater(
+        loss,
+        rb,
+        make_optimizers(loss),
+        target_update_interval=3,
+        cudagraphs=True,
+        actor_after_critic_step=False,
+    )
     means = updater.run(10)
     assert updater.sampling_captured and set(updater._graphs) == {False, True}
     rb.extend(stream.batch(10).to(CUDA))

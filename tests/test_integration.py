@@ -16,9 +16,13 @@ def test_full_dhrl_pipeline_on_pointmaze():
     env = dhrl.make_env("PointMaze", num_envs=num_envs, seed=0, max_episode_steps=25)
     obs_dim = env.observation_spec["observation"].shape[-1]
     high = dhrl.HighLevelPolicy(obs_dim, 2, [-2.0, -2.0], [10.0, 10.0], interval=5, num_cells=(32, 32))
-    actor = dhrl.LowLevelActor(obs_dim, 2, env.action_spec, num_cells=(32, 32))
-    pc = dhrl.GoalConditionedCritic(obs_dim, 2, env.action_spec, num_cells=(32, 32), goal_key="goal")
-    gc = dhrl.GoalConditionedCritic(obs_dim, 2, env.action_spec, num_cells=(32, 32), goal_key="goal")
+    actor = dhrl.LowLevelActor(obs_dim, 2, env.action_spec, num_cells=(32, 32), goal_indices=(0, 1))
+    pc, gc = (  # policy and graph critics, both seeing the relative goal (the old component default)
+        dhrl.GoalConditionedCritic(
+            obs_dim, 2, env.action_spec, num_cells=(32, 32), goal_key="goal", relative_goal=True, goal_indices=(0, 1)
+        )
+        for _ in range(2)
+    )
     loss = dhrl.SQGCLoss(actor, pc, gc)
     distance = dhrl.GoalDistance.from_loss(loss)
     planner = dhrl.GraphPlanner(

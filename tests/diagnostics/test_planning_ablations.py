@@ -23,7 +23,7 @@ def _pointmaze_agent_with_graph(**graph):
         "cpu",
         high_policy={"subgoal_low": [-2.0, -2.0], "subgoal_high": [10.0, 10.0], "interval": 5, "num_cells": (16,)},
         high_critic={"num_cells": (16,)},
-        low_actor={"num_cells": (16,)},
+        low_actor={"num_cells": (16,), "relative_goal": False},
         low_critic={"num_cells": (16,)},
         graph={"max_landmarks": 12, **graph},
     )
@@ -45,7 +45,7 @@ def test_oracle_variants_plan_with_the_oracle_on_the_same_landmarks_and_restore(
     agent, env = _pointmaze_agent_with_graph()
     assert agent.planner.num_landmarks == 12
     learned, saved = agent.planner.distance, agent.planner.graph.state_dict()
-    oracle = LineOfSightDistance(0.15, boxes=obstacle_boxes("PointMaze"), margin=0.5)
+    oracle = LineOfSightDistance(0.15, boxes=obstacle_boxes("PointMaze"), margin=0.5, goal_indices=(0, 1))
     seen = []
     real = evaluation.evaluate
 

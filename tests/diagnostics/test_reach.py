@@ -34,7 +34,7 @@ def test_reach_offsets_radii_and_directions():
 def test_visible_offsets_match_dense_segment_sampling():
     """The slab test agrees with checking 2001 points along every segment against the inflated boxes."""
     boxes = torch.tensor([[[1.0, -1.0], [2.0, 3.0]], [[-3.0, -3.0], [-2.0, -2.5]]])
-    walls = LineOfSightDistance(1.0, boxes=boxes, margin=0.25)
+    walls = LineOfSightDistance(1.0, boxes=boxes, margin=0.25, goal_indices=(0, 1))
     start = torch.tensor([0.2, 0.1])
     offsets = reach_offsets(2, [1.0, 2.0, 3.5, 5.0], 24)
     kept = visible_offsets(start, offsets, walls)
@@ -63,7 +63,7 @@ def test_scripted_point_reaches_every_visible_goal_in_analytic_time():
     radii = [1.5, 3.0, 6.0]
     offsets = reach_offsets(2, radii, 16)
     # the maze walls, inflated by the nose's reach (1.1 ahead of the centre) so that it cannot hit a wall first
-    walls = LineOfSightDistance(1.0, boxes=obstacle_boxes("PointMaze"), margin=1.2)
+    walls = LineOfSightDistance(1.0, boxes=obstacle_boxes("PointMaze"), margin=1.2, goal_indices=(0, 1))
     offsets = visible_offsets(torch.zeros(2), offsets, walls)
     env = make_env("PointMaze", num_envs=len(offsets), seed=1)
     result = low_level_reach_test(env, _point_controller(), offsets, max_steps=60, reach_radius=0.5)

@@ -249,13 +249,13 @@ def test_reacher_test_goals_are_reached_by_a_scripted_controller():
 
 
 # --- reference figures (official reacher3d.xml, MuJoCo 3.17) -------------------------------------------
-REF_MASS = 46.187  # kg, the 7 arm links (the implementation notes: "about 46 kg")
+REF_MASS = 46.187  # kg, the 7 arm links
 REF_INERTIA_PAN_LIFT = (3.5672, 2.3009)  # joint-space inertia diagonal at the zero posture (kg m^2)
-REF_TIP_AT_RESET = (0.98928, -0.188, 0.0)  # 1.082 m from the goal mean (the notes: "about 1.09 m")
+REF_TIP_AT_RESET = (0.98928, -0.188, 0.0)  # 1.082 m from the goal mean
 
 
 # Fingertip displacement per env step under +20 N m on every joint from the reset posture, steps 1..6; "after
-# 5 steps" is step 6 (the notes: "about 0.016 m per env step after 5 steps").
+# 5 steps" is step 6 (about 0.016 m per env step).
 REF_SPEED_UNDER_TORQUE = (0.00544, 0.00621, 0.00792, 0.00997, 0.01327, 0.01652)
 
 
@@ -263,14 +263,14 @@ REF_SPEED_UNDER_TORQUE = (0.00544, 0.00621, 0.00792, 0.00997, 0.01327, 0.01652)
 # the env steps until the shoulder's joint speed |(pan, lift)| falls below 50% and 10% of its value at
 # release. The shoulder's damping (10 N m s/rad on ~3 kg m^2) brakes it over some 10-30 steps, while the
 # light forearm and wrist rolls, spun up to ~40 rad/s and damped by only 0.1, keep whipping the hand, so the
-# fingertip keeps moving ~0.01 m per step for 40 steps and more. It does NOT stop within a few steps (the
-# implementation notes say it does; measured on the reference model, it does not).
+# fingertip keeps moving ~0.01 m per step for 40 steps and more. It does NOT stop within a few steps
+# (measured on the reference model).
 REF_COAST_PATH_10 = 0.11413  # m
 REF_SHOULDER_HALF_STEPS, REF_SHOULDER_TENTH_STEPS = 9, 28
 
 
 # Uniformly random actions in [-20, 20]^7 (3000 reference episodes): episodes within 0.25 of the goal at
-# some step, and at the final (100th) step. The notes: "about 10%" and "about 0%".
+# some step, and at the final (100th) step.
 REF_RANDOM_ANY, REF_RANDOM_FINAL = 0.0857, 0.0110
 
 JOINT_DAMPING = (10.0, 10.0, 0.1, 1.0, 0.1, 0.1, 0.1)  # pan, lift, upper-arm roll, elbow, forearm roll, wrist

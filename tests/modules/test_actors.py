@@ -27,7 +27,7 @@ def _manual_mlp(mlp, x):
 @pytest.mark.parametrize("batch", [(), (5,), (3, 4)])
 def test_low_level_actor_bounds_and_batch_shapes(batch):
     torch.manual_seed(0)
-    actor = LowLevelActor(OBS, GOAL, action_max=30.0, action_dim=8, num_cells=(16, 16))
+    actor = LowLevelActor(OBS, GOAL, action_max=30.0, action_dim=8, num_cells=(16, 16), goal_indices=(0, 1))
     # Push the pre-tanh activations far out so the output saturates at the bounds.
     with torch.no_grad():
         actor.module.mlp[-1].weight.mul_(1000)
@@ -63,7 +63,7 @@ def test_low_level_actor_absolute_input_matches_manual():
 def test_low_level_actor_bounded_spec_asymmetric_box_and_goal_key():
     torch.manual_seed(3)
     spec = Bounded(torch.tensor([-1.0, 0.0]), torch.tensor([3.0, 0.5]), shape=(2,))
-    actor = LowLevelActor(OBS, GOAL, spec, goal_key="subgoal", num_cells=(16,))
+    actor = LowLevelActor(OBS, GOAL, spec, goal_key="subgoal", num_cells=(16,), goal_indices=(0, 1))
     td = _td((64,), goal_key="subgoal")
     with torch.no_grad():
         actor.module.mlp[-1].weight.mul_(1000)
@@ -78,7 +78,9 @@ def test_low_level_actor_bounded_spec_asymmetric_box_and_goal_key():
 
 def test_high_level_actor_box_and_relative_option():
     torch.manual_seed(4)
-    actor = HighLevelActor(OBS, GOAL, [-4.0, -4.0], [20.0, 52.0], relative_goal=True, num_cells=(16,))
+    actor = HighLevelActor(
+        OBS, GOAL, [-4.0, -4.0], [20.0, 52.0], relative_goal=True, num_cells=(16,), goal_indices=(0, 1)
+    )
     td = _td((32,), goal_key="desired_goal")
     with torch.no_grad():
         actor.module.mlp[-1].weight.mul_(1000)
@@ -93,7 +95,7 @@ def test_high_level_actor_box_and_relative_option():
 
 def test_actor_input_errors():
     with pytest.raises(ValueError, match="exactly one"):
-        LowLevelActor(OBS, GOAL)
+        LowLevelActor(OBS, GOAL, goal_indices=(0, 1))
     with pytest.raises(ValueError, match="goal_indices"):
         LowLevelActor(OBS, GOAL, action_max=1.0, action_dim=2, goal_indices=(0,))
     with pytest.raises(ValueError, match="exceed"):

@@ -324,7 +324,7 @@ def test_critic_params_and_a_stacked_single_member_critic():
     from torchrl_dhrl.objectives import HighLevelLoss
 
     policy = _policy(critic_candidates=6)
-    loss = HighLevelLoss(policy.actor, _critic(3))
+    loss = HighLevelLoss(policy.actor, _critic(3), action_l2=0.01)
     policy.selector.critic = loss.critic_network
     policy.selector.critic_params = loss.critic_network_params
     direct = _policy(critic_candidates=6, critic=_critic(3))
@@ -350,7 +350,7 @@ def test_critic_params_and_a_stacked_single_member_critic():
         in_keys=["observation", "desired_goal", "subgoal"],
         out_keys=["state_action_value"],
     )
-    stacked_loss = HighLevelLoss(policy.actor, single, action_spec=None)
+    stacked_loss = HighLevelLoss(policy.actor, single, action_spec=None, action_l2=0.01)
     policy.selector.critic = stacked_loss.critic_network
     policy.selector.critic_params = stacked_loss.critic_network_params
     with set_exploration_type(ExplorationType.DETERMINISTIC):
@@ -431,8 +431,8 @@ def test_recipe_agent_with_guided_subgoals_has_no_graph_break():
         goal_indices=[0, 1],
         high_policy={"subgoal_low": [-2.0, -2.0], "subgoal_high": [10.0, 10.0], "interval": 5, "num_cells": (16,),
                      "critic_candidates": 4, "landmark_candidates": True},
-        high_critic={"num_cells": (16,)}, low_actor={"num_cells": (16,)}, low_critic={"num_cells": (16,)},
-        capturable_planner=True,
+        high_critic={"num_cells": (16,)}, low_actor={"num_cells": (16,), "relative_goal": False},
+        low_critic={"num_cells": (16,)}, capturable_planner=True,
     )  # fmt: skip
     selector = agent.high_policy.selector
     assert selector.critic is agent.high_loss.critic_network

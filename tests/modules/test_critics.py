@@ -23,12 +23,15 @@ GAMMA = 0.99
 
 def _actor(seed=0, **kw):
     torch.manual_seed(seed)
+    kw.setdefault("goal_indices", (0, 1))
     return LowLevelActor(OBS, GOAL, action_max=2.0, action_dim=ACT, num_cells=(32, 32), **kw)
 
 
 def _critic(seed=1, **kw):
     torch.manual_seed(seed)
     kw.setdefault("num_cells", (32, 32))
+    kw.setdefault("relative_goal", True)
+    kw.setdefault("goal_indices", (0, 1))
     return GoalConditionedCritic(OBS, GOAL, action_max=2.0, action_dim=ACT, gamma=GAMMA, **kw)
 
 

@@ -49,7 +49,7 @@ def test_exploration_whole_action_is_replaced():
 @pytest.mark.parametrize("mode", [ExplorationType.DETERMINISTIC, ExplorationType.MODE, ExplorationType.MEAN])
 def test_exploration_off_outside_random(mode):
     torch.manual_seed(9)
-    actor = LowLevelActor(OBS, GOAL, action_max=30.0, action_dim=4, num_cells=(16,))
+    actor = LowLevelActor(OBS, GOAL, action_max=30.0, action_dim=4, num_cells=(16,), goal_indices=(0, 1))
     policy = make_low_level_policy(actor)
     td = _td((50,))
     clean = actor(td.clone())["action"]
@@ -85,7 +85,13 @@ def test_exploration_absolute_sigma_and_errors():
 def test_exploration_in_sequential_with_nested_key():
     torch.manual_seed(11)
     actor = LowLevelActor(
-        OBS, GOAL, action_max=1.0, action_dim=2, action_key=("agent", "action"), num_cells=(8,)
+        OBS,
+        GOAL,
+        action_max=1.0,
+        action_dim=2,
+        action_key=("agent", "action"),
+        num_cells=(8,),
+        goal_indices=(0, 1),
     )
     policy = TensorDictSequential(
         actor, GaussianUniformExplorationModule(actor.spec, action_key=("agent", "action"))

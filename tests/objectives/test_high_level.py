@@ -58,7 +58,7 @@ def test_value_loss_matches_manual_with_clamp():
     actor, critic = _nets()
     reward = torch.cat([torch.full((12, 1), 3.0), torch.full((12, 1), -200.0), -1.3 * torch.ones(24, 1)])
     data = _batch(reward=reward)
-    loss = HighLevelLoss(actor, critic, target_noise_std=0.0)
+    loss = HighLevelLoss(actor, critic, target_noise_std=0.0, action_l2=0.01)
     out = loss(data)
     with torch.no_grad():
         nxt = actor(
@@ -96,7 +96,7 @@ def test_actor_loss_uses_scaled_subgoal_penalty_and_forward_computes_it():
 
 def test_gradient_isolation_soft_update_and_state_dict():
     actor, critic = _nets()
-    loss = HighLevelLoss(actor, critic)
+    loss = HighLevelLoss(actor, critic, action_l2=0.01)
     updater = SoftUpdate(loss, eps=0.5)
     out = loss(_batch())
     out["loss_qvalue"].backward()
@@ -118,7 +118,7 @@ def test_gradient_isolation_soft_update_and_state_dict():
         loss.target_critic_network_params["module", "ensemble", "layers", "0", "weight"],
     )
     actor2, critic2 = _nets(seed=9)
-    loss2 = HighLevelLoss(actor2, critic2, target_noise_std=0.0)
+    loss2 = HighLevelLoss(actor2, critic2, target_noise_std=0.0, action_l2=0.01)
     loss2.load_state_dict(copy.deepcopy(loss.state_dict()))
     loss.target_noise_std = 0.0
     data = _batch(seed=3)
@@ -129,7 +129,7 @@ def test_gradient_isolation_soft_update_and_state_dict():
 
 def test_high_level_keys_and_errors():
     actor, critic = _nets()
-    loss = HighLevelLoss(actor, critic)
+    loss = HighLevelLoss(actor, critic, action_l2=0.01)
     assert set(loss.in_keys) == {
         "observation",
         "desired_goal",
@@ -140,10 +140,18 @@ def test_high_level_keys_and_errors():
     with pytest.raises(KeyError, match="subgoal"):
         loss(_batch().exclude("subgoal"))
     with pytest.raises(ValueError, match="clip_return"):
-        HighLevelLoss(actor, critic, clip_return=-1.0)
-    narrow = GoalConditionedCritic(OBS, GOAL, action_low=[0.0, 0.0], action_high=[1.0, 1.0], num_cells=(8,))
+        HighLevelLoss(actor, critic, clip_return=-1.0, action_l2=0.01)
+    narrow = GoalConditionedCritic(
+        OBS,
+        GOAL,
+        action_low=[0.0, 0.0],
+        action_high=[1.0, 1.0],
+        num_cells=(8,),
+        relative_goal=True,
+        goal_indices=(0, 1),
+    )
     with pytest.raises(ValueError, match="box"):
-        HighLevelLoss(actor, narrow)
+        HighLevelLoss(actor, narrow, action_l2=0.01)
     data = _batch().rename_key_("desired_goal", "g")
     loss.set_keys(goal="g")
     assert torch.isfinite(loss(data)["loss_qvalue"])
@@ -157,7 +165,7 @@ def test_value_operator_critic_matches_manual_td3():
     critic = ValueOperator(
         mlp, in_keys=["observation", "desired_goal", "subgoal"], out_keys=["state_action_value"]
     )
-    loss = HighLevelLoss(actor, critic, gamma=GAMMA, target_noise_std=0.0)
+    loss = HighLevelLoss(actor, critic, gamma=GAMMA, target_noise_std=0.0, action_l2=0.01)
     torch.testing.assert_close(loss.action_loc - loss.action_scale, LOW)  # from the actor's spec
     data = _batch()
     out = loss(data)

@@ -38,8 +38,11 @@ def _no_target_warning():
 
 def _nets(seed=0, cells=(32, 32), **critic_kw):
     torch.manual_seed(seed)
-    actor = LowLevelActor(OBS, GOAL, action_max=AMAX, action_dim=ACT, num_cells=cells)
-    kw = dict(action_max=AMAX, action_dim=ACT, num_cells=cells, gamma=GAMMA, **critic_kw)
+    actor = LowLevelActor(OBS, GOAL, action_max=AMAX, action_dim=ACT, num_cells=cells, goal_indices=(0, 1))
+    kw = dict(
+        action_max=AMAX, action_dim=ACT, num_cells=cells, gamma=GAMMA, relative_goal=True, goal_indices=(0, 1)
+    )
+    kw.update(critic_kw)
     return actor, GoalConditionedCritic(OBS, GOAL, **kw), GoalConditionedCritic(OBS, GOAL, **kw)
 
 
@@ -298,12 +301,23 @@ def test_constructor_errors():
         SQGCLoss(actor, pc, pc)
     with pytest.raises(ValueError, match="gamma"):
         SQGCLoss(actor, pc, gc, gamma=0.9)
-    other = GoalConditionedCritic(OBS, GOAL, action_max=AMAX, action_dim=ACT, num_cells=(32, 32), gamma=0.9)
+    other = GoalConditionedCritic(
+        OBS,
+        GOAL,
+        action_max=AMAX,
+        action_dim=ACT,
+        num_cells=(32, 32),
+        gamma=0.9,
+        relative_goal=True,
+        goal_indices=(0, 1),
+    )
     with pytest.raises(ValueError, match="gamma"):
         SQGCLoss(actor, pc, other)
     with pytest.raises(TypeError, match="GoalConditionedCritic"):
         SQGCLoss(actor, pc, actor)
-    wide = GoalConditionedCritic(OBS, GOAL, action_max=5.0, action_dim=ACT, num_cells=(8,))
+    wide = GoalConditionedCritic(
+        OBS, GOAL, action_max=5.0, action_dim=ACT, num_cells=(8,), relative_goal=True, goal_indices=(0, 1)
+    )
     with pytest.raises(ValueError, match="box"):
         SQGCLoss(actor, wide, copy.deepcopy(wide))
     with pytest.raises(TypeError, match="actor_update_interval"):  # the schedule is LossUpdater's
@@ -319,7 +333,16 @@ def test_constructor_errors():
 def test_mismatched_critic_architectures_fall_back_to_separate_evaluation():
     actor, pc, _ = _nets()
     torch.manual_seed(3)
-    gc = GoalConditionedCritic(OBS, GOAL, action_max=AMAX, action_dim=ACT, num_cells=(16,), gamma=GAMMA)
+    gc = GoalConditionedCritic(
+        OBS,
+        GOAL,
+        action_max=AMAX,
+        action_dim=ACT,
+        num_cells=(16,),
+        gamma=GAMMA,
+        relative_goal=True,
+        goal_indices=(0, 1),
+    )
     loss = SQGCLoss(actor, pc, gc, target_noise_std=0.0)
     assert not SQGCLoss(actor, pc, gc, fuse_critics=True).fusing
     data = _batch()
@@ -403,7 +426,7 @@ def _stacked_q(loss, name, observation, goal, action, params=None):
 @pytest.mark.parametrize("members", [None, 3])
 def test_value_operator_critics_match_manual_td3(members):
     torch.manual_seed(0)
-    actor = LowLevelActor(OBS, GOAL, action_max=AMAX, action_dim=ACT, num_cells=(32, 32))
+    actor = LowLevelActor(OBS, GOAL, action_max=AMAX, action_dim=ACT, num_cells=(32, 32), goal_indices=(0, 1))
     loss = SQGCLoss(
         actor,
         _value_operator(),
@@ -462,7 +485,7 @@ def test_value_operator_critics_match_manual_td3(members):
 
 def test_goal_distance_from_loss_with_stacked_critics():
     torch.manual_seed(0)
-    actor = LowLevelActor(OBS, GOAL, action_max=AMAX, action_dim=ACT, num_cells=(32, 32))
+    actor = LowLevelActor(OBS, GOAL, action_max=AMAX, action_dim=ACT, num_cells=(32, 32), goal_indices=(0, 1))
     loss = SQGCLoss(actor, _value_operator(), _value_operator(), gamma=GAMMA)
     states, goals = torch.randn(6, 1, OBS), torch.randn(1, 5, GOAL)
     s, g = states.expand(6, 5, OBS).reshape(30, OBS), goals.expand(6, 5, GOAL).reshape(30, GOAL)
@@ -535,7 +558,7 @@ def test_critic_contract_errors_and_value_key():
 def test_critics_read_the_goal_under_their_own_keys():
     # the loss writes each pair's goal under the critic's goal key: the names are the critic's business
     torch.manual_seed(0)
-    actor = LowLevelActor(OBS, GOAL, action_max=AMAX, action_dim=ACT, num_cells=(32, 32))
+    actor = LowLevelActor(OBS, GOAL, action_max=AMAX, action_dim=ACT, num_cells=(32, 32), goal_indices=(0, 1))
     a, b = _value_operator(goal_key="goal"), _value_operator(goal_key=("nested", "g"))
     loss = SQGCLoss(actor, a, b, gamma=GAMMA, target_noise_std=0.0)
     data = _batch()
@@ -606,7 +629,14 @@ def _random_walk_data(n_episodes, her_ratio=0.8):
 
 def _goal_conditioned_critic(num_cells):
     return GoalConditionedCritic(
-        1, 1, action_max=1.0, action_dim=1, goal_indices=(0,), num_cells=num_cells, gamma=CHAIN_GAMMA
+        1,
+        1,
+        action_max=1.0,
+        action_dim=1,
+        goal_indices=(0,),
+        num_cells=num_cells,
+        gamma=CHAIN_GAMMA,
+        relative_goal=True,
     )
 
 

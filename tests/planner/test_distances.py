@@ -44,9 +44,11 @@ def test_the_distances_live_in_the_planner_and_follow_the_protocol():
     assert torchrl_dhrl.GoalDistance is GoalDistance is distances.GoalDistance
     assert torchrl_dhrl.LineOfSightDistance is LineOfSightDistance is distances.LineOfSightDistance
     assert {"TemporalDistance", "AutocastDistance", "EdgeRule", "CutoffEdgeRule"} <= set(torchrl_dhrl.__all__)
-    actor = LowLevelActor(3, 2, action_max=1.0, action_dim=2, num_cells=(8,))
-    critic = GoalConditionedCritic(3, 2, action_max=1.0, action_dim=2, num_cells=(8,))
-    learned, oracle = GoalDistance(actor, critic), LineOfSightDistance(1.0)
+    actor = LowLevelActor(3, 2, action_max=1.0, action_dim=2, num_cells=(8,), goal_indices=(0, 1))
+    critic = GoalConditionedCritic(
+        3, 2, action_max=1.0, action_dim=2, num_cells=(8,), relative_goal=True, goal_indices=(0, 1)
+    )
+    learned, oracle = GoalDistance(actor, critic), LineOfSightDistance(1.0, goal_indices=(0, 1))
     assert isinstance(learned, AutocastDistance) and isinstance(learned, TemporalDistance)
     # the oracle has no network: its with_autocast is the identity, so reduced-precision builds accept it
     assert isinstance(oracle, AutocastDistance) and oracle.with_autocast(torch.bfloat16) is oracle
@@ -105,8 +107,18 @@ def trained_like(seed=0, width=64):
     output layer is rescaled so that the distance depends strongly on the inputs.
     """
     torch.manual_seed(seed)
-    actor = LowLevelActor(OBS, GOAL, action_max=2.0, action_dim=ACT, num_cells=(width, width))
-    critic = GoalConditionedCritic(OBS, GOAL, action_max=2.0, action_dim=ACT, num_cells=(width, width))
+    actor = LowLevelActor(
+        OBS, GOAL, action_max=2.0, action_dim=ACT, num_cells=(width, width), goal_indices=(0, 1)
+    )
+    critic = GoalConditionedCritic(
+        OBS,
+        GOAL,
+        action_max=2.0,
+        action_dim=ACT,
+        num_cells=(width, width),
+        relative_goal=True,
+        goal_indices=(0, 1),
+    )
     last = critic.module.ensemble.layers[-1]
     with torch.no_grad():
         last.weight.mul_(60.0)
@@ -259,8 +271,16 @@ def test_autocast_keeps_float64_parameters_in_float64():
 @pytest.mark.parametrize("num_cells", [(), (32,)])
 def test_autocast_with_shallow_critics(num_cells):
     torch.manual_seed(0)
-    actor = LowLevelActor(OBS, GOAL, action_max=2.0, action_dim=ACT, num_cells=(16,))
-    critic = GoalConditionedCritic(OBS, GOAL, action_max=2.0, action_dim=ACT, num_cells=num_cells)
+    actor = LowLevelActor(OBS, GOAL, action_max=2.0, action_dim=ACT, num_cells=(16,), goal_indices=(0, 1))
+    critic = GoalConditionedCritic(
+        OBS,
+        GOAL,
+        action_max=2.0,
+        action_dim=ACT,
+        num_cells=num_cells,
+        relative_goal=True,
+        goal_indices=(0, 1),
+    )
     states, goals = pairs(300)
     ref = GoalDistance(actor, critic)(states, goals)
     fast = GoalDistance(actor, critic, autocast_dtype=torch.bfloat16)(states, goals)
@@ -278,7 +298,7 @@ def _blocked_by_sampling(start, end, boxes, n=4001):
 def test_line_of_sight_matches_dense_sampling():
     torch.manual_seed(0)
     boxes = torch.tensor([[[1.0, -1.0], [2.0, 3.0]], [[-3.0, 2.0], [0.5, 2.5]], [[4.0, 4.0], [6.0, 4.2]]])
-    oracle = LineOfSightDistance(0.5, boxes=boxes)
+    oracle = LineOfSightDistance(0.5, boxes=boxes, goal_indices=(0, 1))
     start, end = torch.rand(400, 2) * 10 - 4, torch.rand(400, 2) * 10 - 4
     d = oracle(start, end)
     blocked = _blocked_by_sampling(start, end, boxes)
@@ -292,7 +312,7 @@ def test_line_of_sight_matches_dense_sampling():
 
 def test_line_of_sight_axis_parallel_and_broadcast():
     wall = torch.tensor([[[1.0, -5.0], [2.0, 5.0]]])
-    oracle = LineOfSightDistance(1.0, boxes=wall, margin=0.5)
+    oracle = LineOfSightDistance(1.0, boxes=wall, margin=0.5, goal_indices=(0, 1))
     states = torch.tensor([[0.0, 0.0], [0.0, 6.0]])
     goals = torch.tensor([[3.0, 0.0], [3.0, 6.0], [0.0, 3.0]])
     d = oracle(states[:, None], goals[None])
@@ -300,9 +320,9 @@ def test_line_of_sight_axis_parallel_and_broadcast():
     # (0,0)->(3,0) crosses the wall; (0,6)->(3,6) passes 1 above it but inside the 0.5 margin? no: 6 > 5.5
     assert d[0, 0] == 1e4 and d[1, 1] == pytest.approx(3.0) and d[0, 2] == pytest.approx(3.0)
     with pytest.raises(ValueError, match="boxes"):
-        LineOfSightDistance(1.0, boxes=torch.zeros(2, 2))
+        LineOfSightDistance(1.0, boxes=torch.zeros(2, 2), goal_indices=(0, 1))
     with pytest.raises(ValueError, match="speed"):
-        LineOfSightDistance(0.0)
+        LineOfSightDistance(0.0, goal_indices=(0, 1))
 
 
 def test_line_of_sight_builds_the_same_graph_under_reduced_precision_building():
@@ -310,7 +330,7 @@ def test_line_of_sight_builds_the_same_graph_under_reduced_precision_building():
     # with_autocast is the identity and the graph is the float32 one, bit for bit
     torch.manual_seed(0)
     boxes = torch.tensor([[[1.0, -1.0], [2.0, 3.0]], [[-3.0, 2.0], [0.5, 2.5]]])
-    oracle = LineOfSightDistance(0.5, boxes=boxes, margin=0.2)
+    oracle = LineOfSightDistance(0.5, boxes=boxes, margin=0.2, goal_indices=(0, 1))
     assert oracle.with_autocast(torch.bfloat16) is oracle and oracle.with_autocast(None) is oracle
     candidates = torch.rand(300, 2) * 10 - 4
     graphs = []

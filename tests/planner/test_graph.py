@@ -355,8 +355,10 @@ def test_reduced_precision_is_used_for_building_only():
 
 def _trained_like_distance(obs_dim=5):
     torch.manual_seed(0)
-    actor = LowLevelActor(obs_dim, 2, action_max=1.0, action_dim=2, num_cells=(64, 64))
-    critic = GoalConditionedCritic(obs_dim, 2, action_max=1.0, action_dim=2, num_cells=(64, 64))
+    actor = LowLevelActor(obs_dim, 2, action_max=1.0, action_dim=2, num_cells=(64, 64), goal_indices=(0, 1))
+    critic = GoalConditionedCritic(
+        obs_dim, 2, action_max=1.0, action_dim=2, num_cells=(64, 64), relative_goal=True, goal_indices=(0, 1)
+    )
     # regress the critic onto 3 x the Euclidean distance for a few steps: distances of a trained scale
     net = critic.module
     optim = torch.optim.Adam(net.parameters(), lr=3e-3)

@@ -747,7 +747,7 @@ def _agent(capturable_planner, num_cells=(16,)):
         goal_indices=[0, 1],
         high_policy={"subgoal_low": [-2.0, -2.0], "subgoal_high": [10.0, 10.0], "interval": 5, "num_cells": num_cells},
         high_critic={"num_cells": num_cells},
-        low_actor={"num_cells": num_cells},
+        low_actor={"num_cells": num_cells, "relative_goal": False},
         low_critic={"num_cells": num_cells},
         capturable_planner=capturable_planner,
     )

@@ -42,7 +42,8 @@ def test_capturable_agent_plans_on_a_graph_reserved_before_its_first_build():
             "subgoal_high": [10.0, 10.0],
             "interval": 5,
             "num_cells": (16,),
-        }
+        },
+        "low_actor": {"relative_goal": False},
     }
     plain = make_agent(env, goal_indices=[0, 1], **kwargs)
     assert plain.planner.graph.planning_tensors(capturable=True) is None  # nothing reserved, nothing fixed
@@ -75,7 +76,14 @@ def test_high_level_updates_sample_with_the_capture_safe_sampler_on_a_reserved_g
         for _ in range(2):
             rb.extend(next(it))
         collector.shutdown()
-        updater = make_updater(agent.high_loss, rb, actor_lr=1e-3, critic_lr=1e-3, capture_sampling=True)
+        updater = make_updater(
+            agent.high_loss,
+            rb,
+            actor_lr=1e-3,
+            critic_lr=1e-3,
+            capture_sampling=True,
+            actor_after_critic_step=False,
+        )
         if not fixed:
             with pytest.raises(RuntimeError, match="distance_from_graph has no capture-safe form here"):
                 updater.run(4)

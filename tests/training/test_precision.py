@@ -176,9 +176,20 @@ def test_actor_output_layer_full_precision_under_autocast():
 
 def _sqgc_setup(seed=0, cells=(64, 64)):
     torch.manual_seed(seed)
-    actor = LowLevelActor(OBS, GOAL, action_max=AMAX, action_dim=ACT, goal_key="goal", num_cells=cells)
+    actor = LowLevelActor(
+        OBS, GOAL, action_max=AMAX, action_dim=ACT, goal_key="goal", num_cells=cells, goal_indices=(0, 1)
+    )
     critics = [
-        GoalConditionedCritic(OBS, GOAL, action_max=AMAX, action_dim=ACT, goal_key="goal", num_cells=cells)
+        GoalConditionedCritic(
+            OBS,
+            GOAL,
+            action_max=AMAX,
+            action_dim=ACT,
+            goal_key="goal",
+            num_cells=cells,
+            relative_goal=True,
+            goal_indices=(0, 1),
+        )
         for _ in range(2)
     ]
     loss = SQGCLoss(actor, *critics, target_noise_std=0.0)
@@ -200,6 +211,7 @@ def _train(autocast_dtype, steps=6, seed=0, watch=None, cudagraphs=False):
         target_update_interval=3,
         autocast_dtype=autocast_dtype,
         cudagraphs=cudagraphs,
+        actor_after_critic_step=False,
     )
     torch.manual_seed(7)  # same samples for every run
     outs = [updater.step() for _ in range(steps)]
@@ -261,7 +273,7 @@ def test_bfloat16_updates_are_deterministic():
 def test_autocast_dtype_is_validated(bad):
     loss, rb = _sqgc_setup()
     with pytest.raises(ValueError, match="autocast_dtype"):
-        LossUpdater(loss, rb, make_optimizers(loss), autocast_dtype=bad)
+        LossUpdater(loss, rb, make_optimizers(loss), autocast_dtype=bad, actor_after_critic_step=False)
 
 
 def test_bfloat16_updates_on_the_captured_path_equal_the_eager_ones(monkeypatch):

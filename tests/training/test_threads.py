@@ -179,10 +179,20 @@ def test_thread_count_does_not_change_updates():
 
     def train(threads):
         torch.manual_seed(0)
-        actor = LowLevelActor(6, 2, action_max=1.0, action_dim=2, goal_key="goal", num_cells=(256, 256))
+        actor = LowLevelActor(
+            6, 2, action_max=1.0, action_dim=2, goal_key="goal", num_cells=(256, 256), goal_indices=(0, 1)
+        )
 
         def critic():
-            return GoalConditionedCritic(6, 2, action_max=1.0, action_dim=2, num_cells=(256, 256))
+            return GoalConditionedCritic(
+                6,
+                2,
+                action_max=1.0,
+                action_dim=2,
+                num_cells=(256, 256),
+                relative_goal=True,
+                goal_indices=(0, 1),
+            )
 
         loss = SQGCLoss(actor, critic(), critic())
         optims = make_optimizers(loss)

@@ -36,7 +36,7 @@ def _high_level_setup(batch=8, num_cells=(16,)):
         relative_goal=False,
         num_cells=num_cells,
     )
-    loss = HighLevelLoss(actor, critic)
+    loss = HighLevelLoss(actor, critic, action_l2=0.01)
     rb = TensorDictReplayBuffer(storage=LazyTensorStorage(100), batch_size=batch)
     n = 40
     rb.extend(
@@ -61,7 +61,9 @@ def _params(module):
 def test_updater_delays_actor_steps_and_polyak():
     torch.manual_seed(0)
     loss, rb = _high_level_setup()
-    updater = LossUpdater(loss, rb, make_optimizers(loss), polyak=0.5, target_update_interval=3)
+    updater = LossUpdater(
+        loss, rb, make_optimizers(loss), polyak=0.5, target_update_interval=3, actor_after_critic_step=False
+    )
     actor_keys = [k for k in loss.state_dict() if k.startswith("actor_network_params")]
     target_keys = [k for k in loss.state_dict() if k.startswith("target_critic")]
     before = _params(loss)
@@ -84,13 +86,13 @@ def test_updater_delays_actor_steps_and_polyak():
 def test_updater_run_averages_and_state_dict():
     torch.manual_seed(0)
     loss, rb = _high_level_setup()
-    updater = LossUpdater(loss, rb, make_optimizers(loss))
+    updater = LossUpdater(loss, rb, make_optimizers(loss), actor_after_critic_step=False)
     assert updater.run(0) is None
     means = updater.run(4)
     assert updater.num_updates == 4 and means["actor_updated"].item() == pytest.approx(0.5)
     state = updater.state_dict()
     other_loss, other_rb = _high_level_setup()
-    other = LossUpdater(other_loss, other_rb, make_optimizers(other_loss))
+    other = LossUpdater(other_loss, other_rb, make_optimizers(other_loss), actor_after_critic_step=False)
     other.load_state_dict(state)
     assert other.num_updates == 4
     assert (
@@ -103,16 +105,16 @@ def test_updater_stops_on_nan_before_changing_parameters():
     torch.manual_seed(0)
     loss, rb = _high_level_setup()
     rb.storage._storage["next", "reward"][:] = float("nan")
-    updater = LossUpdater(loss, rb, make_optimizers(loss))
+    updater = LossUpdater(loss, rb, make_optimizers(loss), actor_after_critic_step=False)
     before = _params(loss)
     with pytest.raises(NonFiniteLossError, match="non-finite loss"):
         updater.step()
     after = _params(loss)
     assert all(torch.equal(before[k], after[k]) for k in before if k != "update_count")
     with pytest.raises(ValueError, match="polyak"):
-        LossUpdater(loss, rb, make_optimizers(loss), polyak=1.5)
+        LossUpdater(loss, rb, make_optimizers(loss), polyak=1.5, actor_after_critic_step=False)
     with pytest.raises(ValueError, match="optimizers"):
-        LossUpdater(loss, rb, {"critic": None})
+        LossUpdater(loss, rb, {"critic": None}, actor_after_critic_step=False)
 
 
 def test_loss_terms_equal_forward_with_the_decision_given():
@@ -140,17 +142,25 @@ def test_loss_terms_equal_forward_with_the_decision_given():
 def test_updater_owns_the_delayed_actor_schedule_and_resumes_it(interval):
     torch.manual_seed(0)
     loss, rb = _high_level_setup()
-    updater = LossUpdater(loss, rb, make_optimizers(loss), actor_update_interval=interval)
+    updater = LossUpdater(
+        loss, rb, make_optimizers(loss), actor_update_interval=interval, actor_after_critic_step=False
+    )
     flags = [bool(updater.step()["actor_updated"]) for _ in range(5)]
     assert flags == [k % interval == 0 for k in range(1, 6)]
     state = updater.state_dict()
     other_loss, other_rb = _high_level_setup()
-    resumed = LossUpdater(other_loss, other_rb, make_optimizers(other_loss), actor_update_interval=interval)
+    resumed = LossUpdater(
+        other_loss,
+        other_rb,
+        make_optimizers(other_loss),
+        actor_update_interval=interval,
+        actor_after_critic_step=False,
+    )
     resumed.load_state_dict(state)
     assert resumed.actor_update_due() == (6 % interval == 0)
     assert [bool(resumed.step()["actor_updated"]) for _ in range(3)] == [k % interval == 0 for k in (6, 7, 8)]
     with pytest.raises(ValueError, match="actor_update_interval"):
-        LossUpdater(loss, rb, make_optimizers(loss), actor_update_interval=0)
+        LossUpdater(loss, rb, make_optimizers(loss), actor_update_interval=0, actor_after_critic_step=False)
 
 
 def test_old_checkpoints_with_the_loss_step_count_still_load():
@@ -165,7 +175,7 @@ def test_old_checkpoints_with_the_loss_step_count_still_load():
 def test_updater_cudagraphs_needs_a_cuda_loss():
     loss, rb = _high_level_setup()
     with pytest.raises(ValueError, match="needs the loss on a CUDA device"):
-        LossUpdater(loss, rb, make_optimizers(loss), cudagraphs=True)
+        LossUpdater(loss, rb, make_optimizers(loss), cudagraphs=True, actor_after_critic_step=False)
 
 
 # ---------------------------------------------------------------- compile=True
@@ -178,7 +188,9 @@ needs_compile = pytest.mark.skipif(
 
 def _sqgc(seed: int = 0, cells=(32, 32)):
     torch.manual_seed(seed)
-    actor = LowLevelActor(OBS, GOAL, action_max=AMAX, action_dim=ACT, goal_key="goal", num_cells=cells)
+    actor = LowLevelActor(
+        OBS, GOAL, action_max=AMAX, action_dim=ACT, goal_key="goal", num_cells=cells, goal_indices=(0, 1)
+    )
     critics = [
         GoalConditionedCritic(
             OBS, GOAL, action_max=AMAX, action_dim=ACT, goal_key="goal", num_cells=cells, relative_goal=False
@@ -263,7 +275,7 @@ def test_compiled_high_level_update_agrees_with_eager():
             relative_goal=False,
             num_cells=(32,),
         )
-        return HighLevelLoss(actor, critic)
+        return HighLevelLoss(actor, critic, action_l2=0.01)
 
     gen = torch.Generator().manual_seed(3)
     n = 200
@@ -298,7 +310,9 @@ def test_compile_falls_back_with_a_message_where_unavailable(monkeypatch):
     with pytest.warns(
         UserWarning, match="torch.compile does not work here.*no C\\+\\+ compiler.*running eagerly"
     ):
-        updater = LossUpdater(loss, _low_buffer(), make_optimizers(loss), compile=True)
+        updater = LossUpdater(
+            loss, _low_buffer(), make_optimizers(loss), compile=True, actor_after_critic_step=False
+        )
     assert not updater.compile
     torch.manual_seed(7)
     out = updater.step()  # eager, no compilation attempted
@@ -330,7 +344,8 @@ SAMPLER_OBS, SAMPLER_GOAL, SAMPLER_ACT = 3, 2, 1
 def _loss(seed=0):
     torch.manual_seed(seed)
     actor = LowLevelActor(
-        SAMPLER_OBS, SAMPLER_GOAL, action_max=1.0, action_dim=SAMPLER_ACT, goal_key="goal", num_cells=(16,)
+        SAMPLER_OBS, SAMPLER_GOAL, action_max=1.0, action_dim=SAMPLER_ACT, goal_key="goal", num_cells=(16,),
+        goal_indices=(0, 1),
     )
     critics = [
         GoalConditionedCritic(
@@ -364,7 +379,14 @@ def graphs_on_cpu(monkeypatch):
 def test_updater_capture_sampling_switch(graphs_on_cpu):
     loss = _loss()
     rb, _ = _relabelled_low_buffer()
-    eager_sampling = LossUpdater(loss, rb, make_optimizers(loss), cudagraphs=True, capture_sampling=False)
+    eager_sampling = LossUpdater(
+        loss,
+        rb,
+        make_optimizers(loss),
+        cudagraphs=True,
+        capture_sampling=False,
+        actor_after_critic_step=False,
+    )
     eager_sampling.run(2)
     assert (
         eager_sampling.sampling_captured is False and eager_sampling.sampling_note == "capture_sampling=False"
@@ -378,19 +400,26 @@ def test_updater_capture_sampling_switch(graphs_on_cpu):
     high = make_high_level_buffer(buffer_size=100, batch_size=8, reward_threshold=0.5, her_window=3, planner=plain)
     high.extend(SubgoalStream(num_envs=3, min_len=8, max_len=40, flag_prob=0.2, seed=11).batch(12))
     loss = _loss()
-    auto = LossUpdater(loss, high, make_optimizers(loss), cudagraphs=True)
+    auto = LossUpdater(loss, high, make_optimizers(loss), cudagraphs=True, actor_after_critic_step=False)
     auto._setup_sampling()
     assert (
         auto.sampling_captured is False
         and "distance_from_graph has no capture-safe form here" in auto.sampling_note
     )
     loss = _loss()
-    required = LossUpdater(loss, high, make_optimizers(loss), cudagraphs=True, capture_sampling=True)
+    required = LossUpdater(
+        loss,
+        high,
+        make_optimizers(loss),
+        cudagraphs=True,
+        capture_sampling=True,
+        actor_after_critic_step=False,
+    )
     with pytest.raises(RuntimeError, match="needs a fixed_size graph"):
         required._setup_sampling()
     # a restore captures again, with a sampler built on the restored storage
     loss = _loss()
-    captured = LossUpdater(loss, rb, make_optimizers(loss), cudagraphs=True)
+    captured = LossUpdater(loss, rb, make_optimizers(loss), cudagraphs=True, actor_after_critic_step=False)
     captured.run(3)
     assert captured.sampling_captured
     captured.load_state_dict(captured.state_dict())
@@ -487,9 +516,16 @@ def test_updates_per_graph_needs_graphs_and_a_capture_safe_sampler(graphs_on_cpu
     loss = _loss()
     rb, _ = _relabelled_low_buffer()
     with pytest.raises(ValueError, match="`updates_per_graph` 4 > 1 needs cudagraphs=True"):
-        LossUpdater(loss, rb, make_optimizers(loss), updates_per_graph=4)
+        LossUpdater(loss, rb, make_optimizers(loss), updates_per_graph=4, actor_after_critic_step=False)
     with pytest.raises(ValueError, match="updates_per_graph"):
-        LossUpdater(loss, rb, make_optimizers(loss), cudagraphs=True, updates_per_graph=0)
+        LossUpdater(
+            loss,
+            rb,
+            make_optimizers(loss),
+            cudagraphs=True,
+            updates_per_graph=0,
+            actor_after_critic_step=False,
+        )
     results = []
     for per_graph in (1, 3):
         torch.manual_seed(0)
@@ -502,6 +538,7 @@ def test_updates_per_graph_needs_graphs_and_a_capture_safe_sampler(graphs_on_cpu
             cudagraphs=True,
             capture_sampling=False,
             updates_per_graph=per_graph,
+            actor_after_critic_step=False,
         )
         torch.manual_seed(1)
         out = updater.run(7)
@@ -562,6 +599,6 @@ def test_updater_capture_sampling_argument_errors():
     loss = _loss()
     rb, _ = _relabelled_low_buffer()
     with pytest.raises(ValueError, match="`capture_sampling` must be None, True or False, got 'yes'"):
-        LossUpdater(loss, rb, make_optimizers(loss), capture_sampling="yes")
+        LossUpdater(loss, rb, make_optimizers(loss), capture_sampling="yes", actor_after_critic_step=False)
     with pytest.raises(ValueError, match="needs the loss on a CUDA device"):
-        LossUpdater(loss, rb, make_optimizers(loss), cudagraphs=True)
+        LossUpdater(loss, rb, make_optimizers(loss), cudagraphs=True, actor_after_critic_step=False)

@@ -36,7 +36,7 @@ def landmark_budget_sweep(
 
     For each ``(max_landmarks, candidates)`` of ``budgets`` a copy of ``planner``'s graph is rebuilt
     ``draws`` times from ``candidates`` states drawn uniformly (with replacement, as the recipe's
-    :func:`~torchrl_dhrl.training.rebuild_graph` does) from ``replay_buffer``'s storage, with the planner's
+    :func:`~torchrl_dhrl.recipe.rebuild_graph` does) from ``replay_buffer``'s storage, with the planner's
     learned distance, and the rebuilt landmarks' ``landmark_progress`` (:func:`furthest_progress`) and
     ``landmark_coverage`` are measured. The same draw index uses the same candidates in every budget with
     the same candidate count. The planner itself is left as it was.

@@ -60,7 +60,7 @@ DIAG_KEYS = (
 
 
 #: The keys :func:`maze_epoch_diagnostics` adds with ``high_loss`` (the high level's critic at the first test
-#: start, :func:`~torchrl_dhrl.training.landscape_summary` over a grid of the subgoal box).
+#: start, :func:`~torchrl_dhrl.diagnostics.landscape_summary` over a grid of the subgoal box).
 LANDSCAPE_DIAG_KEYS = (
     "diag/start_q_range",
     "diag/start_best_subgoal_in_wall",
@@ -142,7 +142,7 @@ def maze_epoch_diagnostics(
         max_sources (int, optional): see :func:`graph_quality`. Defaults to ``64``.
         resolution (float, optional): the grid cell size. Defaults to :meth:`MazeGeometry.from_maze`'s.
         high_loss (HighLevelLoss, optional): with it, the high level's critic at the first episode's start
-            (:data:`LANDSCAPE_DIAG_KEYS`: :func:`~torchrl_dhrl.training.landscape_summary` of its Q over a
+            (:data:`LANDSCAPE_DIAG_KEYS`: :func:`~torchrl_dhrl.diagnostics.landscape_summary` of its Q over a
             49 x 49 grid of the subgoal box): ``diag/start_q_range``, ``diag/start_best_subgoal_in_wall``,
             ``diag/start_top_subgoals_in_walls`` (the best 5%) and ``diag/start_actor_q_gap``.
 
@@ -252,7 +252,7 @@ def graph_diagnosis(
         >>> from torchrl_dhrl.recipe import make_agent, make_environment
         >>> _ = torch.manual_seed(0)
         >>> cells = {"num_cells": (8,)}
-        >>> agent = make_agent(make_environment("PointMaze"), high_policy={"subgoal_low": [-2.0, -2.0],
+        >>> agent = make_agent(make_environment("PointMaze"), goal_indices=[0, 1], high_policy={"subgoal_low": [-2.0, -2.0],
         ...     "subgoal_high": [10.0, 10.0], "interval": 5, **cells}, high_critic=cells, low_actor=cells,
         ...     low_critic=cells)
         >>> env = make_environment("PointMaze", eval=True, max_episode_steps=10, agent=agent)

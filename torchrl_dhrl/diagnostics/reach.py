@@ -79,7 +79,7 @@ def visible_offsets(start: Tensor, offsets: Tensor, obstacles: LineOfSightDistan
 
     Examples:
         >>> import torch
-        >>> wall = LineOfSightDistance(1.0, boxes=[[[1.0, -5.0], [2.0, 5.0]]])
+        >>> wall = LineOfSightDistance(1.0, boxes=[[[1.0, -5.0], [2.0, 5.0]]], goal_indices=[0, 1])
         >>> visible_offsets(torch.zeros(2), reach_offsets(2, [3.0], 4), wall).round().tolist()
         [[0.0, 3.0], [-3.0, 0.0], [-0.0, -3.0]]
     """
@@ -228,7 +228,7 @@ def reach_test(
 
     Examples:
         >>> from torchrl_dhrl.modules import LowLevelActor
-        >>> actor = LowLevelActor(6, 2, action_max=1.0, action_dim=2, num_cells=(8,))
+        >>> actor = LowLevelActor(6, 2, action_max=1.0, action_dim=2, goal_indices=[0, 1], num_cells=(8,))
         >>> rows = reach_test(actor, "PointMaze", radii=[0.5, 1.0], max_steps=5, reach_radius=0.5, num_directions=4)
         >>> [row["radius"] for row in rows]
         [0.5, 1.0]

@@ -169,12 +169,6 @@ def autocast_enabled(tensor: torch.Tensor) -> bool:
     return torch.amp.is_autocast_available(device_type) and torch.is_autocast_enabled(device_type)
 
 
-def broadcast_leading(*tensors: torch.Tensor) -> list[torch.Tensor]:
-    """Broadcasts the leading (batch) dims of tensors whose last dims differ."""
-    shape = torch.broadcast_shapes(*(t.shape[:-1] for t in tensors))
-    return [t.expand(*shape, t.shape[-1]) for t in tensors]
-
-
 def check_positional_keys(module: TensorDictModuleBase, n_in: int, role: str) -> None:
     """Checks a module follows the positional key contract used by the losses and distances."""
     in_keys = getattr(module, "in_keys", None)

@@ -171,8 +171,9 @@ class LowLevelActor(_BoxedGoalActor):
         action_max (float or Tensor, optional): a symmetric box ``[-action_max, action_max]``
             (reference: 30 for the ant, 20 for Reacher3D); needs ``action_dim``.
         action_dim (int, optional): action size when ``action_max`` is given.
-        goal_indices (sequence of int): achieved goal indices in the observation. Defaults to ``(0, 1)``.
-        relative_goal (bool): relative (default) or absolute goal input.
+        goal_indices (sequence of int, optional): where the achieved goal sits in the observation; needed with
+            ``relative_goal=True`` (e.g. ``(0, 1)`` for the mazes' ``(x, y)``). Defaults to ``None``.
+        relative_goal (bool): relative (default, needs ``goal_indices``) or absolute goal input.
         num_cells (sequence of int): hidden widths. Defaults to ``(256, 256, 256)``.
         activation_class (type): hidden activation. Defaults to ``nn.ReLU``.
         observation_key (NestedKey): Defaults to ``"observation"``.
@@ -182,7 +183,7 @@ class LowLevelActor(_BoxedGoalActor):
     Examples:
         >>> import torch
         >>> from tensordict import TensorDict
-        >>> actor = LowLevelActor(6, 2, action_max=1.0, action_dim=2, num_cells=(32, 32))
+        >>> actor = LowLevelActor(6, 2, action_max=1.0, action_dim=2, goal_indices=[0, 1], num_cells=(32, 32))
         >>> td = TensorDict({"observation": torch.randn(3, 6), "waypoint": torch.randn(3, 2)}, [3])
         >>> actor(td)["action"].abs().max() <= 1.0
         tensor(True)
@@ -197,7 +198,7 @@ class LowLevelActor(_BoxedGoalActor):
         *,
         action_max: float | torch.Tensor | None = None,
         action_dim: int | None = None,
-        goal_indices: Sequence[int] | None = (0, 1),
+        goal_indices: Sequence[int] | None = None,
         relative_goal: bool = True,
         num_cells: Sequence[int] = DEFAULT_NUM_CELLS,
         activation_class: type[nn.Module] = nn.ReLU,
@@ -238,7 +239,8 @@ class HighLevelActor(_BoxedGoalActor):
         subgoal_high (Tensor or sequence of float): upper corner of the subgoal box.
 
     Keyword Args:
-        goal_indices (sequence of int): achieved goal indices in the observation. Defaults to ``(0, 1)``.
+        goal_indices (sequence of int, optional): where the achieved goal sits in the observation; needed with
+            ``relative_goal=True``. Defaults to ``None``.
         relative_goal (bool): feed ``desired_goal - achieved`` (``True``) or the goal as is
             (``False``, default).
         num_cells (sequence of int): hidden widths. Defaults to ``(256, 256, 256)``.
@@ -265,7 +267,7 @@ class HighLevelActor(_BoxedGoalActor):
         subgoal_low: torch.Tensor | Sequence[float],
         subgoal_high: torch.Tensor | Sequence[float],
         *,
-        goal_indices: Sequence[int] | None = (0, 1),
+        goal_indices: Sequence[int] | None = None,
         relative_goal: bool = False,
         num_cells: Sequence[int] = DEFAULT_NUM_CELLS,
         activation_class: type[nn.Module] = nn.ReLU,

@@ -117,7 +117,8 @@ class GoalConditionedCriticNet(nn.Module):
 
     Keyword Args:
         goal_indices (sequence of int, optional): achieved goal indices (relative mode).
-        relative_goal (bool): relative (default) or absolute goal input.
+        relative_goal (bool): relative (``True``, needs ``goal_indices``) or absolute goal input (``False``,
+            default: the reference's critics see the goal itself).
         num_nets (int): ensemble size. Defaults to ``2`` (the TD3 twin).
         num_cells (sequence of int): hidden widths. Defaults to ``(256, 256, 256)``.
         activation_class (type): hidden activation. Defaults to ``nn.ReLU``.
@@ -148,7 +149,7 @@ class GoalConditionedCriticNet(nn.Module):
         action_high: torch.Tensor,
         *,
         goal_indices: Sequence[int] | None = None,
-        relative_goal: bool = True,
+        relative_goal: bool = False,
         num_nets: int = 2,
         num_cells: Sequence[int] = DEFAULT_NUM_CELLS,
         activation_class: type[nn.Module] = nn.ReLU,
@@ -241,8 +242,10 @@ class GoalConditionedCritic(TensorDictModule):
         action_low (Tensor or sequence, optional): lower corner of the box.
         action_high (Tensor or sequence, optional): upper corner of the box.
         action_dim (int, optional): action size when scalar bounds are given.
-        goal_indices (sequence of int): achieved goal indices. Defaults to ``(0, 1)``.
-        relative_goal (bool): relative (default) or absolute goal input.
+        goal_indices (sequence of int, optional): where the achieved goal sits in the observation; needed with
+            ``relative_goal=True``. Defaults to ``None``.
+        relative_goal (bool): feed ``goal - observation[..., goal_indices]`` (``True``) or the goal as is
+            (``False``, default: the reference's critics see the waypoint itself).
         num_nets (int): ensemble size. Defaults to ``2``.
         num_cells (sequence of int): hidden widths. Defaults to ``(256, 256, 256)``.
         activation_class (type): hidden activation. Defaults to ``nn.ReLU``.
@@ -278,8 +281,8 @@ class GoalConditionedCritic(TensorDictModule):
         action_low: torch.Tensor | Sequence[float] | None = None,
         action_high: torch.Tensor | Sequence[float] | None = None,
         action_dim: int | None = None,
-        goal_indices: Sequence[int] | None = (0, 1),
-        relative_goal: bool = True,
+        goal_indices: Sequence[int] | None = None,
+        relative_goal: bool = False,
         num_nets: int = 2,
         num_cells: Sequence[int] = DEFAULT_NUM_CELLS,
         activation_class: type[nn.Module] = nn.ReLU,

@@ -53,7 +53,7 @@ class GaussianUniformExplorationModule(TensorDictModuleBase):
         >>> from tensordict.nn import TensorDictSequential
         >>> from torchrl.envs.utils import ExplorationType, set_exploration_type
         >>> from torchrl_dhrl.modules import LowLevelActor
-        >>> actor = LowLevelActor(6, 2, action_max=30.0, action_dim=2, num_cells=(32,))
+        >>> actor = LowLevelActor(6, 2, action_max=30.0, action_dim=2, goal_indices=[0, 1], num_cells=(32,))
         >>> policy = TensorDictSequential(actor, GaussianUniformExplorationModule(actor.spec))
         >>> td = TensorDict({"observation": torch.randn(4, 6), "waypoint": torch.randn(4, 2)}, [4])
         >>> with set_exploration_type(ExplorationType.RANDOM):

@@ -74,7 +74,8 @@ class HighLevelPolicy(TensorDictSequential):
     Keyword Args:
         noise_sigma (float or Tensor): absolute subgoal noise std in goal units
             (reference: 2 for the mazes, 0.1 for Reacher3D). Defaults to ``2.0``.
-        goal_indices (sequence of int): achieved goal indices. Defaults to ``(0, 1)``.
+        goal_indices (sequence of int, optional): where the achieved goal sits in the observation; needed with
+            ``relative_goal=True``. Defaults to ``None``.
         relative_goal (bool): relative goal input for ``pi_hi``. Defaults to ``False``.
         num_cells (sequence of int): hidden widths. Defaults to ``(256, 256, 256)``.
         activation_class (type): hidden activation. Defaults to ``nn.ReLU``.
@@ -144,7 +145,7 @@ class HighLevelPolicy(TensorDictSequential):
         interval: int,
         *,
         noise_sigma: float | torch.Tensor = 2.0,
-        goal_indices: Sequence[int] | None = (0, 1),
+        goal_indices: Sequence[int] | None = None,
         relative_goal: bool = False,
         num_cells: Sequence[int] = DEFAULT_NUM_CELLS,
         activation_class: type[nn.Module] = nn.ReLU,
@@ -254,7 +255,7 @@ def make_low_level_policy(
         >>> import torch
         >>> from tensordict import TensorDict
         >>> from torchrl_dhrl.modules import LowLevelActor
-        >>> actor = LowLevelActor(6, 2, action_max=30.0, action_dim=8, num_cells=(32,))
+        >>> actor = LowLevelActor(6, 2, action_max=30.0, action_dim=8, goal_indices=[0, 1], num_cells=(32,))
         >>> policy = make_low_level_policy(actor)
         >>> td = TensorDict({"observation": torch.randn(4, 6), "waypoint": torch.randn(4, 2)}, [4])
         >>> policy(td)["action"].shape

@@ -65,7 +65,8 @@ class HighLevelLoss(_GoalConditionedTD3Base):
         action_spec (TensorSpec, optional): the subgoal box, when neither the critic nor the actor
             holds one.
         clip_return (float, optional): lower target clamp ``-clip_return``. Defaults to ``80.0``.
-        action_l2 (float): weight of the scaled-subgoal penalty. Defaults to ``0.01``.
+        action_l2 (float): weight of the scaled-subgoal penalty. Defaults to ``0.0`` (the reference computes the
+            penalty but never adds it to the loss).
         target_noise_std (float): std of the target-policy noise in goal units.
             Defaults to ``0.05``.
         target_noise_clip (float, optional): clip of that noise. Defaults to ``None``.
@@ -136,7 +137,7 @@ class HighLevelLoss(_GoalConditionedTD3Base):
         num_qvalue_nets: int | None = None,
         action_spec: TensorSpec | None = None,
         clip_return: float | None = 80.0,
-        action_l2: float = 0.01,
+        action_l2: float = 0.0,
         target_noise_std: float = 0.05,
         target_noise_clip: float | None = None,
         target_action_clamp: bool = False,

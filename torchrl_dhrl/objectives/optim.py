@@ -49,7 +49,7 @@ def make_optimizers(
     Examples:
         >>> from torchrl_dhrl.modules import GoalConditionedCritic, LowLevelActor
         >>> from torchrl_dhrl.objectives import SQGCLoss
-        >>> actor = LowLevelActor(6, 2, action_max=1.0, action_dim=2, num_cells=(8,))
+        >>> actor = LowLevelActor(6, 2, action_max=1.0, action_dim=2, goal_indices=[0, 1], num_cells=(8,))
         >>> critic = lambda: GoalConditionedCritic(6, 2, action_max=1.0, action_dim=2, num_cells=(8,))
         >>> optims = make_optimizers(SQGCLoss(actor, critic(), critic()))
         >>> sorted(optims), optims["actor"].param_groups[0]["lr"]

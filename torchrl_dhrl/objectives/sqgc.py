@@ -136,7 +136,8 @@ class SQGCLoss(_GoalConditionedTD3Base):
         >>> from torchrl.objectives import SoftUpdate
         >>> from torchrl_dhrl.modules import GoalConditionedCritic, LowLevelActor
         >>> obs_dim, goal_dim, act_dim, B = 6, 2, 3, 8
-        >>> actor = LowLevelActor(obs_dim, goal_dim, action_max=1.0, action_dim=act_dim, num_cells=(32,))
+        >>> actor = LowLevelActor(obs_dim, goal_dim, action_max=1.0, action_dim=act_dim, goal_indices=[0, 1],
+        ...     num_cells=(32,))
         >>> make_critic = lambda: GoalConditionedCritic(obs_dim, goal_dim, action_max=1.0,
         ...     action_dim=act_dim, num_cells=(32,))
         >>> loss = SQGCLoss(actor, make_critic(), make_critic())

@@ -118,7 +118,7 @@ class AutocastDistance(TemporalDistance, Protocol):
     Examples:
         >>> import torch
         >>> from torchrl_dhrl.modules import GoalConditionedCritic, LowLevelActor
-        >>> actor = LowLevelActor(6, 2, action_max=1.0, action_dim=2, num_cells=(8,))
+        >>> actor = LowLevelActor(6, 2, action_max=1.0, action_dim=2, goal_indices=[0, 1], num_cells=(8,))
         >>> critic = GoalConditionedCritic(6, 2, action_max=1.0, action_dim=2, num_cells=(8,))
         >>> isinstance(GoalDistance(actor, critic), AutocastDistance)
         True
@@ -245,7 +245,7 @@ class GoalDistance:
     Examples:
         >>> import torch
         >>> from torchrl_dhrl.modules import GoalConditionedCritic, LowLevelActor
-        >>> actor = LowLevelActor(6, 2, action_max=1.0, action_dim=2, num_cells=(32,))
+        >>> actor = LowLevelActor(6, 2, action_max=1.0, action_dim=2, goal_indices=[0, 1], num_cells=(32,))
         >>> critic = GoalConditionedCritic(6, 2, action_max=1.0, action_dim=2, num_cells=(32,))
         >>> distance = GoalDistance(actor, critic)
         >>> states, goals = torch.randn(5, 6), torch.randn(7, 2)
@@ -424,15 +424,15 @@ class LineOfSightDistance:
         boxes (Tensor or sequence, optional): ``[W, 2, goal_dim]`` axis-aligned obstacle boxes
             (``boxes[:, 0]`` lower corners, ``boxes[:, 1]`` upper corners). Defaults to none.
         margin (float): inflation of every box (e.g. the agent's radius). Defaults to ``0.0``.
-        goal_indices (sequence of int): where the achieved goal sits in the state. Defaults to
-            ``(0, 1)``.
+        goal_indices (sequence of int): where the achieved goal sits in the state (e.g. ``(0, 1)`` for the
+            mazes' ``(x, y)``; :func:`~torchrl_dhrl.envs.goal_indices_of` reads it from an env). Required.
         blocked (float): the distance of a blocked pair. Defaults to ``1e4``.
         chunk_size (int): pairs per evaluation chunk. Defaults to ``65536``.
 
     Examples:
         >>> import torch
         >>> wall = torch.tensor([[[1.0, -5.0], [2.0, 5.0]]])  # a wall between x=1 and x=2
-        >>> d = LineOfSightDistance(0.5, boxes=wall)
+        >>> d = LineOfSightDistance(0.5, boxes=wall, goal_indices=[0, 1])
         >>> d(torch.zeros(2, 2), torch.tensor([[0.0, 3.0], [3.0, 0.0]])).tolist()
         [6.0, 10000.0]
     """
@@ -444,7 +444,7 @@ class LineOfSightDistance:
         *,
         boxes: Tensor | Sequence | None = None,
         margin: float = 0.0,
-        goal_indices: Sequence[int] = (0, 1),
+        goal_indices: Sequence[int],
         blocked: float = 1e4,
         chunk_size: int = 65536,
     ) -> None:
@@ -465,7 +465,7 @@ class LineOfSightDistance:
         use the oracle unchanged; its distances stay those of the inputs' dtype (float32 states: float32).
 
         Examples:
-            >>> oracle = LineOfSightDistance(0.5)
+            >>> oracle = LineOfSightDistance(0.5, goal_indices=[0, 1])
             >>> oracle.with_autocast(torch.bfloat16) is oracle
             True
         """

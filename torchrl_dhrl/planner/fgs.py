@@ -280,7 +280,7 @@ class FrontierGoalShifting(UnregisteredAttributes, TensorDictModuleBase):
 class GoalShiftOnReset(UnregisteredAttributes, Transform):
     """Env transform running :class:`~torchrl_dhrl.planner.FrontierGoalShifting` when episodes start.
 
-    DHRL's Algorithm 2 shifts the goal of a training episode right after ``Env.reset``, once the
+    DHRL's Algorithm 6 (lines 4-7) shifts the goal of a training episode right after ``Env.reset``, once the
     graph covers the real goal. This transform does it inside the environment so that a
     :class:`~torchrl.collectors.Collector` (which resets envs itself) applies FGS to every new
     episode: on reset it calls ``fgs`` on the fresh observation and goal of the envs being reset,

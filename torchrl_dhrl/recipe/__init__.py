@@ -19,7 +19,6 @@ from .aggregate import (
     write_aggregate_csv,
 )
 from .builders import (
-    AGENT_DEFAULTS,
     LOW_LEVEL_KEYS,
     DHRLAgent,
     make_agent,
@@ -112,7 +111,6 @@ from .run import (
 
 __all__ = [
     "AGENT_COMPONENTS",
-    "AGENT_DEFAULTS",
     "AGENT_NAME",
     "ConfigRoutingError",
     "RECIPE_KEYS",

@@ -48,7 +48,6 @@ from torchrl_dhrl.planner import (
 from torchrl_dhrl.training import LossUpdater
 
 __all__ = [
-    "AGENT_DEFAULTS",
     "DHRLAgent",
     "LOW_LEVEL_KEYS",
     "make_agent",
@@ -74,16 +73,6 @@ LOW_LEVEL_KEYS = (
     ("next", "achieved_goal"),
     ("next", "done"),
 )
-
-
-#: The arguments :func:`make_agent` gives its parts where the caller does not: every critic sees the goal as
-#: it is (the reference's critics; the high-level critics always), and so does the low-level actor unless told
-#: otherwise (a relative goal needs ``goal_indices``).
-AGENT_DEFAULTS: dict[str, dict[str, Any]] = {
-    "low_actor": {"relative_goal": False},
-    "low_critic": {"relative_goal": False},
-    "high_critic": {"relative_goal": False},
-}
 
 
 @dataclass
@@ -151,11 +140,14 @@ def make_agent(
             ``subgoal_high`` (the subgoal box, goal space), ``interval`` (``c_h``), ``noise_sigma``,
             ``num_cells``, ... With ``critic_candidates`` or ``landmark_candidates`` its selector scores the
             candidates with the high-level loss's critic (its current parameters) and the planner's landmarks.
-        goal_indices (sequence of int, optional): where the achieved goal sits in the observation.
+        goal_indices (sequence of int, optional): where the achieved goal sits in the observation (the env's:
+            :func:`~torchrl_dhrl.envs.goal_indices_of`); needed by the relative goal of the low-level actor
+            (its default) and of any part given ``relative_goal=True``.
         low_actor (mapping, optional): :class:`~torchrl_dhrl.modules.LowLevelActor`'s (``relative_goal``,
-            ``num_cells``, ...). ``relative_goal`` defaults to ``False`` here (it needs ``goal_indices``).
+            ``num_cells``, ...). Its own defaults apply: a relative goal, as in the reference (needs
+            ``goal_indices``; ``relative_goal=False`` for an absolute one).
         low_critic (mapping, optional): :class:`~torchrl_dhrl.modules.GoalConditionedCritic`'s, for the policy
-            and the graph critics alike (``relative_goal``, default ``False`` here as in the reference;
+            and the graph critics alike (``relative_goal``, default ``False`` as in the reference;
             ``gamma``, ``distance_output``, ``num_cells``, ...).
         exploration (mapping, optional): :class:`~torchrl_dhrl.modules.GaussianUniformExplorationModule`'s
             (``sigma``, a fraction of the action box half-width; ``uniform_prob``).
@@ -194,10 +186,10 @@ def make_agent(
         ...     high_policy={"subgoal_low": [-2.0, -2.0], "subgoal_high": [10.0, 10.0], "interval": 10,
         ...                  "num_cells": (16,)},
         ...     high_critic={"num_cells": (16,)},
-        ...     low_actor={"relative_goal": True, "num_cells": (16,)},
+        ...     low_actor={"num_cells": (16,)},
         ...     low_critic={"num_cells": (16,)},
         ... )
-        >>> type(agent.planner.distance).__name__, agent.low_actor.module.relative_goal
+        >>> type(agent.planner.distance).__name__, agent.low_actor.module.relative_goal  # the reference's
         ('GoalDistance', True)
     """
     device = torch.device(device)
@@ -205,9 +197,7 @@ def make_agent(
     goal_dim = env.observation_spec["achieved_goal"].shape[-1]
     indices = None if goal_indices is None else tuple(int(i) for i in goal_indices)
     action_spec = env.action_spec_unbatched.to(device)
-    actor = LowLevelActor(
-        obs_dim, goal_dim, action_spec, goal_indices=indices, **{**AGENT_DEFAULTS["low_actor"], **(low_actor or {})}
-    ).to(device)
+    actor = LowLevelActor(obs_dim, goal_dim, action_spec, goal_indices=indices, **(low_actor or {})).to(device)
     exploration_module = GaussianUniformExplorationModule(action_spec, **(exploration or {})).to(device)
 
     def critic() -> GoalConditionedCritic:
@@ -217,7 +207,7 @@ def make_agent(
             action_spec,
             goal_indices=indices,
             goal_key="goal",
-            **{**AGENT_DEFAULTS["low_critic"], **(low_critic or {})},
+            **(low_critic or {}),
         ).to(device)
 
     sqgc = SQGCLoss(actor, critic(), critic(), **(sqgc_loss or {}))
@@ -230,7 +220,7 @@ def make_agent(
         goal_indices=indices,
         goal_key="desired_goal",
         action_key="subgoal",
-        **{**AGENT_DEFAULTS["high_critic"], **(high_critic or {})},
+        **(high_critic or {}),
     ).to(device)
     high_loss_module = HighLevelLoss(high.actor, high_critic_module, **(high_loss or {}))
     # a capturable planner plans on static storage across rebuilds: no recompilation, CUDA-graph safe
@@ -446,8 +436,8 @@ def make_eval_policy(
     Examples:
         >>> from torchrl_dhrl.recipe import make_agent, make_environment
         >>> env = make_environment("PointMaze", max_episode_steps=20)
-        >>> agent = make_agent(env, high_policy={"subgoal_low": [-2.0, -2.0], "subgoal_high": [10.0, 10.0],
-        ...     "interval": 5, "num_cells": (16,)})
+        >>> agent = make_agent(env, goal_indices=[0, 1], high_policy={"subgoal_low": [-2.0, -2.0],
+        ...     "subgoal_high": [10.0, 10.0], "interval": 5, "num_cells": (16,)})
         >>> make_eval_policy(agent) is agent.policy
         True
     """

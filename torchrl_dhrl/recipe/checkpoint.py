@@ -246,7 +246,7 @@ def make_checkpoint(
 
     Keyword Args:
         config (Mapping): the run's configuration (JSON; saved, checked before resuming, not restored).
-        agent: a :class:`~torchrl_dhrl.training.DHRLAgent` (or anything with ``state_dict`` /
+        agent: a :class:`~torchrl_dhrl.recipe.DHRLAgent` (or anything with ``state_dict`` /
             ``load_state_dict`` holding the networks, their targets and the graph).
         low_updater, high_updater: the :class:`~torchrl_dhrl.training.LossUpdater` of each level.
         low_rb, high_rb: the replay buffers (saved through their ``state_dict``: the written rows of a
@@ -380,7 +380,7 @@ def restore_checkpoint(
     """Loads the checkpoint at ``path`` (see :func:`checkpoint_file`) into the components of ``checkpoint``.
 
     Every registered component is restored but ``config`` (check it first, e.g. with
-    :func:`~torchrl_dhrl.training.check_resume_config`), the global random states last. A 0.2.0
+    :func:`~torchrl_dhrl.recipe.check_resume_config`), the global random states last. A 0.2.0
     ``checkpoint.pt`` is restored from its entries (see the module's documentation).
 
     Raises:

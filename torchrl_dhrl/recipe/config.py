@@ -93,7 +93,7 @@ RESUME_MUTABLE_KEYS = (
     "checkpoint.*",
 )
 #: Keys that may also differ between a checkpoint's configuration and a run *forked* from it (``fork=<run>``: a new
-#: run that starts from the checkpoint's state, see :func:`~torchrl_dhrl.training.start_run`): besides
+#: run that starts from the checkpoint's state, see :func:`~torchrl_dhrl.recipe.start_run`): besides
 #: :data:`RESUME_MUTABLE_KEYS`, the seed (the fork re-seeds its random streams, the test episodes' apart) and
 #: the hyperparameters that no checkpointed state holds, read from the configuration by the objects built for
 #: the fork: the high level's subgoal testing and gradual penalty (its relabelling) and when and how the
@@ -719,7 +719,7 @@ def validate_config(cfg: Mapping, env_names: tuple[str, ...] | None = None) -> N
     Every check runs before any environment, network or file is created, so a typo costs
     nothing. ``env_names`` lists the valid environment names (defaults to every environment of
     :mod:`torchrl_dhrl.envs`, built in or registered with :func:`~torchrl_dhrl.envs.register_env`). The
-    sizes of a registered env are checked when it is built (:func:`~torchrl_dhrl.training.make_environment`).
+    sizes of a registered env are checked when it is built (:func:`~torchrl_dhrl.recipe.make_environment`).
 
     Examples:
         >>> try:

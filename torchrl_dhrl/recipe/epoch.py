@@ -118,7 +118,7 @@ def evaluate_epoch(
     * ``graph/mean_path_landmarks`` (planned path length) and ``graph/learned_distance_start_goal`` (the
       planner's distance from the first episode's start to its goal);
     * on the mazes, the subgoals and the graph against the true geometry
-      (:func:`~torchrl_dhrl.training.maze_epoch_diagnostics`, with ``oracle_margin`` as the agent's radius,
+      (:func:`~torchrl_dhrl.diagnostics.maze_epoch_diagnostics`, with ``oracle_margin`` as the agent's radius,
       and the high level's critic over the subgoal box at the first test start);
     * on every env, ``diag/...`` of :func:`~torchrl_dhrl.diagnostics.hierarchy` (with
       ``reward_threshold`` as the reach radius and ``far_from_graph_threshold`` for the gradual penalty's
@@ -147,7 +147,7 @@ def evaluate_epoch(
         >>> from torchrl_dhrl.recipe import make_agent, make_environment
         >>> _ = torch.manual_seed(0)
         >>> env = make_environment("PointMaze", max_episode_steps=20)
-        >>> agent = make_agent(env, high_policy={"subgoal_low": [-2.0, -2.0], "subgoal_high": [10.0, 10.0], "interval": 5,
+        >>> agent = make_agent(env, goal_indices=[0, 1], high_policy={"subgoal_low": [-2.0, -2.0], "subgoal_high": [10.0, 10.0], "interval": 5,
         ...     "num_cells": (16,)}, high_critic={"num_cells": (16,)}, low_actor={"num_cells": (16,)},
         ...     low_critic={"num_cells": (16,)}, graph={"cutoff": 5.0})
         >>> eval_env = make_environment("PointMaze", num_envs=2, eval=True, max_episode_steps=20, agent=agent)
@@ -213,7 +213,7 @@ def plot_epoch(
     env_steps: int,
 ) -> Path:
     """Draws the graph, its route and the first test episode of ``result`` into
-    ``directory/epoch_<epoch>.png`` (:func:`~torchrl_dhrl.training.plot_episode`), titled with the epoch, the
+    ``directory/epoch_<epoch>.png`` (:func:`~torchrl_dhrl.recipe.plot_episode`), titled with the epoch, the
     env steps and the success rate; returns the file.
 
     Examples:

@@ -254,7 +254,7 @@ def plot_distance_scatter(
     title: str | None = None,
 ) -> Path:
     """Saves the learned landmark-to-landmark distances (steps) against the true obstacle-free path
-    lengths (goal units) of the same pairs (see :func:`~torchrl_dhrl.training.graph_quality`).
+    lengths (goal units) of the same pairs (see :func:`~torchrl_dhrl.diagnostics.graph_quality`).
 
     ``learned`` is the graph's direct distance matrix entry, ``graph`` (optional) the all-pairs shortest
     distance through the graph; ``speed`` (goal units per step, e.g. ``planner.oracle_speed``) draws the

@@ -19,7 +19,7 @@ is chosen after seeing the curves.
 from __future__ import annotations
 
 import math
-from collections.abc import Mapping, Sequence
+from collections.abc import Sequence
 from dataclasses import dataclass
 
 import numpy as np
@@ -197,8 +197,3 @@ def first_at_least(run: RunRecord, successes: int) -> int | None:
     """The env steps of ``run``'s first evaluation with at least ``successes`` successful test episodes."""
     n = eval_episodes(run)
     return next((s for s, r in _evaluations(run) if episodes_succeeded(r, n) >= successes), None)
-
-
-def paper_at(paper: Mapping[int, float], steps: int) -> float | None:
-    """The paper's figure at ``steps`` exactly, if it reports one there."""
-    return paper.get(int(steps))

@@ -39,7 +39,7 @@ from torchrl_dhrl.planner import (
 )
 from torchrl_dhrl.training import LossUpdater
 
-from .builders import AGENT_DEFAULTS, make_high_level_buffer, make_low_level_buffer
+from .builders import make_high_level_buffer, make_low_level_buffer
 
 __all__ = [
     "RECIPE_KEYS",
@@ -219,7 +219,7 @@ def check_components(
     for targets in TARGETS.values():
         for name, target in targets.items():
             accepted = argument_names(target.build)
-            given = AGENT_DEFAULTS.get(name, {}) | {k: v for k, v in context.items() if k in accepted} | routed[name]
+            given = {k: v for k, v in context.items() if k in accepted} | routed[name]
             try:
                 check_arguments(target.build, given)
             except ValueError as err:

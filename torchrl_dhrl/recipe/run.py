@@ -159,7 +159,7 @@ class RunStart(NamedTuple):
         run_dir (Path): the run directory (created).
         resume (Path or None): the checkpoint to restore, checked: the run's own (``resume``) or the one it
             is forked from (``fork``, see :attr:`forking`).
-        state (dict or None): its ``config`` and ``counters`` (:func:`~torchrl_dhrl.training.load_checkpoint`).
+        state (dict or None): its ``config`` and ``counters`` (:func:`~torchrl_dhrl.recipe.load_checkpoint`).
         threads (AdaptiveThreads or None): the thread count to poll in the loop (``threads=null``), ``None``
             when the count is fixed.
     """
@@ -189,10 +189,10 @@ def start_run(
 ) -> RunStart:
     """Checks everything that can be checked before a run builds or writes anything, then prepares it.
 
-    In order: the keys (only those of ``schema``, see :func:`~torchrl_dhrl.training.check_known_keys`), their
-    values (:func:`~torchrl_dhrl.training.validate_config`), the device, the checkpoint to ``resume``
-    (readable, with every component of :data:`~torchrl_dhrl.training.CHECKPOINT_COMPONENTS`, and trained with
-    the same configuration up to :data:`~torchrl_dhrl.training.RESUME_MUTABLE_KEYS`), the run directory (not
+    In order: the keys (only those of ``schema``, see :func:`~torchrl_dhrl.recipe.check_known_keys`), their
+    values (:func:`~torchrl_dhrl.recipe.validate_config`), the device, the checkpoint to ``resume``
+    (readable, with every component of :data:`~torchrl_dhrl.recipe.CHECKPOINT_COMPONENTS`, and trained with
+    the same configuration up to :data:`~torchrl_dhrl.recipe.RESUME_MUTABLE_KEYS`), the run directory (not
     a file, writable; no checkpoint of another run in it, which the run would overwrite) and, with
     ``plots.video=true``, MuJoCo's offscreen rendering. Only then it sets the thread count (``threads``,
     printed as one line), creates the run directory and writes the configuration there
@@ -206,7 +206,7 @@ def start_run(
 
     ``fork=<run directory or checkpoint>`` starts a *new* run in ``run_dir`` from another run's checkpoint
     (every state: networks, optimisers, buffers, graph, envs, counters, metrics so far) with a configuration
-    that may differ from that run's in :data:`~torchrl_dhrl.training.FORK_MUTABLE_KEYS` as well (the seed and
+    that may differ from that run's in :data:`~torchrl_dhrl.recipe.FORK_MUTABLE_KEYS` as well (the seed and
     the hyperparameters no state holds), e.g. an A/B of the gradual penalty from one state of a long run. The
     forked run's directory must not hold a checkpoint, and ``total_steps`` must go past the checkpoint's. A
     forked run is continued like any other, with ``resume=<its run_dir>`` (``fork`` may then be left out; if

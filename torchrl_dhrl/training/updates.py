@@ -73,9 +73,9 @@ class LossUpdater:
     ``k % actor_update_interval == 0``, and the updater tells the loss so with
     ``loss.loss_terms(sample, update_actor=...)`` (a loss without ``loss_terms``, e.g.
     :class:`~torchrl.objectives.TD3Loss`, is called as ``loss(sample)`` and only its actor step is
-    skipped). The number of updates taken is the updater's only state (``state_dict``), so a resumed
-    updater continues the schedule exactly; the optimisers and the loss (with its target parameters)
-    are checkpointed by their owners.
+    skipped; it needs ``actor_after_critic_step=False``). The number of updates taken is the updater's only
+    state (``state_dict``), so a resumed updater continues the schedule exactly; the optimisers and the loss
+    (with its target parameters) are checkpointed by their owners.
 
     With ``cudagraphs=True`` (loss on a CUDA device) the loss, backward pass and Adam steps are captured
     in two CUDA graphs with :class:`tensordict.nn.CudaGraphModule`, one with and one without the actor
@@ -144,7 +144,8 @@ class LossUpdater:
             (see above); ``None`` (default) for full precision. With ``cudagraphs`` the captured forward
             runs autocast without its weight cache (``cache_enabled=False``): the same values.
         actor_after_critic_step (bool): evaluate and step the actor loss after the critic step
-            (see above; needs a loss with ``loss_terms`` and ``actor_loss``). Defaults to ``False``.
+            (see above; needs a loss with ``loss_terms`` and ``actor_loss``). Defaults to ``True`` (the
+            reference's order); ``False``: one backward of the summed losses, as TorchRL's TD3 recipes.
         compile (bool): run the loss's forward terms (and so their backward) through
             :func:`torch.compile` (see above). Defaults to ``False``.
         capture_sampling (bool, optional): draw batches with the buffer's capture-safe sampler
@@ -204,7 +205,7 @@ class LossUpdater:
         actor_update_interval: int = 2,
         cudagraphs: bool = False,
         autocast_dtype: torch.dtype | None = None,
-        actor_after_critic_step: bool = False,
+        actor_after_critic_step: bool = True,
         compile: bool = False,  # noqa: A002 - the flag's name in TorchRL's recipes
         capture_sampling: bool | None = None,
         updates_per_graph: int = 1,
@@ -223,8 +224,8 @@ class LossUpdater:
             )
         if actor_after_critic_step and not (hasattr(loss, "loss_terms") and hasattr(loss, "actor_loss")):
             raise TypeError(
-                f"`actor_after_critic_step=True` needs a loss with `loss_terms` and `actor_loss`, got "
-                f"{type(loss).__name__}."
+                "`actor_after_critic_step=True` (the default) needs a loss with `loss_terms` and `actor_loss`, "
+                f"got {type(loss).__name__}: pass actor_after_critic_step=False."
             )
         self.actor_after_critic_step = bool(actor_after_critic_step)
         self.loss = loss
