@@ -53,7 +53,8 @@ def _files() -> list[str]:
         ).stdout
     except (OSError, subprocess.CalledProcessError):
         pytest.skip("not a git checkout")
-    return [name for name in listed.splitlines() if name.endswith(SUFFIXES) and (ROOT / name).is_file()]
+    own = "tests/test_algorithm_labels.py"  # its own examples of wrong labels
+    return [n for n in listed.splitlines() if n.endswith(SUFFIXES) and n != own and (ROOT / n).is_file()]
 
 
 def labels_in(text: str):
