@@ -98,25 +98,36 @@ def sqgc_batch(n: int, obs: int = OBS, goal: int = GOAL, act: int = ACT, amax: f
     )
 
 
-def _ours(kind: str, device: torch.device):
+def low_level_networks(obs=OBS, goal=GOAL, act=ACT, amax=AMAX, cells=CELLS, gamma=GAMMA):
+    """The low level's actor and a factory of its critics, as the recipe builds them for an ant maze
+    (also used by ``bench_threads.py``)."""
     actor = LowLevelActor(
-        OBS, GOAL, action_max=AMAX, action_dim=ACT, goal_key="goal", num_cells=CELLS, goal_indices=(0, 1)
+        obs, goal, action_max=amax, action_dim=act, goal_key="goal", num_cells=cells, goal_indices=(0, 1)
     )
+
+    def critic():
+        return GoalConditionedCritic(
+            obs,
+            goal,
+            action_max=amax,
+            action_dim=act,
+            num_cells=cells,
+            gamma=gamma,
+            relative_goal=True,
+            goal_indices=(0, 1),
+        )
+
+    return actor, critic
+
+
+def _ours(kind: str, device: torch.device):
+    actor, dhrl_critic = low_level_networks()
 
     def critic():
         if kind == "generic":
             mlp = MLP(OBS + GOAL + ACT, 1, num_cells=list(CELLS), activation_class=nn.ReLU)
             return ValueOperator(mlp, in_keys=["observation", "goal", "action"])
-        return GoalConditionedCritic(
-            OBS,
-            GOAL,
-            action_max=AMAX,
-            action_dim=ACT,
-            num_cells=CELLS,
-            gamma=GAMMA,
-            relative_goal=True,
-            goal_indices=(0, 1),
-        )
+        return dhrl_critic()
 
     if kind == "td3":
         loss = HighLevelLoss(actor, critic(), action_l2=0.01)

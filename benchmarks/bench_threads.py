@@ -42,32 +42,16 @@ def _update_fn(batch: int):
     import torch
     from torchrl.objectives import SoftUpdate
 
-    from torchrl_dhrl.modules import GoalConditionedCritic, LowLevelActor
     from torchrl_dhrl.objectives import SQGCLoss, make_optimizers
 
+    sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
+    from bench_losses import low_level_networks, sqgc_batch
+
     torch.manual_seed(0)
-    actor = LowLevelActor(
-        OBS, GOAL, action_max=AMAX, action_dim=ACT, goal_key="goal", num_cells=CELLS, goal_indices=(0, 1)
-    )
-
-    def critic():
-        return GoalConditionedCritic(
-            OBS,
-            GOAL,
-            action_max=AMAX,
-            action_dim=ACT,
-            num_cells=CELLS,
-            gamma=GAMMA,
-            relative_goal=True,
-            goal_indices=(0, 1),
-        )
-
+    actor, critic = low_level_networks(OBS, GOAL, ACT, AMAX, CELLS, GAMMA)
     loss = SQGCLoss(actor, critic(), critic())
     optims = make_optimizers(loss)
     target = SoftUpdate(loss, eps=0.995)
-    sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
-    from bench_losses import sqgc_batch
-
     data = sqgc_batch(batch, OBS, GOAL, ACT, AMAX)
     calls = [0]
 

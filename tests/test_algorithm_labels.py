@@ -9,12 +9,8 @@ side), and with no other algorithm's title on its line.
 from __future__ import annotations
 
 import re
-import subprocess
-from pathlib import Path
 
-import pytest
-
-ROOT = Path(__file__).resolve().parents[1]
+from tests._tracked import ROOT, tracked_text_files
 
 # Appendix A of Lee et al. (NeurIPS 2022), in the paper's order
 PAPER = {
@@ -44,17 +40,6 @@ def _map() -> dict[int, str]:
     return {
         int(n): title for n, title in HEADING.findall((ROOT / "docs" / "algorithm.md").read_text("utf-8"))
     }
-
-
-def _files() -> list[str]:
-    try:
-        listed = subprocess.run(
-            ["git", "ls-files"], cwd=ROOT, capture_output=True, text=True, check=True
-        ).stdout
-    except (OSError, subprocess.CalledProcessError):
-        pytest.skip("not a git checkout")
-    own = "tests/test_algorithm_labels.py"  # its own examples of wrong labels
-    return [n for n in listed.splitlines() if n.endswith(SUFFIXES) and n != own and (ROOT / n).is_file()]
 
 
 def labels_in(text: str):
@@ -93,10 +78,10 @@ def test_the_map_is_the_papers():
 def test_labels_match_the_map():
     titles = _map()
     wrong = []
-    for name in _files():
-        for number_of_line, number, line, paragraph in labels_in(
-            (ROOT / name).read_text("utf-8", errors="replace")
-        ):
+    # this file is left out: its own examples of wrong labels
+    for path in tracked_text_files(exclude="tests/test_algorithm_labels.py", suffixes=SUFFIXES):
+        name = path.relative_to(ROOT)
+        for number_of_line, number, line, paragraph in labels_in(path.read_text("utf-8", errors="replace")):
             reason = mismatch(number, line, paragraph, titles)
             if reason:
                 wrong.append(f"{name}:{number_of_line}: Algorithm {number}: {reason}")
