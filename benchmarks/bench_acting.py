@@ -35,7 +35,7 @@ import torch
 from tensordict.nn import CudaGraphModule
 from torchrl.envs.utils import step_mdp
 
-from torchrl_dhrl.recipe import make_agent, make_environment
+from torchrl_dhrl.factory import make_agent, make_environment
 
 
 def build(args, num_envs, capturable, plan_on_demand=True):

@@ -223,7 +223,8 @@ def main() -> None:
     overrides = ["env=PointMaze", "preset=quick", *args.overrides, "logger.backend=none", "progress=false"]
     from dhrl_utils import build_run, evaluation_kwargs
 
-    from torchrl_dhrl.recipe import LOW_LEVEL_KEYS, evaluate_epoch, rebuild_graph, resolve_device
+    from torchrl_dhrl.factory import LOW_LEVEL_KEYS
+    from torchrl_dhrl.recipe import evaluate_epoch, rebuild_graph, resolve_device
 
     cfg = recipe_config(overrides)
     device = resolve_device(cfg["device"])

@@ -67,10 +67,10 @@ import tqdm
 from omegaconf import DictConfig
 
 from torchrl_dhrl.diagnostics import TrainingEpisodeLog
+from torchrl_dhrl.factory import LOW_LEVEL_KEYS
 from torchrl_dhrl.recipe import (
     AGENT_NAME,
     CHECKPOINT_NAME,
-    LOW_LEVEL_KEYS,
     CheckpointError,
     ConfigError,
     GracefulStop,

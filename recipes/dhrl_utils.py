@@ -1,7 +1,9 @@
 """The recipe's objects from its configuration: env, agent, buffers, updaters, collector, logger.
 
 ``dhrl_antmaze.py`` (training) and ``diagnose_*.py`` (a run's checkpoint) build their objects through these
-functions. The components take the keys of their group as their own arguments, routed by name
+functions, each a call of the library's key-free factory (:mod:`torchrl_dhrl.factory`: ``make_agent``,
+``make_environment``, the buffers, ``make_updater``, ``make_collector``) with the configuration's values. The
+components take the keys of their group as their own arguments, routed by name
 (:mod:`torchrl_dhrl.recipe.routing`; ``config/config.yaml`` is the schema); what is left here is the wiring the
 recipe adds (the env's sizes, the run's device and precision, the oracle distance, the graph for the penalty). A
 configuration that a component refuses is reported as a :class:`~torchrl_dhrl.recipe.ConfigError` naming the key.
@@ -10,6 +12,7 @@ configuration that a component refuses is reported as a :class:`~torchrl_dhrl.re
 from __future__ import annotations
 
 import copy
+import inspect
 import random
 import shutil
 from pathlib import Path
@@ -23,25 +26,27 @@ from torchrl_dhrl.envs import ENVS, GoalEnvError, gymnasium_id
 from torchrl_dhrl.envs.geometry import obstacle_boxes
 
 from torchrl_dhrl.diagnostics import TrainingEpisodeLog
-from torchrl_dhrl.objectives import make_optimizers
+from torchrl_dhrl.factory import (
+    DHRLAgent,
+    make_agent,
+    make_collector,
+    make_environment,
+    make_eval_policy,
+    make_high_level_buffer,
+    make_low_level_buffer,
+    make_updater,
+)
 from torchrl_dhrl.planner import LineOfSightDistance, make_edge_rule
 from torchrl_dhrl.recipe import (
     GOAL_UNIT_KEYS,
     ConfigError,
-    DHRLAgent,
     RunStart,
     agent_checkpoint_file,
     check_known_keys,
     checkpoint_file,
     derive_goal_units,
     load_checkpoint,
-    make_agent,
-    make_collector,
-    make_environment,
-    make_eval_policy,
-    make_high_level_buffer,
     make_logger,
-    make_low_level_buffer,
     policy_captured,
     resolve_speed,
     run_precisions,
@@ -49,7 +54,7 @@ from torchrl_dhrl.recipe import (
     validate_env_name,
     with_implied_keys,
 )
-from torchrl_dhrl.recipe.routing import check_components, component_arguments
+from torchrl_dhrl.recipe.routing import TARGETS, check_components, component_arguments
 from torchrl_dhrl.training import LossUpdater, available_cpus
 
 #: The configuration directory; ``config.yaml`` there is the schema of every configuration key.
@@ -265,7 +270,7 @@ def far_from_graph_threshold(cfg: dict) -> float:
 
 
 def build_environment(cfg: dict, device: torch.device, *, eval: bool = False, agent: DHRLAgent | None = None):  # noqa: A002
-    """:func:`~torchrl_dhrl.recipe.make_environment` of the configuration: ``num_envs`` training envs (seed
+    """:func:`~torchrl_dhrl.factory.make_environment` of the configuration: ``num_envs`` training envs (seed
     ``seed``, goal shifting with ``fgs.enabled``) or ``schedule.eval_episodes`` envs on the test goals (seed
     ``seed + 10000``); without ``agent``, the bare env after the goal-env contract check."""
     try:
@@ -310,7 +315,7 @@ def high_sampling_captured(cfg: dict, device: torch.device) -> bool:
 
 
 def build_agent(cfg: dict, device: torch.device) -> DHRLAgent:
-    """:func:`~torchrl_dhrl.recipe.make_agent` of the configuration: each component takes the keys of its
+    """:func:`~torchrl_dhrl.factory.make_agent` of the configuration: each component takes the keys of its
     group that are its arguments (:mod:`torchrl_dhrl.recipe.routing`); sizes from the env's specs."""
     env = build_environment(cfg, device)
     # a registered env's goal size is known only now: the subgoal box is checked against it, naming the keys
@@ -335,17 +340,13 @@ def build_agent(cfg: dict, device: torch.device) -> DHRLAgent:
     )
 
 
-#: The parts of :func:`~torchrl_dhrl.recipe.make_agent` that take their arguments from the configuration as
-#: routed (the graph and the distance get more from the recipe).
-AGENT_PARTS = (
-    "low_actor",
-    "low_critic",
-    "exploration",
-    "sqgc_loss",
-    "high_policy",
-    "high_critic",
-    "high_loss",
-    "planner",
+#: The parts of :func:`~torchrl_dhrl.factory.make_agent` that take their arguments from the configuration as
+#: routed: its keywords that are routing targets (:data:`~torchrl_dhrl.recipe.TARGETS`), read from its signature;
+#: the graph and the distance get more from the recipe.
+AGENT_PARTS = tuple(
+    name
+    for name in inspect.signature(make_agent).parameters
+    if any(name in targets for targets in TARGETS.values()) and name not in ("graph", "distance")
 )
 
 
@@ -379,10 +380,10 @@ def build_updaters(cfg: dict, agent: DHRLAgent, low_rb, high_rb) -> tuple[LossUp
     out = []
     for level, loss, rb in (("low", agent.sqgc_loss, low_rb), ("high", agent.high_loss, high_rb)):
         out.append(
-            LossUpdater(
+            make_updater(
                 loss,
                 rb,
-                make_optimizers(loss, **args[f"{level}_optimizers"]),
+                optimizers=args[f"{level}_optimizers"],
                 **args[f"{level}_updater"],
                 cudagraphs=cfg["cudagraphs"],
                 updates_per_graph=cfg.get("updates_per_graph", 1),

@@ -20,6 +20,7 @@ from torchrl_dhrl.checks import (
     number,
     vector,
 )
+from torchrl_dhrl.factory import make_high_level_buffer, make_low_level_buffer
 from torchrl_dhrl.modules import (
     GaussianUniformExplorationModule,
     GoalConditionedCritic,
@@ -29,7 +30,6 @@ from torchrl_dhrl.modules import (
 )
 from torchrl_dhrl.objectives import make_optimizers
 from torchrl_dhrl.planner import LandmarkGraph, LineOfSightDistance
-from torchrl_dhrl.recipe import make_high_level_buffer, make_low_level_buffer
 
 
 def _accepts(check, value) -> bool:

@@ -146,7 +146,7 @@ def test_capturable_planner_replayed_as_a_cuda_graph_tracks_like_the_planner(fix
 
 
 def _cuda_agent(capturable_planner):
-    from torchrl_dhrl.recipe import make_agent, make_environment
+    from torchrl_dhrl.factory import make_agent, make_environment
 
     torch.manual_seed(0)
     env = make_environment("PointMaze", CUDA, num_envs=4, seed=0, max_episode_steps=30)
@@ -174,7 +174,7 @@ def test_cudagraph_policy_collects_what_the_eager_policy_does():
     the graph built after the first and rebuilt after the second (read in place by the captured graph)."""
     from torchrl.envs.utils import ExplorationType
 
-    from torchrl_dhrl.recipe import make_collector
+    from torchrl_dhrl.factory import make_collector
 
     batches = {}
     for captured in (False, True):
@@ -200,7 +200,7 @@ def test_captured_eval_policy_evaluates_like_the_eager_policy():
     """``make_eval_policy(cudagraph_policy=True)``: the test episodes acted by the policy captured in the first
     evaluation are those of the eager policy, before the graph has landmarks, after its first build and after a
     rebuild (each evaluation from the same env state)."""
-    from torchrl_dhrl.recipe import make_environment, make_eval_policy
+    from torchrl_dhrl.factory import make_environment, make_eval_policy
     from torchrl_dhrl.training import evaluate
 
     agent, _ = _cuda_agent(True)

@@ -1,4 +1,5 @@
-"""The README's composition example runs verbatim and learns something: both levels update, a graph is built."""
+"""The README's two composition examples (the factory's and the hand-composed one) run verbatim and learn something:
+both levels update, a graph is built."""
 
 import re
 import runpy
@@ -9,14 +10,30 @@ import torch
 
 README = Path(__file__).resolve().parents[1] / "README.md"
 MARKER = "<!-- composition example: run verbatim by tests/test_readme_example.py -->"
+FACTORY_MARKER = "<!-- factory example: run verbatim by tests/test_readme_example.py -->"
 
 
-def _example() -> str:
+def _example(marker: str = MARKER) -> str:
     text = README.read_text()
-    assert MARKER in text, "the README lost its composition example marker"
-    match = re.search(r"```python\n(.*?)```", text[text.index(MARKER) :], flags=re.S)
+    assert marker in text, f"the README lost its example marker {marker}"
+    match = re.search(r"```python\n(.*?)```", text[text.index(marker) :], flags=re.S)
     assert match, "no python block after the marker"
     return match.group(1)
+
+
+def test_readme_factory_example_runs_verbatim_and_builds_the_reference_agent(tmp_path):
+    path = tmp_path / "factory_example.py"
+    path.write_text(_example(FACTORY_MARKER))
+    ns = runpy.run_path(str(path), run_name="__main__")
+    low, high = ns["updaters"]
+    assert low.num_updates == high.num_updates == 40  # 4 episodes x 10 updates of each level
+    for losses in ns["losses"]:
+        assert all(torch.isfinite(value).all() for value in losses.values())
+    agent = ns["agent"]
+    assert agent.planner.has_graph and agent.planner.num_landmarks >= 2
+    # the reference's wiring: the actor sees the waypoint relative to the achieved goal, the critics see it as is
+    assert agent.low_actor.module.relative_goal
+    assert not agent.sqgc_loss.policy_critic.module.relative_goal and not agent.sqgc_loss.graph_critic.module.relative_goal
 
 
 def test_readme_composition_example_runs_verbatim(tmp_path, capsys):

@@ -27,7 +27,7 @@ from torchrl_dhrl.data import (
     HindsightSubgoalRelabel,
     RelabelReplayBuffer,
 )
-from torchrl_dhrl.recipe import make_high_level_buffer, make_low_level_buffer
+from torchrl_dhrl.factory import make_high_level_buffer, make_low_level_buffer
 
 
 def low_level_buffer(capacity: int, window: int, **kwargs) -> RelabelReplayBuffer:

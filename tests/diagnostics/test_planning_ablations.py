@@ -14,7 +14,7 @@ def _pointmaze_agent_with_graph(**graph):
     """A small PointMaze agent and its evaluation env, its graph (``graph``: LandmarkGraph settings, 12
     landmarks) built with a stand-in for a trained critic's distance (an untrained one is about 0 everywhere:
     one landmark)."""
-    from torchrl_dhrl.recipe import make_agent, make_environment
+    from torchrl_dhrl.factory import make_agent, make_environment
 
     torch.manual_seed(0)
     spec_env = make_environment("PointMaze", "cpu", num_envs=1, max_episode_steps=20)

@@ -29,13 +29,13 @@ from torchrl_dhrl.envs import (
 )
 from torchrl_dhrl.envs.simulation import reference_engine_spec
 
+from torchrl_dhrl.factory import make_environment
 from torchrl_dhrl.recipe import (
     FORK_MUTABLE_KEYS,
     IMPLIED_WHEN_ABSENT,
     RESUME_MUTABLE_KEYS,
     ConfigError,
     check_resume_config,
-    make_environment,
     with_implied_keys,
 )
 

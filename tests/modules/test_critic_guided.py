@@ -423,7 +423,7 @@ def test_inductor_compiled_guided_policy_agrees_with_eager():
 def test_recipe_agent_with_guided_subgoals_has_no_graph_break():
     """The recipe's acting policy (``make_agent(capturable_planner=True)``) with critic-guided subgoals and the
     landmarks of its reserved fixed-size graph (``max_landmarks`` rows, a valid mask): one graph."""
-    from torchrl_dhrl.recipe import make_agent, make_environment
+    from torchrl_dhrl.factory import make_agent, make_environment
 
     env = make_environment("PointMaze", num_envs=2, seed=0, max_episode_steps=30)
     agent = make_agent(

@@ -739,7 +739,7 @@ def assert_same_collection(got, expected):
 
 
 def _agent(capturable_planner, num_cells=(16,)):
-    from torchrl_dhrl.recipe import make_agent, make_environment
+    from torchrl_dhrl.factory import make_agent, make_environment
 
     env = make_environment("PointMaze", num_envs=2, seed=0, max_episode_steps=30)
     agent = make_agent(

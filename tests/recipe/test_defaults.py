@@ -2,7 +2,7 @@
 
 Every value of the schema (``recipes/config/config.yaml``, the paper preset) that reaches a constructor argument,
 through the routing tables of :mod:`torchrl_dhrl.recipe.routing`, equals that argument's signature default, so
-that the classes composed by hand (as the README shows) and :func:`~torchrl_dhrl.recipe.make_agent` build the agent
+that the classes composed by hand (as the README shows) and :func:`~torchrl_dhrl.factory.make_agent` build the agent
 the recipe trains. The exceptions are listed below with their reason; ``goal_indices`` has no default (where the
 achieved goal sits is the env's to say).
 """
@@ -17,9 +17,9 @@ import pytest
 import torch
 from dhrl_utils import config_schema
 
+from torchrl_dhrl.factory import make_agent, make_environment
 from torchrl_dhrl.modules import GoalConditionedCritic, HighLevelPolicy, LowLevelActor
 from torchrl_dhrl.planner import LineOfSightDistance
-from torchrl_dhrl.recipe import make_agent, make_environment
 from torchrl_dhrl.recipe.routing import RENAMED, TARGETS, component_arguments
 
 #: ``target.argument`` -> why the schema's value is the recipe's choice rather than the component's default.

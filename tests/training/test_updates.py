@@ -15,9 +15,10 @@ from tensordict import TensorDict
 from torchrl.data import LazyTensorStorage, TensorDictReplayBuffer
 
 from tests.data.test_relabel_buffer import _filled_buffer
+from torchrl_dhrl.factory import make_high_level_buffer
 from torchrl_dhrl.modules import GoalConditionedCritic, HighLevelActor, LowLevelActor
 from torchrl_dhrl.objectives import HighLevelLoss, SQGCLoss, make_optimizers
-from torchrl_dhrl.recipe import ConfigError, make_high_level_buffer, validate_config
+from torchrl_dhrl.recipe import ConfigError, validate_config
 from torchrl_dhrl.training import LossUpdater, NonFiniteLossError
 from torchrl_dhrl.training import updates as updates_module
 

@@ -249,7 +249,7 @@ def graph_diagnosis(
 
     Examples:
         >>> import torch
-        >>> from torchrl_dhrl.recipe import make_agent, make_environment
+        >>> from torchrl_dhrl.factory import make_agent, make_environment
         >>> _ = torch.manual_seed(0)
         >>> cells = {"num_cells": (8,)}
         >>> agent = make_agent(make_environment("PointMaze"), goal_indices=[0, 1], high_policy={"subgoal_low": [-2.0, -2.0],

@@ -69,7 +69,7 @@ def planning_ablations(
 
     Examples:
         >>> import torch
-        >>> from torchrl_dhrl.recipe import make_agent, make_environment
+        >>> from torchrl_dhrl.factory import make_agent, make_environment
         >>> spec_env = make_environment("PointMaze", "cpu", num_envs=1, max_episode_steps=20)
         >>> agent = make_agent(spec_env, "cpu", goal_indices=[0, 1], high_policy={"subgoal_low": [-2.0, -2.0], "subgoal_high": [10.0, 10.0], "interval": 5,
         ...     "num_cells": (16,)}, high_critic={"num_cells": (16,)}, low_actor={"num_cells": (16,)},

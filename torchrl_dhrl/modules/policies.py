@@ -50,7 +50,7 @@ class HighLevelPolicy(TensorDictSequential):
       ``critic_candidates`` Gaussian perturbations of it (std ``candidate_noise``, clipped to the box) and,
       optionally, the graph's landmarks, in one call of the high-level critic, and replaces the proposal by
       the best (ties: the actor's own). It needs the ``critic`` (and ``landmarks``), given here or set on
-      :attr:`selector` later (:func:`~torchrl_dhrl.recipe.make_agent` does). It runs before the noise, which
+      :attr:`selector` later (:func:`~torchrl_dhrl.factory.make_agent` does). It runs before the noise, which
       then explores around the best candidate; eagerly it scores only in the steps where some env is issued a
       new subgoal (see :class:`CriticGuidedSubgoal`). Our improvement, off by default: the reference issues
       the actor's subgoal;

@@ -423,7 +423,7 @@ class LandmarkGraph(UnregisteredAttributes, nn.Module):
         on them as on a graph without landmarks (every plan the subgoal alone, like the graph's own empty
         buffers), and the first :meth:`build` writes into the same storage. A policy compiled or captured in a
         CUDA graph before the first build therefore reads every later graph without being recompiled or
-        captured again (:func:`~torchrl_dhrl.recipe.make_agent` reserves the graph of a capturable planner).
+        captured again (:func:`~torchrl_dhrl.factory.make_agent` reserves the graph of a capturable planner).
         The tensors are allocated where and as the builds will write them: ``obs_dim`` and ``goal_dim`` features,
         ``dtype`` (default: PyTorch's default dtype) on ``device`` (default: the graph's); a build of another
         size, dtype or device reallocates them. Reserve after moving the graph (``.to(device)`` reallocates).

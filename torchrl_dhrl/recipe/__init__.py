@@ -1,15 +1,18 @@
 """Support of the training recipe ``recipes/dhrl_antmaze.py``: the one place of the library that knows the recipe's
-configuration keys (not imported by ``import torchrl_dhrl``; pipelines compose the components directly).
+configuration keys (not imported by ``import torchrl_dhrl``; pipelines compose the components, or build the
+reference agent with :mod:`torchrl_dhrl.factory`, which the recipe calls too).
 
-``config`` (schema and value checks, :class:`ConfigError`), ``routing`` (each configuration key to the constructor
-argument of its name, the components' own checks run on them before anything is built), ``run`` (start-up, resume and fork, run directory,
-:class:`GracefulStop`, :class:`LoopTimer`, metrics files), ``checkpoint`` (one ``torchrl.checkpoint`` registry of
-everything a run carries, and the run's saved agent), ``builders`` (factories of the agent, envs, buffers, updaters, collector and logger),
-``epoch`` (the epoch end: graph rebuild, evaluation, pictures), ``plots`` and ``aggregate`` (many runs' curves),
-``protocol`` (the results protocol: success per seed over a window before each budget, in whole episodes)."""
+``schema`` (the keys, their roles on resume, fork and aggregation, :class:`ConfigError`), ``config`` (value
+checks), ``resolve`` (device, speed switches, precisions, goal units derived from the env), ``resume`` (whether a
+checkpoint's configuration may be continued), ``routing`` (each configuration key to the constructor
+argument of its name, the components' own checks run on them before anything is built), ``run`` (start-up, resume
+and fork, run directory, provenance), ``loop`` (the loop's counters, :class:`GracefulStop`, :class:`LoopTimer`,
+metrics files, logger), ``checkpoint`` (one ``torchrl.checkpoint`` registry of everything a run carries, and the
+run's saved agent), ``epoch`` (the epoch end: graph rebuild, evaluation, pictures), ``plots`` and ``aggregate``
+(many runs' curves), ``protocol`` (the results protocol: success per seed over a window before each budget, in
+whole episodes)."""
 
 from .aggregate import (
-    IGNORED_KEYS,
     RunRecord,
     aggregate_runs,
     bootstrap_iqm_ci,
@@ -17,19 +20,6 @@ from .aggregate import (
     iqm,
     plot_aggregate,
     write_aggregate_csv,
-)
-from .builders import (
-    LOW_LEVEL_KEYS,
-    DHRLAgent,
-    make_agent,
-    make_collector,
-    make_environment,
-    make_eval_policy,
-    make_high_level_buffer,
-    make_logger,
-    make_low_level_buffer,
-    make_updater,
-    observation_transforms,
 )
 from .checkpoint import (
     AGENT_COMPONENTS,
@@ -48,33 +38,7 @@ from .checkpoint import (
     save_agent,
     save_checkpoint,
 )
-from .config import (
-    BUILD_DTYPES,
-    CHOICES,
-    DISTANCES,
-    FAST_PATH,
-    FORK_MUTABLE_KEYS,
-    GOAL_UNIT_KEYS,
-    IMPLIED_WHEN_ABSENT,
-    LOGGER_BACKENDS,
-    REFERENCE_PATH,
-    RESUME_MUTABLE_KEYS,
-    SEED_MAX,
-    SWITCHES,
-    UPDATE_DTYPES,
-    ConfigError,
-    check_known_keys,
-    check_resume_config,
-    derive_goal_units,
-    describe_precisions,
-    policy_captured,
-    resolve_device,
-    resolve_speed,
-    run_precisions,
-    validate_config,
-    validate_env_name,
-    with_implied_keys,
-)
+from .config import validate_config, validate_env_name
 from .epoch import (
     epoch_of,
     evaluate_epoch,
@@ -82,6 +46,7 @@ from .epoch import (
     plot_epoch,
     rebuild_graph,
 )
+from .loop import GracefulStop, LoopTimer, RunCounters, frozen_gc, log_metrics, make_logger, write_metrics_csv
 from .plots import (
     SUCCESS_CURVE_SERIES,
     graph_path_to_goal,
@@ -91,22 +56,48 @@ from .plots import (
     success_curve_series,
 )
 from .protocol import Protocol, episodes_succeeded, report_points, summarize_point, window_success
+from .resolve import (
+    FAST_PATH,
+    REFERENCE_PATH,
+    derive_goal_units,
+    describe_precisions,
+    policy_captured,
+    resolve_device,
+    resolve_speed,
+    run_precisions,
+)
+from .resume import check_resume_config
 from .routing import RECIPE_KEYS, RENAMED, TARGETS, ConfigRoutingError, check_components, component_arguments
 from .run import (
     CONFIG_NAME,
     PROVENANCE_NAME,
     RESUME_AUTO,
-    GracefulStop,
-    LoopTimer,
-    RunCounters,
     RunStart,
     describe_start,
-    frozen_gc,
-    log_metrics,
     read_provenance,
     start_run,
-    write_metrics_csv,
     write_run_dir,
+)
+from .schema import (
+    BUILD_DTYPES,
+    CHOICES,
+    DISTANCES,
+    FORK_MUTABLE_KEYS,
+    GOAL_UNIT_KEYS,
+    IGNORED_KEYS,
+    IMPLIED_WHEN_ABSENT,
+    KEY_ROLES,
+    LOGGER_BACKENDS,
+    RESOLVED_KEYS,
+    RESUME_MUTABLE_KEYS,
+    ROLES,
+    SEED_MAX,
+    SWITCHES,
+    UPDATE_DTYPES,
+    ConfigError,
+    check_known_keys,
+    keys_with_role,
+    with_implied_keys,
 )
 
 __all__ = [
@@ -127,15 +118,17 @@ __all__ = [
     "CheckpointError",
     "CollectorCheckpointAdapter",
     "ConfigError",
-    "DHRLAgent",
     "DISTANCES",
     "FAST_PATH",
     "FORK_MUTABLE_KEYS",
     "GracefulStop",
     "IGNORED_KEYS",
+    "KEY_ROLES",
+    "RESOLVED_KEYS",
+    "ROLES",
+    "keys_with_role",
     "IMPLIED_WHEN_ABSENT",
     "LOGGER_BACKENDS",
-    "LOW_LEVEL_KEYS",
     "LoopTimer",
     "RESUME_AUTO",
     "RESUME_MUTABLE_KEYS",
@@ -165,16 +158,8 @@ __all__ = [
     "iqm",
     "load_checkpoint",
     "log_metrics",
-    "make_agent",
     "make_checkpoint",
-    "make_collector",
-    "make_environment",
-    "make_eval_policy",
-    "make_high_level_buffer",
     "make_logger",
-    "make_low_level_buffer",
-    "make_updater",
-    "observation_transforms",
     "plot_aggregate",
     "plot_distance_scatter",
     "plot_episode",

@@ -25,12 +25,10 @@ import yaml
 from matplotlib.figure import Figure
 from scipy.stats import trim_mean
 
-from .config import with_implied_keys
 from .run import read_provenance
+from .schema import IGNORED_KEYS, RESOLVED_KEYS, with_implied_keys
 
 __all__ = [
-    "IGNORED_KEYS",
-    "RESOLVED_KEYS",
     "RunRecord",
     "aggregate_runs",
     "bootstrap_iqm_ci",
@@ -40,33 +38,6 @@ __all__ = [
     "write_aggregate_csv",
 ]
 
-#: Dotted configuration keys (``fnmatch`` patterns) that never make a variant: the seed and how a run was
-#: run (paths, length, threads, device, compilation, logging, pictures, checkpoints).
-IGNORED_KEYS = (
-    "seed",
-    "run_dir",
-    "resume",
-    "total_steps",
-    "progress",
-    "threads",
-    "device",
-    "step_threads",
-    "fast",
-    "cudagraphs",
-    "updates_per_graph",
-    "compile",
-    "capture_sampling",
-    "high.capture_sampling",
-    "compile_policy",
-    "cudagraph_policy",
-    "logger.*",
-    "plots.*",
-    "checkpoint.*",
-    "hydra.*",
-)
-#: Keys whose ``auto`` is resolved per machine: a run's variant holds what they resolved to, where its
-#: provenance (:data:`~torchrl_dhrl.recipe.PROVENANCE_NAME`) says so alike for every start.
-RESOLVED_KEYS = ("update_dtype", "planner.build_dtype")
 #: Where a run directory may keep its configuration, in the order they are tried.
 CONFIG_FILES = ("config.yaml", ".hydra/config.yaml", "hydra/.hydra/config.yaml")
 

@@ -246,7 +246,7 @@ def make_checkpoint(
 
     Keyword Args:
         config (Mapping): the run's configuration (JSON; saved, checked before resuming, not restored).
-        agent: a :class:`~torchrl_dhrl.recipe.DHRLAgent` (or anything with ``state_dict`` /
+        agent: a :class:`~torchrl_dhrl.factory.DHRLAgent` (or anything with ``state_dict`` /
             ``load_state_dict`` holding the networks, their targets and the graph).
         low_updater, high_updater: the :class:`~torchrl_dhrl.training.LossUpdater` of each level.
         low_rb, high_rb: the replay buffers (saved through their ``state_dict``: the written rows of a

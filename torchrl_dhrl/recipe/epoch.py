@@ -136,7 +136,7 @@ def evaluate_epoch(
 
     Keyword Args:
         policy (TensorDictModuleBase, optional): what acts in the test episodes, e.g. the agent's policy captured
-            as a CUDA graph (:func:`~torchrl_dhrl.recipe.make_eval_policy`). Defaults to ``agent.policy``.
+            as a CUDA graph (:func:`~torchrl_dhrl.factory.make_eval_policy`). Defaults to ``agent.policy``.
 
     Returns:
         ``(metrics, result)``: the metrics and the main evaluation's
@@ -144,7 +144,7 @@ def evaluate_epoch(
 
     Examples:
         >>> import torch
-        >>> from torchrl_dhrl.recipe import make_agent, make_environment
+        >>> from torchrl_dhrl.factory import make_agent, make_environment
         >>> _ = torch.manual_seed(0)
         >>> env = make_environment("PointMaze", max_episode_steps=20)
         >>> agent = make_agent(env, goal_indices=[0, 1], high_policy={"subgoal_low": [-2.0, -2.0], "subgoal_high": [10.0, 10.0], "interval": 5,

@@ -22,6 +22,7 @@ from typing import Any
 
 from torchrl_dhrl.checks import argument_names, check_arguments
 from torchrl_dhrl.envs import GymnasiumGoalEnv
+from torchrl_dhrl.factory import make_high_level_buffer, make_low_level_buffer
 from torchrl_dhrl.modules import (
     GaussianUniformExplorationModule,
     GoalConditionedCritic,
@@ -38,8 +39,6 @@ from torchrl_dhrl.planner import (
     make_edge_rule,
 )
 from torchrl_dhrl.training import LossUpdater
-
-from .builders import make_high_level_buffer, make_low_level_buffer
 
 __all__ = [
     "RECIPE_KEYS",

@@ -1,36 +1,30 @@
-"""Starting, stopping and recording a training run: start-up checks, graceful stops, metrics files.
+"""Starting a training run: start-up checks, resume and fork, the run directory and its provenance.
 
 :func:`start_run` checks everything that can be checked before a run builds or writes anything (the
 configuration, the device, the checkpoint to resume, the run directory, offscreen rendering) and prepares
 the run; :func:`write_run_dir` writes its configuration and appends what the start runs on and with to its
-provenance (:func:`describe_start`); :class:`GracefulStop` turns SIGINT and SIGTERM into a stop at the end of the
-current batch; :func:`log_metrics` and :func:`write_metrics_csv` record an epoch's metrics.
+provenance (:func:`describe_start`). The loop's own machinery (counters, stops, timer, metrics) is in
+:mod:`torchrl_dhrl.recipe.loop`.
 """
 
 from __future__ import annotations
 
 import contextlib
-import copy
-import csv
-import dataclasses
 import datetime
-import gc
 import importlib.metadata
 import os
 import platform
 import shlex
-import signal
 import subprocess
 import sys
-import time
-from collections.abc import Mapping, Sequence
+from collections.abc import Mapping
 from pathlib import Path
 from typing import Any, NamedTuple
 
 import torch
 import yaml
 
-from torchrl_dhrl.training import AdaptiveThreads, ModuleTimer, native_bfloat16, start_threads
+from torchrl_dhrl.training import AdaptiveThreads, native_bfloat16, start_threads
 
 from .checkpoint import (
     CHECKPOINT_COMPONENTS,
@@ -39,106 +33,21 @@ from .checkpoint import (
     load_checkpoint,
     recover_checkpoint,
 )
-from .config import (
-    FORK_MUTABLE_KEYS,
-    ConfigError,
-    _dtype_name,
-    check_known_keys,
-    check_resume_config,
-    describe_precisions,
-    resolve_device,
-    resolve_speed,
-    run_precisions,
-    validate_config,
-)
+from .config import validate_config
+from .resolve import _dtype_name, describe_precisions, resolve_device, resolve_speed, run_precisions
+from .resume import check_resume_config
+from .schema import FORK_MUTABLE_KEYS, ConfigError, check_known_keys
 
 __all__ = [
     "CONFIG_NAME",
     "PROVENANCE_NAME",
     "RESUME_AUTO",
-    "GracefulStop",
-    "LoopTimer",
-    "RunCounters",
     "RunStart",
     "describe_start",
-    "frozen_gc",
-    "log_metrics",
     "read_provenance",
     "start_run",
     "write_run_dir",
-    "write_metrics_csv",
 ]
-
-@dataclasses.dataclass
-class RunCounters:
-    """Where a run stands: what the training loop counts, checkpointed as JSON (``state_dict``).
-
-    Attributes:
-        env_steps (int): env steps collected, the random warm-up included (the x axis of every curve).
-        episodes (int): training episodes finished.
-        epochs (int): epochs finished (the first epochs of the warm-up included).
-        graph_builds (int): graph rebuilds.
-        wall_s (float): seconds of training, resumes included.
-        untrained_steps (int): env steps of the warm-up without updates (the update-to-data ratios count the
-            steps after them).
-        train_episodes (dict, optional): the :class:`~torchrl_dhrl.diagnostics.TrainingEpisodeLog` state of the
-            running epoch.
-        forks (list of dict): the checkpoints this run was forked from, with the env steps and seed.
-
-    Examples:
-        >>> from torchrl_dhrl.recipe import RunCounters
-        >>> counters = RunCounters(env_steps=600, episodes=1)
-        >>> restored = RunCounters()
-        >>> restored.load_state_dict(counters.state_dict())
-        >>> restored == counters
-        True
-    """
-
-    env_steps: int = 0
-    episodes: int = 0
-    epochs: int = 0
-    graph_builds: int = 0
-    wall_s: float = 0.0
-    untrained_steps: int = 0
-    train_episodes: dict | None = None
-    forks: list = dataclasses.field(default_factory=list)
-
-    def state_dict(self) -> dict[str, Any]:
-        return dataclasses.asdict(self)
-
-    def load_state_dict(self, state: Mapping[str, Any]) -> None:
-        """Restores the counters; keys a checkpoint does not hold (older versions) keep their defaults."""
-        fields = {field.name for field in dataclasses.fields(self)}
-        unknown = set(state) - fields
-        if unknown:
-            raise KeyError(f"Unknown run counters {sorted(unknown)}; known: {sorted(fields)}.")
-        defaults = RunCounters()
-        for name in fields:
-            setattr(self, name, copy.deepcopy(state.get(name, getattr(defaults, name))))
-
-
-@contextlib.contextmanager
-def frozen_gc():
-    """Moves every object alive now (torch, Hydra, the agent, buffers, envs: about 0.5M objects in a run) out of the
-    cyclic garbage collector's reach for the ``with`` block, so that its full collections stop walking them (they
-    took 6% of a PointMaze quick run's first 12k steps, 2.7% with the freeze). Reference counting still frees them.
-
-    Examples:
-        >>> import gc
-        >>> from torchrl_dhrl.recipe import frozen_gc
-        >>> with frozen_gc():
-        ...     gc.get_freeze_count() > 0
-        True
-        >>> gc.get_freeze_count()
-        0
-    """
-    gc.collect()
-    gc.freeze()
-    try:
-        yield
-    finally:
-        gc.unfreeze()
-
 
 #: The run's configuration, as :func:`start_run` writes it into the run directory (YAML).
 CONFIG_NAME = "config.yaml"
@@ -483,130 +392,3 @@ def _check_offscreen_rendering() -> None:
         ) from err
 
 
-class GracefulStop:
-    """SIGINT (Ctrl-C) and SIGTERM (a job scheduler's stop) ask a training loop to stop at the end of its batch.
-
-    The first signal sets :attr:`requested`: the loop finishes the batch's updates (and its epoch end),
-    then checkpoints and exits, so the checkpoint sits at a batch boundary and a resumed run continues
-    exactly. An exception raised at an arbitrary point instead (Python's default for SIGINT) could land
-    inside ``TensorDict.to_module``, whose exit turns it into a ``RuntimeError`` and skips the checkpoint.
-    A second signal stops at once (``KeyboardInterrupt``). :meth:`restore` (or leaving the ``with`` block)
-    puts the previous handlers back. Outside the main thread no handler is installed.
-
-    Examples:
-        >>> import signal
-        >>> before = signal.getsignal(signal.SIGTERM)
-        >>> with GracefulStop() as stop:
-        ...     signal.getsignal(signal.SIGTERM) == stop._handle, stop.requested
-        (True, False)
-        >>> signal.getsignal(signal.SIGTERM) is before
-        True
-    """
-
-    SIGNALS = (signal.SIGINT, signal.SIGTERM)
-
-    def __init__(self) -> None:
-        self.requested = False
-        self._previous = {}
-        for signum in self.SIGNALS:
-            try:
-                self._previous[signum] = signal.signal(signum, self._handle)
-            except ValueError:  # not in the main thread: no handler, default behaviour
-                pass
-
-    def _handle(self, signum, frame) -> None:
-        if self.requested:
-            raise KeyboardInterrupt
-        self.requested = True
-        name = signal.Signals(signum).name
-        print(
-            f"\n{name}: stopping after this batch's updates with a checkpoint (send it again to stop now).",
-            file=sys.stderr,
-            flush=True,
-        )
-
-    def restore(self) -> None:
-        for signum, handler in self._previous.items():
-            signal.signal(signum, handler)
-        self._previous = {}
-
-    def __enter__(self) -> GracefulStop:
-        return self
-
-    def __exit__(self, *exc) -> None:
-        self.restore()
-
-
-class LoopTimer:
-    """The wall-clock time a training loop spends collecting and updating in this process, with the share of
-    ``module``'s calls (the planner's, while acting).
-
-    :meth:`lap` adds the time since the previous lap to a phase (``"collect"``, ``"update"``; none: untimed);
-    :meth:`metrics` reports them, with the env steps per second of this process since ``env_steps`` (a
-    resumed run counts from its checkpoint).
-
-    Examples:
-        >>> timer = LoopTimer(env_steps=80)
-        >>> timer.lap("collect"); timer.lap("update")
-        >>> sorted(timer.metrics(env_steps=160))
-        ['env_steps_per_s', 'time/collect_s', 'time/update_s']
-    """
-
-    def __init__(self, module: torch.nn.Module | None = None, *, env_steps: int = 0) -> None:
-        self.seconds = {"collect": 0.0, "update": 0.0}
-        self.module_timer = ModuleTimer(module) if module is not None else None
-        self.start_steps = env_steps
-        self._last = time.perf_counter()
-
-    def lap(self, phase: str | None = None) -> None:
-        now = time.perf_counter()
-        if phase is not None:
-            self.seconds[phase] += now - self._last
-        self._last = now
-
-    def metrics(self, env_steps: int) -> dict[str, float]:
-        """``time/planner_ms_per_call`` (since the last call; with a module), ``time/collect_s``,
-        ``time/update_s`` and ``env_steps_per_s`` (collection and updates only)."""
-        metrics = {}
-        if self.module_timer is not None:
-            seconds, calls = self.module_timer.pop()
-            metrics["time/planner_ms_per_call"] = 1e3 * seconds / max(calls, 1)
-        metrics["time/collect_s"] = self.seconds["collect"]
-        metrics["time/update_s"] = self.seconds["update"]
-        busy = self.seconds["collect"] + self.seconds["update"]
-        metrics["env_steps_per_s"] = (env_steps - self.start_steps) / max(busy, 1e-9)
-        return metrics
-
-
-def log_metrics(logger, metrics: Mapping[str, float], step: int) -> None:
-    """Logs every metric as a scalar at ``step`` (nothing when ``logger`` is ``None``).
-
-    Examples:
-        >>> log_metrics(None, {"eval/success": 1.0}, step=80)
-    """
-    if logger is None:
-        return
-    for key, value in metrics.items():
-        logger.log_scalar(key, float(value), step=step)
-
-
-def write_metrics_csv(history: Sequence[Mapping[str, Any]], path: str | os.PathLike) -> Path:
-    """Writes one row per epoch (the union of the keys, sorted, ``env_steps`` and ``epoch`` first),
-    atomically (a temporary file, then renamed).
-
-    Examples:
-        >>> import tempfile
-        >>> from pathlib import Path
-        >>> path = write_metrics_csv([{"env_steps": 80, "epoch": 1, "eval/success": 0.5}], Path(tempfile.mkdtemp()) / "m.csv")
-        >>> path.read_text().splitlines()[0]
-        'env_steps,epoch,eval/success'
-    """
-    path = Path(path)
-    keys = sorted({k for h in history for k in h}, key=lambda k: (k not in ("epoch", "env_steps"), k))
-    tmp = path.with_suffix(".tmp")
-    with tmp.open("w", newline="") as file:
-        writer = csv.DictWriter(file, fieldnames=keys)
-        writer.writeheader()
-        writer.writerows(history)
-    tmp.replace(path)
-    return path

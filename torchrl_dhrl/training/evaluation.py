@@ -116,7 +116,7 @@ def goal_as_subgoal(
     """The acting policy with the high level's subgoal replaced by the final goal: the graph plans to the goal.
 
     ``policy`` is an acting policy ``TensorDictSequential(high_policy, planner, low_policy)`` (as
-    :func:`~torchrl_dhrl.recipe.make_agent` builds it); a module copying ``goal_key`` into the planner's
+    :func:`~torchrl_dhrl.factory.make_agent` builds it); a module copying ``goal_key`` into the planner's
     ``subgoal_key`` is inserted right before ``planner``, so the high level keeps its cadence (its
     ``new_subgoal`` flags still trigger a replan every ``c_h`` steps) but the planner routes to the goal
     itself. Evaluated next to the full agent, it tells a high level whose subgoals lead astray from a
@@ -125,7 +125,7 @@ def goal_as_subgoal(
 
     Examples:
         >>> import torch
-        >>> from torchrl_dhrl.recipe import make_agent, make_environment
+        >>> from torchrl_dhrl.factory import make_agent, make_environment
         >>> spec_env = make_environment("PointMaze", "cpu", num_envs=1, max_episode_steps=20)
         >>> agent = make_agent(spec_env, "cpu", goal_indices=[0, 1], high_policy={"subgoal_low": [-2.0, -2.0], "subgoal_high": [10.0, 10.0], "interval": 5,
         ...     "num_cells": (16,)}, high_critic={"num_cells": (16,)}, low_actor={"num_cells": (16,)},

@@ -1,7 +1,24 @@
-"""Factories of a DHRL run's TorchRL objects: env, agent, replay buffers, updaters, collector, logger.
+"""Factories of the reference DHRL agent and of the TorchRL objects that train it: env, agent, replay buffers,
+updaters, collector.
 
-They take explicit arguments; the recipe (``recipes/dhrl_antmaze.py``, through ``recipes/dhrl_utils.py``)
-maps its configuration onto them (see ``recipes/config/`` for the keys and the reference values).
+They know no configuration key: each takes its components' own keyword arguments, passed on as they are (the
+components' defaults are the reference implementation's), and adds the wiring between them (sizes from the env's
+specs, the tensordict keys of each level, the SQGC critic pairs, the planner's distance over the graph critics).
+The recipe (``recipes/dhrl_antmaze.py``) maps its configuration onto the same functions.
+
+Examples:
+    >>> import torchrl_dhrl as dhrl
+    >>> env = dhrl.make_environment("PointMaze", num_envs=2, max_episode_steps=20)
+    >>> agent = dhrl.make_agent(env, goal_indices=dhrl.goal_indices_of(env),
+    ...     high_policy={"subgoal_low": [-2.0, -2.0], "subgoal_high": [10.0, 10.0], "interval": 10})
+    >>> low_rb = dhrl.make_low_level_buffer(buffer_size=10_000, batch_size=64, reward_threshold=0.5)
+    >>> high_rb = dhrl.make_high_level_buffer(
+    ...     buffer_size=1_000, batch_size=16, reward_threshold=0.5, planner=agent.planner)
+    >>> low = dhrl.make_updater(agent.sqgc_loss, low_rb)
+    >>> collector = dhrl.make_collector(dhrl.make_environment("PointMaze", num_envs=2, max_episode_steps=20,
+    ...     agent=agent), agent, episode_length=20)
+    >>> next(iter(collector)).batch_size
+    torch.Size([2, 20])
 """
 
 from __future__ import annotations
@@ -9,7 +26,6 @@ from __future__ import annotations
 import functools
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass
-from pathlib import Path
 from typing import Any
 
 import torch
@@ -55,7 +71,6 @@ __all__ = [
     "make_environment",
     "make_eval_policy",
     "make_high_level_buffer",
-    "make_logger",
     "make_low_level_buffer",
     "make_updater",
     "observation_transforms",
@@ -178,7 +193,7 @@ def make_agent(
             that does not match the goal space, ``relative_goal`` without ``goal_indices``).
 
     Examples:
-        >>> from torchrl_dhrl.recipe import make_environment
+        >>> from torchrl_dhrl.factory import make_environment
         >>> env = make_environment("PointMaze")
         >>> agent = make_agent(
         ...     env,
@@ -434,7 +449,7 @@ def make_eval_policy(
             without reserved fixed-size planning tensors.
 
     Examples:
-        >>> from torchrl_dhrl.recipe import make_agent, make_environment
+        >>> from torchrl_dhrl.factory import make_agent, make_environment
         >>> env = make_environment("PointMaze", max_episode_steps=20)
         >>> agent = make_agent(env, goal_indices=[0, 1], high_policy={"subgoal_low": [-2.0, -2.0],
         ...     "subgoal_high": [10.0, 10.0], "interval": 5, "num_cells": (16,)})
@@ -575,50 +590,26 @@ def make_updater(
     loss: LossModule,
     replay_buffer: ReplayBuffer,
     *,
-    actor_lr: float,
-    critic_lr: float,
+    optimizers: Mapping[str, Any] | None = None,
     **kwargs,
 ) -> LossUpdater:
     """A :class:`~torchrl_dhrl.training.LossUpdater` of ``loss`` on ``replay_buffer``'s samples, with the two Adam
-    optimisers of :func:`~torchrl_dhrl.objectives.make_optimizers` (``actor_lr``, ``critic_lr``).
+    optimisers of :func:`~torchrl_dhrl.objectives.make_optimizers`.
 
     Keyword Args:
-        **kwargs: those of :class:`~torchrl_dhrl.training.LossUpdater` (``polyak``, ``target_update_interval``,
-            ``cudagraphs``, ``autocast_dtype``, ...).
-    """
-    optimizers = make_optimizers(loss, actor_lr=actor_lr, critic_lr=critic_lr)
-    return LossUpdater(loss, replay_buffer, optimizers, **kwargs)
-
-
-def make_logger(
-    backend: str,
-    exp_name: str,
-    run_dir: str | Path,
-    *,
-    project: str | None = None,
-    wandb_mode: str = "offline",
-    group: str | None = None,
-):
-    """A TorchRL logger: ``"csv"`` (files under ``run_dir/logs``), ``"wandb"`` (offline unless
-    ``wandb_mode="online"``; the runs of one sweep share ``group``) or ``"tensorboard"``; ``None`` for ``"none"``.
+        optimizers (mapping, optional): :func:`~torchrl_dhrl.objectives.make_optimizers`'s arguments (``actor_lr``,
+            ``critic_lr``, ``fused``); its defaults are the reference's learning rates (1e-4 and 1e-3).
+        **kwargs: those of :class:`~torchrl_dhrl.training.LossUpdater` (``polyak``, ``actor_update_interval``,
+            ``cudagraphs``, ``autocast_dtype``, ...); its defaults are the reference's.
 
     Examples:
-        >>> import tempfile
-        >>> type(make_logger("csv", "dhrl", tempfile.mkdtemp())).__name__, make_logger("none", "dhrl", ".")
-        ('CSVLogger', None)
+        >>> import torchrl_dhrl as dhrl
+        >>> env = dhrl.make_environment("PointMaze", max_episode_steps=20)
+        >>> agent = dhrl.make_agent(env, goal_indices=[0, 1], high_policy={"subgoal_low": [-2.0, -2.0],
+        ...     "subgoal_high": [10.0, 10.0], "interval": 5, "num_cells": (16,)})
+        >>> rb = dhrl.make_low_level_buffer(buffer_size=1000, batch_size=32, reward_threshold=0.5)
+        >>> updater = make_updater(agent.sqgc_loss, rb, optimizers={"critic_lr": 3e-4})
+        >>> updater.optimizers["critic"].param_groups[0]["lr"]
+        0.0003
     """
-    from torchrl.record.loggers import CSVLogger, TensorboardLogger, WandbLogger
-
-    log_dir = str(Path(run_dir) / "logs")
-    if backend == "csv":
-        return CSVLogger(exp_name, log_dir=log_dir)
-    if backend == "tensorboard":
-        return TensorboardLogger(exp_name, log_dir=log_dir)
-    if backend == "wandb":
-        extra = {"group": group} if group else {}
-        return WandbLogger(
-            exp_name, offline=wandb_mode != "online", save_dir=log_dir, project=project, **extra
-        )
-    if backend == "none":
-        return None
-    raise ValueError(f"Unknown logger backend {backend!r}: csv, wandb, tensorboard or none.")
+    return LossUpdater(loss, replay_buffer, make_optimizers(loss, **(optimizers or {})), **kwargs)

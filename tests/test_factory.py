@@ -22,7 +22,7 @@ def test_acting_policy_has_no_graph_break_with_a_capturable_planner():
 
 
 def test_make_collector_compile_policy_needs_a_capturable_planner():
-    from torchrl_dhrl.recipe import make_collector
+    from torchrl_dhrl.factory import make_collector
 
     agent, env = _agent(False)
     with pytest.raises(ValueError, match="`compile_policy` needs a capturable planner"):
@@ -33,7 +33,7 @@ def test_make_collector_compile_policy_needs_a_capturable_planner():
 def test_capturable_agent_plans_on_a_graph_reserved_before_its_first_build():
     """``make_agent(capturable_planner=True)`` reserves the fixed-size graph: planning tensors before any landmark
     (the plans of no graph) and the first build of the planner from float32 candidates writes into them."""
-    from torchrl_dhrl.recipe import make_agent, make_environment
+    from torchrl_dhrl.factory import make_agent, make_environment
 
     env = make_environment("PointMaze", num_envs=2, seed=0, max_episode_steps=30)
     kwargs = {
@@ -64,7 +64,7 @@ def test_high_level_updates_sample_with_the_capture_safe_sampler_on_a_reserved_g
     """The recipe's high-level buffer on a planner with a reserved fixed-size graph offers the capture-safe sampler
     (gradual penalty included), and the updater trains with it (``capture_sampling=True``, the form the CUDA graphs
     capture); on a graph that is not fixed-size the sampler is refused, saying why."""
-    from torchrl_dhrl.recipe import make_collector, make_high_level_buffer, make_updater
+    from torchrl_dhrl.factory import make_collector, make_high_level_buffer, make_updater
 
     for fixed in (True, False):
         agent, env = _agent(fixed)
@@ -79,8 +79,7 @@ def test_high_level_updates_sample_with_the_capture_safe_sampler_on_a_reserved_g
         updater = make_updater(
             agent.high_loss,
             rb,
-            actor_lr=1e-3,
-            critic_lr=1e-3,
+            optimizers={"actor_lr": 1e-3, "critic_lr": 1e-3},
             capture_sampling=True,
             actor_after_critic_step=False,
         )
@@ -97,7 +96,7 @@ def test_high_level_updates_sample_with_the_capture_safe_sampler_on_a_reserved_g
 def test_make_collector_cudagraph_policy_refusals():
     """``cudagraph_policy`` needs a capturable planner on a reserved graph and the env on CUDA; the refusals name
     what is missing (on a CUDA machine the capture itself is tested in tests/test_cuda.py)."""
-    from torchrl_dhrl.recipe import make_collector
+    from torchrl_dhrl.factory import make_collector
 
     agent, env = _agent(False)
     with pytest.raises(ValueError, match="`cudagraph_policy` needs a capturable planner"):
@@ -108,7 +107,7 @@ def test_make_collector_cudagraph_policy_refusals():
 
 
 def test_make_eval_policy_is_the_agents_policy_or_refuses_a_capture_it_cannot_make():
-    from torchrl_dhrl.recipe import make_eval_policy
+    from torchrl_dhrl.factory import make_eval_policy
 
     agent, _ = _agent(False)
     assert make_eval_policy(agent) is agent.policy and make_eval_policy(agent, cudagraph_policy=False) is agent.policy
@@ -148,7 +147,7 @@ def test_compiled_collector_collects_what_the_eager_one_does():
     collector with the host-branching planner (inductor's random ops falling back to eager's)."""
     from torch._inductor import config as inductor_config
 
-    from torchrl_dhrl.recipe import make_collector
+    from torchrl_dhrl.factory import make_collector
 
     batches = {}
     for compiled in (False, True):

@@ -1,0 +1,90 @@
+"""Whether a checkpoint's configuration may be continued (resume) or branched from (fork) by the current one."""
+
+from __future__ import annotations
+
+import fnmatch
+from collections.abc import Mapping
+from typing import Any
+
+from .schema import IMPLIED_WHEN_ABSENT, RESUME_MUTABLE_KEYS, ConfigError, _flatten
+
+__all__ = ["check_resume_config"]
+
+
+def _short(value: Any, width: int = 40) -> str:
+    text = repr(value)
+    return text if len(text) <= width else text[: width - 3] + "..."
+
+
+def check_resume_config(
+    saved: Mapping,
+    current: Mapping,
+    *,
+    mutable: tuple[str, ...] = RESUME_MUTABLE_KEYS,
+    what: str = "the checkpoint",
+    action: str = "resume",
+) -> list[str]:
+    """Compares a checkpoint's configuration with the one resuming it.
+
+    Keys matching a pattern of ``mutable`` (:data:`RESUME_MUTABLE_KEYS` by default: run length, outputs,
+    logging, device and speed settings) may differ; any other key that both configurations hold must
+    have the same value, or the resumed run would not be the one that was checkpointed (and would often
+    fail loading it, e.g. other network sizes). A key of :data:`IMPLIED_WHEN_ABSENT` that the checkpoint
+    predates is compared with the value the checkpoint was trained with. Other keys only one side holds (a
+    checkpoint written before a key existed, or after one was removed) are not an error: the current value
+    is used and reported.
+
+    Args:
+        saved (Mapping): the configuration stored in the checkpoint (under ``"config"``).
+        current (Mapping): the configuration of the resuming run.
+
+    Keyword Args:
+        mutable (tuple of str): patterns of the keys that may differ. Defaults to
+            :data:`RESUME_MUTABLE_KEYS`.
+        what (str): how the error message names the checkpoint. Defaults to ``"the checkpoint"``.
+        action (str): the configuration key that continues the checkpoint, for the error message: ``"resume"``
+            (the default) or ``"fork"`` (with ``mutable=FORK_MUTABLE_KEYS``).
+
+    Returns:
+        one ``"key: old -> new"`` note per allowed difference (empty when nothing differs).
+
+    Raises:
+        ConfigError: listing every key that differs but may not, with both values, and the keys that may.
+
+    Examples:
+        >>> saved = {"seed": 0, "total_steps": 480, "low": {"hidden": [32, 32]}}
+        >>> check_resume_config(saved, {"seed": 0, "total_steps": 960, "low": {"hidden": [32, 32]}})
+        ['total_steps: 480 -> 960']
+        >>> try:
+        ...     check_resume_config(saved, {"seed": 0, "total_steps": 960, "low": {"hidden": [64]}})
+        ... except ConfigError as err:
+        ...     print(str(err)[:88])
+        The checkpoint was trained with another configuration: low.hidden [32, 32] -> [64] ...
+    """
+    old, new = _flatten(saved), _flatten(current)
+    # a checkpoint older than a key of IMPLIED_WHEN_ABSENT: the value it was trained with
+    old |= {key: value for key, value in IMPLIED_WHEN_ABSENT.items() if key in new and key not in old}
+    allowed, forbidden = [], []
+    for key in sorted(old.keys() & new.keys()):
+        if old[key] == new[key]:
+            continue
+        change = f"{key} {_short(old[key])} -> {_short(new[key])}"
+        if any(fnmatch.fnmatchcase(key, pattern) for pattern in mutable):
+            allowed.append(change.replace(" ", ": ", 1))
+        else:
+            forbidden.append(change)
+    if forbidden:
+        listed = "; ".join(forbidden[:6]) + (f"; and {len(forbidden) - 6} more" if len(forbidden) > 6 else "")
+        raise ConfigError(
+            f"{what[:1].upper()}{what[1:]} was trained with another configuration: {listed} "
+            f"(saved -> now). On {action} only {', '.join(mutable)} may change; set the others back, or start "
+            f"a new run without `{action}`."
+        )
+    allowed += [
+        f"{key}: not in the checkpoint, {_short(new[key])} now" for key in sorted(new.keys() - old.keys())
+    ]
+    allowed += [
+        f"{key}: {_short(old[key])} in the checkpoint, no longer a key"
+        for key in sorted(old.keys() - new.keys())
+    ]
+    return allowed
