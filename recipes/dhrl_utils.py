@@ -273,22 +273,18 @@ def build_environment(cfg: dict, device: torch.device, *, eval: bool = False, ag
     """:func:`~torchrl_dhrl.factory.make_environment` of the configuration: ``num_envs`` training envs (seed
     ``seed``, goal shifting with ``fgs.enabled``) or ``schedule.eval_episodes`` envs on the test goals (seed
     ``seed + 10000``); without ``agent``, the bare env after the goal-env contract check."""
+    args = component_arguments(cfg)
+    env_args = {**args["environment"], "goal_indices": goal_indices(cfg)}
+    if eval:  # the test episodes: one env each, on their own seeds
+        env_args |= {"num_envs": cfg["schedule"]["eval_episodes"], "seed": cfg["seed"] + 10_000}
     try:
         return make_environment(
-            cfg["env_name"],
-            device,
-            num_envs=cfg["schedule"]["eval_episodes"] if eval else cfg["num_envs"],
-            seed=cfg["seed"] + (10_000 if eval else 0),
+            device=device,
             eval=eval,
-            max_episode_steps=cfg["episode_length"],
-            goal_indices=goal_indices(cfg),
-            angle_features=cfg.get("angle_features"),
             agent=agent,
-            goal_shifting=component_arguments(cfg)["goal_shifting"] if cfg["fgs"]["enabled"] and not eval else None,
-            right_flipped_after=cfg.get("right_flipped_after"),
-            reference_engine=cfg.get("reference_engine", False),
-            step_threads=cfg.get("step_threads", 1),
+            goal_shifting=args["goal_shifting"] if cfg["fgs"]["enabled"] and not eval else None,
             env_kwargs=gymnasium_kwargs(cfg, eval=eval),
+            **env_args,
         )
     except GoalEnvError as err:  # the adapter's arguments named as the `gymnasium` keys
         message = str(err).replace("`make_kwargs`", "`gymnasium.make_kwargs`")

@@ -1,5 +1,6 @@
-"""The recipe's acting policy and collector with the capturable planner: no graph break in the policy, the
-collector's ``compile_policy`` and the recipe's key."""
+"""torchrl_dhrl.factory: the acting policy and collector with the capturable planner (no graph break in the policy,
+the collector's ``compile_policy`` and ``cudagraph_policy``), the capture-safe high-level sampler, and
+``make_environment``'s argument checks."""
 
 import pytest
 import torch
@@ -122,25 +123,6 @@ def test_make_eval_policy_is_the_agents_policy_or_refuses_a_capture_it_cannot_ma
         make_eval_policy(unreserved, cudagraph_policy=True)
 
 
-def test_cudagraph_policy_key_is_validated():
-    from _recipe import recipe_config
-
-    from torchrl_dhrl.recipe import RESUME_MUTABLE_KEYS, ConfigError, policy_captured, validate_config
-
-    assert "cudagraph_policy" in RESUME_MUTABLE_KEYS  # same plans: a resumed run may switch it
-    with pytest.raises(ConfigError, match="`cudagraph_policy` must be true or false, got 'yes'"):
-        validate_config(recipe_config("env=PointMaze", "device=cpu", "cudagraph_policy=yes"))
-    with pytest.raises(
-        ConfigError, match="`cudagraph_policy=true` needs a CUDA device, but `device` resolves to cpu"
-    ):
-        validate_config(recipe_config("env=PointMaze", "device=cpu", "cudagraph_policy=true"))
-    cfg = recipe_config("env=PointMaze", "device=cpu")
-    assert cfg["cudagraph_policy"] is False and not policy_captured(cfg)
-    assert policy_captured({**cfg, "cudagraph_policy": True}) and policy_captured(
-        {**cfg, "compile_policy": True}
-    )
-
-
 @pytest.mark.slow
 def test_compiled_collector_collects_what_the_eager_one_does():
     """The collector's ``compile_policy`` with a capturable planner: the same two batches as an eager
@@ -162,73 +144,41 @@ def test_compiled_collector_collects_what_the_eager_one_does():
     assert_same_collection(batches[True], batches[False])
 
 
-def test_compile_policy_key_is_validated_and_reaches_the_planner_and_collector():
-    from _recipe import recipe_config
-    from dhrl_utils import build_run
+@pytest.mark.parametrize(
+    "kwargs, match",
+    [
+        ({"num_envs": 0}, "`num_envs` must be an integer >= 1"),
+        ({"max_episode_steps": 0}, "`max_episode_steps` must be None or an integer >= 1"),
+        ({"goal_indices": [0, 0]}, "`goal_indices` must be None or a list of distinct integers"),
+        ({"goal_indices": [0, 29]}, r"`goal_indices` must be null or 2 distinct indices in \[0, 29\)"),
+        ({"goal_indices": [0, 1], "angle_features": [1, 5]}, "`angle_features` must be distinct .* outside"),
+        ({"angle_features": [29]}, r"`angle_features` must be distinct observation indices in \[0, 29\)"),
+        ({"angle_features": []}, "`angle_features` must be None or a non-empty list"),
+        ({"right_flipped_after": 0}, "`right_flipped_after` .* must be None or an integer >= 1"),
+        ({"reference_engine": 1}, "`reference_engine` must be True or False"),
+        ({"step_threads": 0}, "`step_threads` must be >= 1"),
+    ],
+)
+def test_make_environment_refuses_a_bad_argument_before_building_anything(monkeypatch, kwargs, match):
+    import torchrl_dhrl.factory as factory
 
-    from torchrl_dhrl.recipe import RESUME_MUTABLE_KEYS, ConfigError, validate_config
-
-    assert "compile_policy" in RESUME_MUTABLE_KEYS  # same plans: a resumed run may switch it
-    with pytest.raises(ConfigError, match="`compile_policy` must be true or false, got 'yes'"):
-        validate_config(recipe_config("env=PointMaze", "device=cpu", "compile_policy=yes"))
-    for value in (False, True):
-        cfg = recipe_config("env=PointMaze", "preset=smoke", f"compile_policy={str(value).lower()}")
-        validate_config(cfg)
-        parts = build_run(cfg, torch.device("cpu"))
-        assert parts.agent.planner.capturable is value
-        assert parts.collector.compiled_policy is value
-        parts.collector.shutdown()
-
-
-@pytest.mark.recipe
-@pytest.mark.slow
-def test_recipe_runs_with_a_compiled_policy_and_resumes_without_it(tmp_path, capsys):
-    from _recipe import load_recipe, metrics_rows, recipe_config
-
-    recipe = load_recipe()
-    overrides = ("env=PointMaze", "preset=smoke", "logger.backend=csv", "plots.every_epochs=0", "device=cpu")
-    torch.manual_seed(0)
-    torch._dynamo.reset()
-    torch._dynamo.utils.counters.clear()
-    recipe.train(recipe_config(*overrides, "total_steps=240", "compile_policy=true"), run_dir=tmp_path)
-    assert "Acting: the policy compiled in the collector" in capsys.readouterr().out
-    # one graph: nothing of the recipe's (e.g. a timing hook on the planner) breaks the compiled policy
-    assert not torch._dynamo.utils.counters["graph_break"], dict(torch._dynamo.utils.counters["graph_break"])
-    assert all("time/planner_ms_per_call" not in row for row in metrics_rows(tmp_path))
-    summary = recipe.train(
-        recipe_config(*overrides, "total_steps=480", f"resume={tmp_path}", "compile_policy=false"),
-        run_dir=tmp_path,
-    )
-    printed = capsys.readouterr().out
-    assert "Acting: the policy compiled" not in printed and "compile_policy" in printed  # the resume note
-    assert summary["env_steps"] == 480 and 0.0 <= summary["eval/success"] <= 1.0
-    timed = [row["time/planner_ms_per_call"] != "" for row in metrics_rows(tmp_path)]
-    assert timed and timed[-1]  # the eager segment times the planner again
+    monkeypatch.setattr(factory, "make_env", lambda *a, **k: pytest.fail("make_env was called"))
+    with pytest.raises(ValueError, match=match):
+        factory.make_environment("AntMaze", **kwargs)
 
 
-@pytest.mark.recipe
-def test_recipe_high_capture_sampling_key(tmp_path, capsys):
-    """``high.capture_sampling=true``: the recipe reserves a fixed-size graph, the high level trains with the
-    capture-safe sampler (gradual penalty included) and says so; the default keeps ``rb.sample()``; a resumed run may
-    switch it; bad values are refused before work starts."""
-    from _recipe import load_recipe, recipe_config
-    from dhrl_utils import build_run, high_sampling_captured
+@pytest.mark.parametrize(
+    "env, kwargs, match",
+    [
+        ("PointMaze", {"right_flipped_after": 10}, "`right_flipped_after` rights a flipped ant.*not to PointMaze"),
+        ("Reacher3D", {"reference_engine": True}, "`reference_engine`: reference_engine emulates"),
+        ("dhrl-test-unknown", {"reference_engine": True}, "`reference_engine` is an option of the built-in ant"),
+        ("gymnasium:PointMaze_UMaze-v3", {"step_threads": 2}, "`step_threads` is an option of the built-in envs"),
+    ],
+)
+def test_make_environment_refuses_an_option_of_another_env(monkeypatch, env, kwargs, match):
+    import torchrl_dhrl.factory as factory
 
-    from torchrl_dhrl.recipe import RESUME_MUTABLE_KEYS, ConfigError, validate_config
-
-    assert "high.capture_sampling" in RESUME_MUTABLE_KEYS
-    with pytest.raises(ConfigError, match="`high.capture_sampling` must be None, True or False, got 'yes'"):
-        validate_config(recipe_config("env=PointMaze", "device=cpu", "high.capture_sampling=yes"))
-    cpu = torch.device("cpu")
-    default = recipe_config("env=PointMaze", "preset=smoke", "device=cpu")
-    assert default["high"]["capture_sampling"] is False and not high_sampling_captured(default, cpu)
-    assert not high_sampling_captured(recipe_config("env=PointMaze", "device=cpu", "high.capture_sampling=null"), cpu)
-    parts = build_run(default, cpu)
-    assert not parts.agent.planner.graph.fixed_size and parts.high_updater.capture_sampling is False
-    parts.collector.shutdown()
-    recipe = load_recipe()
-    overrides = ("env=PointMaze", "preset=smoke", "logger.backend=csv", "plots.every_epochs=0", "device=cpu")
-    recipe.train(recipe_config(*overrides, "total_steps=240", "high.capture_sampling=true"), run_dir=tmp_path)
-    assert "Sampling, high level: capture-safe sampler." in capsys.readouterr().out
-    summary = recipe.train(recipe_config(*overrides, "total_steps=480", f"resume={tmp_path}"), run_dir=tmp_path)
-    assert summary["env_steps"] == 480 and "high.capture_sampling" in capsys.readouterr().out  # the resume note
+    monkeypatch.setattr(factory, "make_env", lambda *a, **k: pytest.fail("make_env was called"))
+    with pytest.raises(ValueError, match=match):
+        factory.make_environment(env, **kwargs)

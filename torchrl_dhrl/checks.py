@@ -30,6 +30,7 @@ __all__ = [
     "checked",
     "choice",
     "flag",
+    "indices",
     "integer",
     "layer_sizes",
     "number",
@@ -174,6 +175,33 @@ def flag(*, optional: bool = False) -> ArgumentCheck:
     if optional:
         return ArgumentCheck(lambda value: value is None or isinstance(value, bool), "None, True or False")
     return ArgumentCheck(lambda value: isinstance(value, bool), "True or False")
+
+
+def indices(*, optional: bool = False, non_empty: bool = False) -> ArgumentCheck:
+    """Distinct non-negative integers (a list or tuple; with ``non_empty``, at least one), e.g. positions in an
+    observation; with ``optional``, ``None`` too.
+
+    Examples:
+        >>> indices(optional=True).description
+        'None or a list of distinct integers >= 0'
+        >>> try:
+        ...     indices()("goal_indices", [0, 0])
+        ... except ValueError as err:
+        ...     print(err)
+        `goal_indices` must be a list of distinct integers >= 0, got [0, 0].
+    """
+
+    def accepts(value: Any) -> bool:
+        return (
+            isinstance(value, Sequence)
+            and not isinstance(value, str)
+            and (len(value) > 0 or not non_empty)
+            and all(isinstance(v, numbers.Integral) and not isinstance(v, bool) and v >= 0 for v in value)
+            and len(set(value)) == len(value)
+        )
+
+    text = f"a {'non-empty ' if non_empty else ''}list of distinct integers >= 0"
+    return ArgumentCheck(accepts, text, optional=optional)
 
 
 def layer_sizes() -> ArgumentCheck:

@@ -35,7 +35,7 @@ from torchrl.data import ReplayBuffer
 from torchrl.envs import Compose, EnvBase, TransformedEnv
 from torchrl.objectives import LossModule
 
-from torchrl_dhrl.checks import checked, integer, number
+from torchrl_dhrl.checks import ArgumentCheck, checked, flag, indices, integer, number
 from torchrl_dhrl.data import (
     CompactLazyTensorStorage,
     FutureGoalRelabel,
@@ -44,7 +44,7 @@ from torchrl_dhrl.data import (
     RelabelReplayBuffer,
     SparseGoalReward,
 )
-from torchrl_dhrl.envs import check_goal_env, get_env_factory, gymnasium_id, make_env
+from torchrl_dhrl.envs import ENVS, check_goal_env, get_env_factory, gymnasium_id, make_env
 from torchrl_dhrl.envs.transforms import AngleFeatures
 from torchrl_dhrl.modules import (
     GaussianUniformExplorationModule,
@@ -276,6 +276,82 @@ def observation_transforms(angle_features: Sequence[int] | None = None) -> list:
     return [AngleFeatures(angle_features)] if angle_features else []
 
 
+def _built_in(env_name: str):
+    """The spec of a built-in env (``None`` for a registered or a Gymnasium env, whose sizes are known once built)."""
+    return ENVS.get(env_name) if isinstance(env_name, str) else None
+
+
+def _goal_indices_fit(env_name, goal_indices) -> None:
+    spec = _built_in(env_name)
+    if spec is None or goal_indices is None:
+        return
+    goal_dim, obs_dim = spec.goal_dim, spec.obs_dim
+    if len(goal_indices) != goal_dim or any(i >= obs_dim for i in goal_indices):
+        raise ValueError(
+            f"`goal_indices` must be null or {goal_dim} distinct indices in [0, {obs_dim}) (where {env_name}'s "
+            f"{goal_dim}-D achieved goal sits in its {obs_dim}-D observation), got {list(goal_indices)!r}."
+        )
+
+
+def _angle_features_fit(env_name, angle_features, goal_indices) -> None:
+    if angle_features is None:
+        return
+    spec = _built_in(env_name)
+    outside = spec is not None and any(i >= spec.obs_dim for i in angle_features)
+    if outside or set(angle_features) & set(goal_indices or ()):
+        where = "" if spec is None else f" in [0, {spec.obs_dim})"
+        raise ValueError(
+            f"`angle_features` must be distinct observation indices{where} outside `goal_indices` ({env_name}'s "
+            f"continuous joint angles, e.g. [4, 6] for Reacher3D), got {list(angle_features)!r}."
+        )
+
+
+def _right_flipped_needs_an_ant(env_name, right_flipped_after) -> None:
+    spec = _built_in(env_name)
+    if right_flipped_after is not None and not hasattr(getattr(spec, "agent", None), "upright_qpos"):
+        raise ValueError(
+            f"`right_flipped_after` rights a flipped ant: it applies to the ant mazes only, not to {env_name}; "
+            "leave it null."
+        )
+
+
+def _reference_engine_needs_an_ant_maze(env_name, reference_engine) -> None:
+    if reference_engine is not True:
+        return
+    if _built_in(env_name) is None:
+        raise ValueError(
+            f"`reference_engine` is an option of the built-in ant mazes, not of {env_name}; leave it false."
+        )
+    from torchrl_dhrl.envs.simulation import reference_engine_spec
+
+    try:
+        reference_engine_spec(env_name)
+    except ValueError as err:
+        raise ValueError(f"`reference_engine`: {err}") from err
+
+
+def _step_threads_of_built_in_envs(env_name, step_threads) -> None:
+    if step_threads != 1 and _built_in(env_name) is None:
+        raise ValueError(f"`step_threads` is an option of the built-in envs, not of {env_name}; leave it at 1.")
+
+
+@checked(
+    _goal_indices_fit,
+    _angle_features_fit,
+    _right_flipped_needs_an_ant,
+    _reference_engine_needs_an_ant_maze,
+    _step_threads_of_built_in_envs,
+    num_envs=integer(1),
+    max_episode_steps=integer(1, optional=True),
+    goal_indices=indices(optional=True),
+    angle_features=indices(optional=True, non_empty=True),
+    right_flipped_after=integer(1, optional=True, what="env steps upside down before the ant is righted"),
+    reference_engine=flag(),
+    step_threads=ArgumentCheck(
+        lambda value: isinstance(value, int) and not isinstance(value, bool) and value >= 1,
+        ">= 1 (an integer: the threads stepping the envs)",
+    ),
+)
 def make_environment(
     env_name: str,
     device: torch.device | str = "cpu",
@@ -305,7 +381,13 @@ def make_environment(
     ``right_flipped_after``, ``reference_engine`` (ant mazes), ``step_threads`` (built-in envs) and ``env_kwargs``
     (``gymnasium:<id>``) are passed to :func:`~torchrl_dhrl.envs.make_env`.
 
+    The arguments are checked before anything is built (:func:`~torchrl_dhrl.checks.checked`; the recipe runs
+    the same checks on its configuration with :func:`~torchrl_dhrl.checks.check_arguments`): sizes and types, and,
+    for a built-in env, ``goal_indices`` and ``angle_features`` within its observation, ``right_flipped_after``
+    and ``reference_engine`` for the ant mazes only, ``step_threads`` for the built-in envs only.
+
     Raises:
+        ValueError: naming the argument, for a value it does not accept.
         GoalEnvError: when the env does not meet the contract.
 
     Examples:

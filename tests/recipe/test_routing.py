@@ -17,6 +17,8 @@ from torchrl_dhrl.recipe.routing import (
     ConfigRoutingError,
     check_components,
     component_arguments,
+    group_keys,
+    key_path,
 )
 
 SMALL = ("env=PointMaze", "preset=smoke", "device=cpu")
@@ -25,19 +27,36 @@ SMALL = ("env=PointMaze", "preset=smoke", "device=cpu")
 def test_every_key_of_the_schema_reaches_a_constructor_or_the_recipe():
     schema = config_schema()
     routed = component_arguments(schema)  # raises for a key that reaches nothing
-    reached = {f"{group}.{key}" for group in TARGETS for key in schema[group]} - set(RECIPE_KEYS)
+    reached = [
+        (group, key)
+        for group in TARGETS
+        for key in group_keys(schema, group)
+        if key_path(group, key) not in RECIPE_KEYS
+    ]
+    env_keys = {key for group, key in reached if group == "env"}  # the top-level keys make_environment takes
+    assert env_keys == {
+        "env_name",
+        "num_envs",
+        "seed",
+        "episode_length",
+        "goal_indices",
+        "angle_features",
+        "right_flipped_after",
+        "reference_engine",
+        "step_threads",
+    }
     # each such key reached at least one target, under its own name or its RENAMED argument
-    for path in reached:
-        group, key = path.split(".")
+    for group, key in reached:
+        path = key_path(group, key)
         argument = RENAMED.get(path, key)
         names = [name for name in TARGETS[group] if argument in routed[name] or key in routed[name]]
         converted = [name for name, t in TARGETS[group].items() if key in t.convert]
         assert names or converted, path
     for path in [*RECIPE_KEYS, *RENAMED]:
-        group, key = path.split(".")
-        assert key in schema[group], f"{path} is not a key of config.yaml"
+        group, key = path.split(".") if "." in path else ("env", path)
+        assert key in group_keys(schema, group), f"{path} is not a key of config.yaml"
     for path, argument in RENAMED.items():  # a renamed key names an argument some target of its group takes
-        group = path.split(".")[0]
+        group = path.split(".")[0] if "." in path else "env"
         assert any(argument in argument_names(t.build) for t in TARGETS[group].values()), path
 
 
@@ -53,7 +72,10 @@ def test_the_routed_values_are_the_configuration_values():
     assert args["low_optimizers"] == {"actor_lr": 1e-4, "critic_lr": 1e-3}
     assert args["graph"] == {"cutoff": 30.0, "max_landmarks": 300, "early_stop": 10.0}
     assert args["planner"] == {"reach_radius": 0.5} and args["distance"] == {"twin": "optimistic"}
-    assert args["oracle"] == {"speed": cfg["planner"]["oracle_speed"], "margin": cfg["planner"]["oracle_margin"]}
+    assert args["oracle"] == {
+        "speed": cfg["planner"]["oracle_speed"],
+        "margin": cfg["planner"]["oracle_margin"],
+    }
     assert args["goal_shifting"] == {"noise": 3.0, "weighting": "path_length", "trigger": "reachable"}
     # the keys the recipe reads are routed nowhere, even where a constructor has an argument so named
     assert "distance" not in args["planner"] and "enabled" not in args["goal_shifting"]
@@ -84,7 +106,9 @@ def test_a_new_hyperparameter_needs_the_schema_and_the_component_only():
     build_updaters(cfg, agent, low_rb, high_rb)
     # and its range, declared on the component, is checked before anything is built, naming the key
     cfg["low"]["target_noise_clip"] = -1.0
-    with pytest.raises(ConfigError, match=r"^`low.target_noise_clip` must be None or a number > 0, got -1.0\.$"):
+    with pytest.raises(
+        ConfigError, match=r"^`low.target_noise_clip` must be None or a number > 0, got -1.0\.$"
+    ):
         validate_config(cfg)
 
 

@@ -15,9 +15,10 @@ from .distances import AutocastDistance, GoalDistance, LineOfSightDistance, Temp
 from .edges import ConnectedEdgeRule, CutoffEdgeRule, EdgeRule, make_edge_rule
 from .fgs import FrontierGoalShifting, GoalShiftOnReset
 from .fps import FarthestPointSamplingResult, farthest_point_sampling
-from .graph import GraphPlan, GraphTensors, LandmarkGraph
+from .graph import GraphPlan, LandmarkGraph
 from .graph_planner import GraphPlanner
 from .shortest_paths import ShortestPaths, count_hops, floyd_warshall, reconstruct_paths
+from .storage import DynamicStorage, FixedSizeStorage, GraphTensors
 
 __all__ = [
     "AutocastDistance",
@@ -30,6 +31,8 @@ __all__ = [
     "GoalShiftOnReset",
     "GraphPlan",
     "GraphTensors",
+    "DynamicStorage",
+    "FixedSizeStorage",
     "GraphPlanner",
     "LandmarkGraph",
     "LineOfSightDistance",

@@ -24,6 +24,7 @@ from .distances import TemporalDistance
 from .edges import CutoffEdgeRule, EdgeRule
 from .fps import DEFAULT_LAZY_BATCH, FPS_STRATEGIES, ProxyFn, farthest_point_sampling, resolve_proxy
 from .shortest_paths import count_hops, floyd_warshall, reconstruct_paths
+from .storage import DynamicStorage, FixedSizeStorage, GraphTensors, own_tensors
 
 #: Buffers whose shapes follow the number of landmarks (resized when a state dict is loaded).
 _GRAPH_BUFFERS = (
@@ -35,18 +36,6 @@ _GRAPH_BUFFERS = (
     "next_hop",
     "hop_counts",
 )
-
-#: The fixed-size copies of a ``fixed_size`` graph (non-persistent buffers, ``max_landmarks`` rows, updated in place).
-_FIXED_BUFFERS = (
-    "fixed_states",
-    "fixed_goals",
-    "fixed_distances",
-    "fixed_shortest",
-    "fixed_next_hop",
-    "fixed_hop_counts",
-    "fixed_valid",
-)
-
 
 class GraphPlan(NamedTuple):
     """A batch of planned waypoint sequences, as returned by :meth:`LandmarkGraph.plan`.
@@ -74,34 +63,6 @@ class GraphPlan(NamedTuple):
     truncated: Tensor
     cost: Tensor
     reachable: Tensor
-
-
-class GraphTensors(NamedTuple):
-    """The tensors a plan reads (:meth:`LandmarkGraph.planning_tensors`).
-
-    Either the graph's own buffers (``K`` landmarks, ``valid`` is ``None``) or a ``fixed_size`` graph's copies of
-    them at ``max_landmarks`` rows: the landmarks first, then padding rows that ``valid`` marks invalid (no edge
-    to or from them, never an entry or an exit of a plan).
-
-    Attributes:
-        states (Tensor): ``[K, obs_dim]`` landmark states.
-        goals (Tensor): ``[K, goal_dim]`` landmark goals.
-        distances (Tensor): ``[K, K]`` landmark distance matrix.
-        shortest (Tensor): ``[K, K]`` all-pairs shortest distances.
-        next_hop (Tensor): ``[K, K]`` int64 next-hop table.
-        hop_counts (Tensor): ``[K, K]`` int64 hop counts.
-        valid (Tensor or None): ``[K]`` bool, which rows are landmarks.
-        version (Tensor): the graph's build counter (int64 scalar).
-    """
-
-    states: Tensor
-    goals: Tensor
-    distances: Tensor
-    shortest: Tensor
-    next_hop: Tensor
-    hop_counts: Tensor
-    valid: Tensor | None
-    version: Tensor
 
 
 class LandmarkGraph(UnregisteredAttributes, nn.Module):
@@ -174,7 +135,10 @@ class LandmarkGraph(UnregisteredAttributes, nn.Module):
             ``.to(device)``; moving reallocates). The same plans (every padding row is masked; a learned
             distance evaluated on ``max_landmarks`` rows instead of ``K`` may round differently). The
             copies are derived, not in ``state_dict()`` (a checkpoint is the same either way). A graph
-            then holds at most ``max_landmarks`` landmarks. Defaults to ``False``.
+            then holds at most ``max_landmarks`` landmarks. The planning storage is a strategy object,
+            :attr:`storage`: a :class:`~torchrl_dhrl.planner.FixedSizeStorage` with ``fixed_size``, else a
+            :class:`~torchrl_dhrl.planner.DynamicStorage` (queries read the graph's own buffers). Defaults to
+            ``False``.
 
     Examples:
         >>> import torch
@@ -241,15 +205,26 @@ class LandmarkGraph(UnregisteredAttributes, nn.Module):
         self.register_buffer("hop_counts", torch.zeros(0, 0, dtype=torch.int64))
         self.register_buffer("version", torch.zeros((), dtype=torch.int64))
         self.register_buffer("coverage_radius", torch.full((), math.nan))
-        if not isinstance(fixed_size, bool):
-            raise TypeError(f"`fixed_size` must be a bool, got {fixed_size!r}.")
-        self.fixed_size = fixed_size
-        for name in _FIXED_BUFFERS:  # allocated at the first build (the feature sizes are not known before)
-            dtype = torch.int64 if "hop" in name else torch.bool if name == "fixed_valid" else None
-            self.register_buffer(name, torch.zeros(0, 0, dtype=dtype), persistent=False)
-        self.register_buffer("fixed_version", torch.zeros((), dtype=torch.int64), persistent=False)
+        self.fixed_size = fixed_size  # the planning storage: DynamicStorage or FixedSizeStorage
 
     # ------------------------------------------------------------------ properties
+    @property
+    def fixed_size(self) -> bool:
+        """Whether capture-safe queries read fixed-size copies of the graph (:attr:`storage` is a
+        :class:`~torchrl_dhrl.planner.storage.FixedSizeStorage`); setting it replaces the storage (a new
+        fixed-size storage is allocated by :meth:`reserve` or the next build)."""
+        return isinstance(self.storage, FixedSizeStorage)
+
+    @fixed_size.setter
+    def fixed_size(self, value: bool) -> None:
+        if not isinstance(value, bool):
+            raise TypeError(f"`fixed_size` must be a bool, got {value!r}.")
+        if "storage" in self._modules and value == self.fixed_size:
+            return
+        self.storage = FixedSizeStorage() if value else DynamicStorage()
+        if value:
+            self.storage.update(self)
+
     @property
     def num_landmarks(self) -> int:
         """The number of landmarks (``0`` before the first build)."""
@@ -285,7 +260,7 @@ class LandmarkGraph(UnregisteredAttributes, nn.Module):
             old = getattr(self, name)
             setattr(self, name, torch.zeros(0, 0, dtype=old.dtype, device=device))
         self.version += 1
-        self._sync_fixed()
+        self.storage.update(self)
         return self
 
     @torch.no_grad()
@@ -386,7 +361,7 @@ class LandmarkGraph(UnregisteredAttributes, nn.Module):
         matrix.fill_diagonal_(0.0)
         if num == 0:
             return self.clear()
-        if self.fixed_size and num > self.max_landmarks:
+        if self.fixed_size and num > self.max_landmarks:  # before anything changes
             raise ValueError(
                 f"A fixed_size graph holds at most max_landmarks={self.max_landmarks} landmarks, got {num}."
             )
@@ -405,7 +380,7 @@ class LandmarkGraph(UnregisteredAttributes, nn.Module):
         self.hop_counts = paths.hop_counts
         self.version = self.version.to(states.device) + 1
         self.coverage_radius = torch.full((), math.nan, dtype=states.dtype, device=states.device)
-        self._sync_fixed()
+        self.storage.update(self)
         return self
 
     @torch.no_grad()
@@ -451,10 +426,7 @@ class LandmarkGraph(UnregisteredAttributes, nn.Module):
             True
         """
         if not self.fixed_size:
-            raise ValueError(
-                "reserve() allocates the fixed-size planning tensors of a graph made with fixed_size=True; this "
-                "graph has fixed_size=False."
-            )
+            self.storage.reserve(self, obs_dim, goal_dim, dtype, device)  # refuses, saying why
         for name, value in (("obs_dim", obs_dim), ("goal_dim", goal_dim)):
             if isinstance(value, bool) or not isinstance(value, int) or value < 1:
                 raise ValueError(f"reserve(): `{name}` must be a positive int, got {value!r}.")
@@ -468,84 +440,8 @@ class LandmarkGraph(UnregisteredAttributes, nn.Module):
             return self
         dtype = torch.get_default_dtype() if dtype is None else dtype
         device = self.version.device if device is None else torch.device(device)
-        self._allocate_fixed(obs_dim, goal_dim, (dtype, dtype, dtype, dtype), device)
-        self._fill_fixed(0)
-        self.fixed_version = self.fixed_version.to(device)
-        self.fixed_version.copy_(self.version)
+        self.storage.reserve(self, obs_dim, goal_dim, dtype, device)
         return self
-
-    def _allocate_fixed(
-        self, obs_dim: int, goal_dim: int, dtypes: tuple[torch.dtype, ...], device: torch.device
-    ) -> None:
-        """(Re)allocates the fixed-size copies whose size, dtype or device differ from the given ones."""
-        size = self.max_landmarks
-        states, goals, distances, shortest = dtypes
-        layout = {
-            "fixed_states": ((size, obs_dim), states),
-            "fixed_goals": ((size, goal_dim), goals),
-            "fixed_distances": ((size, size), distances),
-            "fixed_shortest": ((size, size), shortest),
-            "fixed_next_hop": ((size, size), torch.int64),
-            "fixed_hop_counts": ((size, size), torch.int64),
-            "fixed_valid": ((size,), torch.bool),
-        }
-        for name, (shape, dtype) in layout.items():
-            old = getattr(self, name)
-            if old.shape != shape or old.dtype != dtype or old.device != device:
-                setattr(self, name, torch.empty(shape, dtype=dtype, device=device))
-
-    def _fill_fixed(self, num: int) -> None:
-        """Writes the first ``num`` landmarks into the fixed-size copies, in place; the other rows are padding
-        (no edge to or from them, themselves at no cost like Floyd-Warshall's diagonal, invalid)."""
-        pad = slice(num, None)
-        for name, source, fill, square in (
-            ("fixed_states", self.landmark_states, 0.0, False),
-            ("fixed_goals", self.landmark_goals, 0.0, False),
-            ("fixed_distances", self.landmark_distances, math.inf, True),
-            ("fixed_shortest", self.shortest_distances, math.inf, True),
-            ("fixed_next_hop", self.next_hop, -1, True),
-            ("fixed_hop_counts", self.hop_counts, 0, True),
-        ):
-            target = getattr(self, name)
-            if square:  # the [K, K] block, the rest padding
-                target.fill_(fill)
-                if num:
-                    target[:num, :num].copy_(source)
-            else:
-                if num:
-                    target[:num].copy_(source)
-                target[pad].fill_(fill)
-        rows = torch.arange(num, self.max_landmarks, device=self.fixed_valid.device)
-        self.fixed_shortest[rows, rows] = 0.0
-        self.fixed_distances[rows, rows] = 0.0
-        self.fixed_next_hop[rows, rows] = rows
-        self.fixed_valid[:num] = True
-        self.fixed_valid[pad] = False
-
-    @torch.no_grad()
-    def _sync_fixed(self) -> None:
-        """Copies the graph into the fixed-size planning tensors, in place (allocated at the first build or by
-        :meth:`reserve`, again when the feature sizes, dtype or device change); padding rows: no edge, invalid."""
-        if not self.fixed_size:
-            return
-        num = self.num_landmarks
-        if num:
-            dtypes = tuple(
-                getattr(self, name).dtype
-                for name in ("landmark_states", "landmark_goals", "landmark_distances", "shortest_distances")
-            )
-            self._allocate_fixed(
-                self.landmark_states.shape[1],
-                self.landmark_goals.shape[1],
-                dtypes,
-                self.landmark_states.device,
-            )
-            self._fill_fixed(num)
-        elif self.fixed_valid.numel():
-            self.fixed_valid.fill_(False)
-        if self.fixed_version.device != self.version.device:
-            self.fixed_version = torch.zeros((), dtype=torch.int64, device=self.version.device)
-        self.fixed_version.copy_(self.version)
 
     def planning_tensors(self, capturable: bool = False) -> GraphTensors | None:
         """The tensors :meth:`plan` reads, ``None`` without a graph.
@@ -554,29 +450,11 @@ class LandmarkGraph(UnregisteredAttributes, nn.Module):
         rows, ``valid`` marking the landmarks; the same storage after every rebuild and :meth:`clear`);
         otherwise the graph's own buffers (``K`` rows, ``valid`` is ``None``).
         """
-        if capturable and self.fixed_size and self.fixed_valid.numel():
-            return GraphTensors(
-                self.fixed_states,
-                self.fixed_goals,
-                self.fixed_distances,
-                self.fixed_shortest,
-                self.fixed_next_hop,
-                self.fixed_hop_counts,
-                self.fixed_valid,
-                self.fixed_version,
-            )
-        if not self.has_graph:
-            return None
-        return GraphTensors(
-            self.landmark_states,
-            self.landmark_goals,
-            self.landmark_distances,
-            self.shortest_distances,
-            self.next_hop,
-            self.hop_counts,
-            None,
-            self.version,
-        )
+        if capturable:
+            tensors = self.storage.capture_tensors()
+            if tensors is not None:
+                return tensors
+        return own_tensors(self)
 
     edge_rule = callable_attribute(
         "edge_rule",
@@ -973,7 +851,7 @@ class LandmarkGraph(UnregisteredAttributes, nn.Module):
             except ValueError as err:
                 error_msgs.append(f"{prefix}next_hop: {err}")
         if not error_msgs:
-            self._sync_fixed()
+            self.storage.update(self)
 
     def extra_repr(self) -> str:
         return (

@@ -8,7 +8,6 @@ The keys and their roles are in :mod:`~torchrl_dhrl.recipe.schema`; what they re
 from __future__ import annotations
 
 import importlib.util
-import math
 from collections.abc import Mapping
 
 from .resolve import resolve_device, resolve_speed
@@ -65,85 +64,15 @@ def _check_run_keys(cfg: Mapping) -> None:
         )
 
 
-def _check_angle_features(cfg: Mapping, name: str, obs_dim: int | None) -> None:
-    """``angle_features``: null or distinct observation indices (in range when ``obs_dim`` is known) outside
-    ``goal_indices``."""
-    angles, goals = _get(cfg, "angle_features"), _get(cfg, "goal_indices")
-    if angles is None:
-        return
-    bound = math.inf if obs_dim is None else obs_dim
-    if (
-        not isinstance(angles, (list, tuple))
-        or not angles
-        or len(set(angles)) != len(angles)
-        or any(isinstance(i, bool) or not isinstance(i, int) or not 0 <= i < bound for i in angles)
-        or set(angles) & set(goals or ())
-    ):
-        where = "" if obs_dim is None else f" in [0, {obs_dim})"
-        raise ConfigError(
-            f"`angle_features` must be null or distinct observation indices{where} outside `goal_indices` "
-            f"({name}'s continuous joint angles, e.g. [4, 6] for Reacher3D), got {angles!r}."
-        )
-
-
-def _check_right_flipped(cfg: Mapping, name: str, spec) -> None:
-    """``right_flipped_after``: null, or a positive number of env steps for an env whose agent can flip."""
-    steps = _get(cfg, "right_flipped_after")
-    if steps is None:
-        return
-    if isinstance(steps, bool) or not isinstance(steps, int) or steps < 1:
-        raise ConfigError(
-            f"`right_flipped_after` must be null or a positive number of env steps, got {steps!r}."
-        )
-    if spec is None or not hasattr(getattr(spec, "agent", None), "upright_qpos"):
-        raise ConfigError(
-            f"`right_flipped_after` rights a flipped ant: it applies to the ant mazes only, not to {name}; "
-            "leave it null."
-        )
-
-
-def _check_reference_engine(cfg: Mapping, name: str) -> None:
-    """``reference_engine`` (a boolean, see :data:`SWITCHES`): ``true`` only where
-    :func:`~torchrl_dhrl.envs.simulation.reference_engine_spec` accepts the env (an ant maze)."""
-    if _get(cfg, "reference_engine") is not True:
-        return
-    from torchrl_dhrl.envs import ENVS
-    from torchrl_dhrl.envs.simulation import reference_engine_spec
-
-    if name not in ENVS:  # a registered user env: make_env refuses the option
-        raise ConfigError(
-            f"`reference_engine` is an option of the built-in ant mazes, not of {name}; leave it false."
-        )
-    try:
-        reference_engine_spec(name)
-    except ValueError as err:
-        raise ConfigError(f"`reference_engine`: {err}") from err
-
-
 def _check_against_env(cfg: Mapping, name: str) -> None:
-    """Sizes that must agree with the environment's spec (read without building it) and with each other."""
+    """The recipe's sizes that must agree with the environment's spec (read without building it): a subgoal within
+    an episode, a collector batch within the run. The env's own keys (the routing's group ``env``)
+    are checked by :func:`~torchrl_dhrl.factory.make_environment`'s declarations (:func:`check_components`)."""
     from torchrl_dhrl.envs import ENVS
 
     spec = ENVS.get(name)
-    _check_right_flipped(cfg, name, spec)
-    _check_reference_engine(cfg, name)
     if spec is None:  # a registered user env (or ``env_names`` given): its sizes are checked when it is built
-        _check_angle_features(cfg, name, None)
         return
-    goal_dim, obs_dim = spec.goal_dim, spec.obs_dim
-    _check_angle_features(cfg, name, obs_dim)
-    indices = _get(cfg, "goal_indices")
-    if indices is not None:
-        if (
-            not isinstance(indices, (list, tuple))
-            or len(indices) != goal_dim
-            or len(set(indices)) != goal_dim
-            or any(isinstance(i, bool) or not isinstance(i, int) or not 0 <= i < obs_dim for i in indices)
-        ):
-            raise ConfigError(
-                f"`goal_indices` must be null or {goal_dim} distinct indices in [0, {obs_dim}) (where {name}'s "
-                f"{goal_dim}-D achieved goal sits in its {obs_dim}-D observation), got {indices!r}."
-            )
     episode = _get(cfg, "episode_length") or spec.episode_length
     c_h = _get(cfg, "high.c_h")
     if c_h > episode:
@@ -231,12 +160,6 @@ def validate_config(cfg: Mapping, env_names: tuple[str, ...] | None = None) -> N
                 "runs); leave it at 1 without graphs."
             )
     _number(cfg, "total_steps", low=0, strict=True, integer=True)
-    _number(cfg, "num_envs", low=1, integer=True)
-    if "step_threads" in cfg:
-        _number(cfg, "step_threads", low=1, integer=True)
-    length = _get(cfg, "episode_length")
-    if length is not None:
-        _number(cfg, "episode_length", low=1, integer=True)
 
     for key in ("epoch_episodes", "eval_episodes"):
         _number(cfg, f"schedule.{key}", low=1, integer=True)
@@ -262,7 +185,8 @@ def validate_config(cfg: Mapping, env_names: tuple[str, ...] | None = None) -> N
             raise ConfigError(
                 f"`{level}.hidden` must be a non-empty list of positive integers, got {hidden!r}."
             )
-    # the components' own checks of the keys they take (by argument name; messages name the keys)
+    # the components' own checks of the keys they take (by argument name; messages name the keys), the env's
+    # (num_envs, episode_length, goal_indices, angle_features, right_flipped_after, reference_engine, step_threads)
     from torchrl_dhrl.envs import ENVS
 
     spec = ENVS.get(name)

@@ -1,7 +1,8 @@
 """The one path from the recipe's configuration to the constructors: a key reaches an argument of the same name.
 
-The keys of the groups ``low``, ``high``, ``planner``, ``fgs`` and ``gymnasium`` (``recipes/config/config.yaml``) are the
-keyword arguments of the components the group builds, listed in :data:`TARGETS`: a key reaches every target of
+The keys of the groups ``low``, ``high``, ``planner``, ``fgs`` and ``gymnasium`` (``recipes/config/config.yaml``), and
+the top-level keys that name an argument of :func:`~torchrl_dhrl.factory.make_environment` (the group ``env``), are the keyword arguments of the components the
+group builds, listed in :data:`TARGETS`: a key reaches every target of
 its group whose constructor takes an argument of its name, so that a new hyperparameter is a key in the
 schema and an argument (with its :func:`~torchrl_dhrl.checks.checked` range) in the component, and nothing in
 between. :data:`RENAMED` lists the few keys named otherwise than their argument (the recipe's flags predate
@@ -22,7 +23,7 @@ from typing import Any
 
 from torchrl_dhrl.checks import argument_names, check_arguments
 from torchrl_dhrl.envs import GymnasiumGoalEnv
-from torchrl_dhrl.factory import make_high_level_buffer, make_low_level_buffer
+from torchrl_dhrl.factory import make_environment, make_high_level_buffer, make_low_level_buffer
 from torchrl_dhrl.modules import (
     GaussianUniformExplorationModule,
     GoalConditionedCritic,
@@ -48,6 +49,8 @@ __all__ = [
     "Target",
     "check_components",
     "component_arguments",
+    "group_keys",
+    "key_path",
 ]
 
 
@@ -108,10 +111,14 @@ TARGETS: dict[str, dict[str, Target]] = {
     },
     "fgs": {"goal_shifting": Target(FrontierGoalShifting)},
     "gymnasium": {"gymnasium_env": Target(GymnasiumGoalEnv)},
+    # the top-level keys that name an argument of make_environment (group_keys): the env the agent acts in; the
+    # recipe resolves the device itself
+    "env": {"environment": Target(make_environment, exclude=("device",))},
 }
 
 #: Keys named otherwise than the argument they set: ``group.key -> argument``.
 RENAMED = {
+    "episode_length": "max_episode_steps",
     "low.hidden": "num_cells",
     "low.action_noise": "sigma",
     "low.target_noise": "target_noise_std",
@@ -144,9 +151,33 @@ CHECKED_AS = {
 }
 
 
+def key_path(group: str, key: str) -> str:
+    """The dotted configuration key of ``key`` in ``group`` (the keys of ``env`` are top-level).
+
+    Examples:
+        >>> key_path("high", "c_h"), key_path("env", "episode_length")
+        ('high.c_h', 'episode_length')
+    """
+    return key if group == "env" else f"{group}.{key}"
+
+
+def group_keys(cfg: Mapping[str, Any], group: str) -> Mapping[str, Any]:
+    """The keys of ``group`` that ``cfg`` holds, with their values (a checkpoint older than a group or a key has
+    none); for ``env``, the top-level keys that name an argument of its targets (``make_environment``'s), so that a
+    new env key is a key of the schema and an argument of ``make_environment``, and nothing in between.
+
+    Examples:
+        >>> group_keys({"seed": 3, "threads": 1, "high": {"c_h": 40}}, "env"), group_keys({"high": {"c_h": 40}}, "high")
+        ({'seed': 3}, {'c_h': 40})
+    """
+    if group == "env":  # the top-level keys that reach one of its targets
+        return {key: value for key, value in cfg.items() if key not in TARGETS and _routes(group, key, value)}
+    return cfg.get(group, {})
+
+
 def _routes(group: str, key: str, value: Any) -> list[tuple[str, str, Any]]:
     """``(target, argument, value)`` for each target of ``group`` that ``group.key`` reaches."""
-    path = f"{group}.{key}"
+    path = key_path(group, key)
     out = []
     for name, target in TARGETS[group].items():
         if key in target.exclude:
@@ -166,18 +197,18 @@ def _route(cfg: Mapping[str, Any]) -> tuple[dict[str, dict[str, Any]], dict[str,
     arguments: dict[str, dict[str, Any]] = {name: {} for group in TARGETS.values() for name in group}
     sources: dict[str, dict[str, str]] = {name: {"goal_indices": "goal_indices"} for name in arguments}
     for group in TARGETS:
-        for key, value in cfg.get(group, {}).items():  # (a checkpoint older than a group has none)
-            if f"{group}.{key}" in RECIPE_KEYS:  # the recipe's, even where a constructor has an argument so named
+        for key, value in group_keys(cfg, group).items():
+            if key_path(group, key) in RECIPE_KEYS:  # the recipe's, even where a constructor has an argument so named
                 continue
             routes = _routes(group, key, value)
             if not routes:
                 raise ConfigRoutingError(
-                    f"`{group}.{key}` reaches no constructor: none of {', '.join(TARGETS[group])} takes "
-                    f"`{RENAMED.get(f'{group}.{key}', key)}`, and the recipe does not read it (RECIPE_KEYS)."
+                    f"`{key_path(group, key)}` reaches no constructor: none of {', '.join(TARGETS[group])} takes "
+                    f"`{RENAMED.get(key_path(group, key), key)}`, and the recipe does not read it (RECIPE_KEYS)."
                 )
             for name, argument, routed in routes:
                 arguments[name][argument] = routed
-                sources[name][argument] = f"{group}.{key}"
+                sources[name][argument] = key_path(group, key)
     return arguments, sources
 
 

@@ -154,7 +154,6 @@ SWITCHES = (
     "schedule.eval_flat",
     "fgs.enabled",
     "planner.enabled",
-    "reference_engine",
 )
 
 
