@@ -27,6 +27,8 @@ RECIPE_CHOICES = {
     "high_updater.capture_sampling": "a speed switch, not the algorithm (the same distribution of batches): the "
     "schema keeps the high level's sampling eager on every device, its exact graph query costing 45x the eager one; "
     "the component's None captures it wherever the update is captured",
+    "environment.goal_indices": "where the env's achieved goal sits in its observation, the env's to say (each env "
+    "file sets it); make_environment has no maze default",
     "oracle.margin": "ours (the reference has no oracle distance): the agent's radius, a per-task choice; the "
     "class's 0.0 is the bare geometry (MazeGeometry's wall tests)",
 }
@@ -106,6 +108,7 @@ def test_the_comparison_covers_the_routing():
         "high_policy.subgoal_low",
         "high_policy.subgoal_high",
         "oracle.speed",
+        "environment.env_name",
     }
     # every exception names a routed argument whose default does differ (a stale entry would hide nothing)
     values = {f"{n}.{a}": v for n, a, v in routed}

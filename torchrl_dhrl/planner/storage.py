@@ -12,13 +12,13 @@ what a capture-safe query (``capturable=True``: a compiled policy, a CUDA graph)
 from __future__ import annotations
 
 import math
-from typing import TYPE_CHECKING, NamedTuple
+from typing import NamedTuple
 
 import torch
 from torch import Tensor, nn
 
-if TYPE_CHECKING:
-    from .graph import LandmarkGraph
+#: the graph a storage reads: a :class:`~torchrl_dhrl.planner.LandmarkGraph` (not imported here: it imports this module)
+_Graph = nn.Module
 
 __all__ = ["DynamicStorage", "FixedSizeStorage", "GraphTensors", "own_tensors"]
 
@@ -51,7 +51,7 @@ class GraphTensors(NamedTuple):
     version: Tensor
 
 
-def own_tensors(graph: LandmarkGraph) -> GraphTensors | None:
+def own_tensors(graph: _Graph) -> GraphTensors | None:
     """The graph's own buffers as :class:`GraphTensors` (``valid`` is ``None``), ``None`` without landmarks."""
     if not graph.has_graph:
         return None
@@ -78,14 +78,14 @@ class DynamicStorage(nn.Module):
         ('DynamicStorage', True)
     """
 
-    def update(self, graph: LandmarkGraph) -> None:
+    def update(self, graph: _Graph) -> None:
         """Nothing: the graph's buffers are what its queries read."""
 
     def capture_tensors(self) -> GraphTensors | None:
         """``None``: a capture-safe query reads the graph's own buffers."""
         return None
 
-    def reserve(self, graph: LandmarkGraph, obs_dim, goal_dim, dtype, device) -> None:
+    def reserve(self, graph: _Graph, obs_dim, goal_dim, dtype, device) -> None:
         raise ValueError(
             "reserve() allocates the fixed-size planning tensors of a graph made with fixed_size=True; this "
             "graph has fixed_size=False."
@@ -139,7 +139,7 @@ class FixedSizeStorage(nn.Module):
             return None
         return GraphTensors(*(getattr(self, name) for name in _FIXED), self.version)
 
-    def reserve(self, graph: LandmarkGraph, obs_dim: int, goal_dim: int, dtype, device) -> None:
+    def reserve(self, graph: _Graph, obs_dim: int, goal_dim: int, dtype, device) -> None:
         """Allocates the tensors, every row padding (see :meth:`LandmarkGraph.reserve
         <torchrl_dhrl.planner.LandmarkGraph.reserve>`)."""
         self._allocate(graph.max_landmarks, obs_dim, goal_dim, (dtype, dtype, dtype, dtype), device)
@@ -148,7 +148,7 @@ class FixedSizeStorage(nn.Module):
         self.version.copy_(graph.version)
 
     @torch.no_grad()
-    def update(self, graph: LandmarkGraph) -> None:
+    def update(self, graph: _Graph) -> None:
         """Copies the graph into the tensors, in place (allocating them at its first landmarks, again when the
         feature sizes, dtype or device change); without landmarks every row becomes padding."""
         num, size = graph.num_landmarks, graph.max_landmarks
@@ -192,7 +192,7 @@ class FixedSizeStorage(nn.Module):
             if old.shape != shape or old.dtype != dtype or old.device != device:
                 setattr(self, name, torch.empty(shape, dtype=dtype, device=device))
 
-    def _fill(self, graph: LandmarkGraph, num: int) -> None:
+    def _fill(self, graph: _Graph, num: int) -> None:
         """Writes the graph's first ``num`` landmarks, in place; the other rows are padding (no edge to or from
         them, themselves at no cost like Floyd-Warshall's diagonal, invalid)."""
         pad = slice(num, None)
