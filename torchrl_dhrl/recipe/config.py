@@ -185,8 +185,8 @@ def validate_config(cfg: Mapping, env_names: tuple[str, ...] | None = None) -> N
             raise ConfigError(
                 f"`{level}.hidden` must be a non-empty list of positive integers, got {hidden!r}."
             )
-    # the components' own checks of the keys they take (by argument name; messages name the keys), the env's
-    # (num_envs, episode_length, goal_indices, angle_features, right_flipped_after, reference_engine, step_threads)
+    # the components' own checks of the keys they take (by argument name; messages name the keys), the env's top-level
+    # keys among them (make_environment's)
     from torchrl_dhrl.envs import ENVS
 
     spec = ENVS.get(name)
