@@ -14,7 +14,6 @@ from __future__ import annotations
 import argparse
 import datetime
 import math
-import platform
 import shlex
 import sys
 import time
@@ -23,8 +22,7 @@ from pathlib import Path
 import torch
 from dhrl_utils import agent_from_checkpoint, build_environment, seed_everything
 
-from torchrl_dhrl.recipe import agent_checkpoint_file, load_checkpoint
-from torchrl_dhrl.recipe.run import _cpu_model, _git_commit, _version, _write_yaml
+from torchrl_dhrl.recipe import agent_checkpoint_file, code_and_machine, load_checkpoint, write_yaml
 from torchrl_dhrl.training import evaluate, goal_as_waypoint
 
 #: The default record's name, in the run directory.
@@ -78,15 +76,13 @@ def main(argv: list[str] | None = None) -> dict:
         "batch_envs": env.batch_size.numel(),
         "episode_length": env.max_episode_steps,
         "command": shlex.join(["python", "recipes/evaluate.py", *(sys.argv[1:] if argv is None else argv)]),
-        "code": {**_git_commit(Path(__file__).resolve().parents[1]), "version": _version("torchrl-dhrl")},
-        "versions": {"python": platform.python_version(), "torch": _version("torch")},
-        "machine": {"cpu": _cpu_model(), "device": str(device)},
+        **code_and_machine(device),
         "date": datetime.datetime.now(datetime.timezone.utc).isoformat(timespec="seconds"),
         "wall_s": round(time.perf_counter() - start, 1),
     }
     out = Path(args.out) if args.out else path.parent / FINAL_EVAL_NAME
     out.parent.mkdir(parents=True, exist_ok=True)
-    _write_yaml(record, out)
+    write_yaml(record, out)
     flat_note = f", flat {record['flat_successes']}/{episodes}" if args.flat else ""
     print(
         f"{cfg['env_name']} at {record['env_steps']} env steps: {successes}/{episodes} test episodes succeeded "

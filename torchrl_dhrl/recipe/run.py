@@ -43,10 +43,12 @@ __all__ = [
     "PROVENANCE_NAME",
     "RESUME_AUTO",
     "RunStart",
+    "code_and_machine",
     "describe_start",
     "read_provenance",
     "start_run",
     "write_run_dir",
+    "write_yaml",
 ]
 
 #: The run's configuration, as :func:`start_run` writes it into the run directory (YAML).
@@ -236,7 +238,7 @@ def write_run_dir(start: RunStart) -> None:
     _write_config(start.config, start.run_dir / CONFIG_NAME)
     # a resume goes on with the starts of the run it continues (its checkpoint's directory); a fork is a new run
     starts = read_provenance(start.resume.parent) if start.resume is not None and not start.forking else []
-    _write_yaml([*starts, describe_start(start)], start.run_dir / PROVENANCE_NAME)
+    write_yaml([*starts, describe_start(start)], start.run_dir / PROVENANCE_NAME)
 
 
 def describe_start(start: RunStart) -> dict[str, Any]:
@@ -262,19 +264,36 @@ def describe_start(start: RunStart) -> dict[str, Any]:
         record["forked_from"] = str(start.resume)
     record |= {
         "command": shlex.join([Path(sys.executable).name, *sys.argv]),
+        **code_and_machine(start.device),
+        "threads": torch.get_num_threads(),
+        "precision": {"update_dtype": _dtype_name(update), "planner.build_dtype": _dtype_name(build)},
+    }
+    return record
+
+
+def code_and_machine(device: str | torch.device) -> dict[str, Any]:
+    """What a result was computed with, for a provenance record: ``code`` (the git commit of the checkout
+    ``torchrl_dhrl`` is imported from and whether its tracked files were modified, ``None`` outside a git checkout,
+    and the installed package's version), ``versions`` (:data:`PROVENANCE_PACKAGES` and Python), ``machine``
+    (architecture, CPU model, cores, whether ``device`` has native bfloat16) and ``device``.
+
+    Examples:
+        >>> record = code_and_machine("cpu")
+        >>> sorted(record), record["device"], sorted(record["machine"])
+        (['code', 'device', 'machine', 'versions'], 'cpu', ['architecture', 'cores', 'cpu', 'native_bfloat16'])
+    """
+    device = torch.device(device)
+    return {
         "code": {**_git_commit(Path(__file__).resolve().parents[2]), "version": _version("torchrl-dhrl")},
         "versions": {"python": platform.python_version(), **{p: _version(p) for p in PROVENANCE_PACKAGES[1:]}},
         "machine": {
             "architecture": platform.machine(),
             "cpu": _cpu_model(),
             "cores": os.cpu_count(),
-            "native_bfloat16": bool(native_bfloat16(start.device)),
+            "native_bfloat16": bool(native_bfloat16(device)),
         },
-        "device": torch.cuda.get_device_name(start.device) if start.device.type == "cuda" else str(start.device),
-        "threads": torch.get_num_threads(),
-        "precision": {"update_dtype": _dtype_name(update), "planner.build_dtype": _dtype_name(build)},
+        "device": torch.cuda.get_device_name(device) if device.type == "cuda" else str(device),
     }
-    return record
 
 
 def read_provenance(run_dir: str | os.PathLike) -> list[dict[str, Any]]:
@@ -345,10 +364,24 @@ def _read_checkpoint(path: Path, what: str) -> dict:
 
 def _write_config(cfg: Mapping[str, Any], path: Path) -> None:
     """The run's configuration as YAML (atomically), for tools that read run directories (``recipes/aggregate.py``)."""
-    _write_yaml(cfg, path)
+    write_yaml(cfg, path)
 
 
-def _write_yaml(value: Any, path: Path) -> None:
+def write_yaml(value: Any, path: str | os.PathLike) -> None:
+    """Writes ``value`` (tuples and paths as plain YAML) to ``path`` atomically (a temporary file, then renamed).
+
+    Examples:
+        >>> import tempfile
+        >>> from pathlib import Path
+        >>> path = Path(tempfile.mkdtemp()) / "record.yaml"
+        >>> write_yaml({"successes": 9, "sizes": (2, 3)}, path)
+        >>> print(path.read_text(), end="")
+        successes: 9
+        sizes:
+        - 2
+        - 3
+    """
+    path = Path(path)
     tmp = path.with_suffix(".yaml.tmp")
     tmp.write_text(yaml.safe_dump(_plain(value), sort_keys=False))
     tmp.replace(path)
