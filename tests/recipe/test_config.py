@@ -169,6 +169,23 @@ def test_check_resume_config():
     )
 
 
+
+@pytest.mark.parametrize(
+    ("before", "after"),
+    [(None, {"continuing_task": False}), ({"continuing_task": False}, None), ({}, {"a": 1}), ({"a": 1}, {})],
+)
+def test_a_key_that_becomes_a_group_is_compared_as_one_value(before, after):
+    """``gymnasium.make_kwargs`` null -> {continuing_task: false} changes the env: refused on resume (its sub-keys are
+    not "new keys"), allowed where the key is mutable, and reported as one change."""
+    saved = {"seed": 0, "gymnasium": {"make_kwargs": before}, "logger": {"backend": before}}
+    with pytest.raises(ConfigError, match=r"gymnasium.make_kwargs .* -> .* \(saved -> now\)"):
+        check_resume_config(saved, {**saved, "gymnasium": {"make_kwargs": after}})
+    notes = check_resume_config(saved, {**saved, "logger": {"backend": after}})
+    assert notes == [f"logger.backend: {before!r} -> {after!r}"]
+    assert check_resume_config(saved, {**saved, "gymnasium": {"make_kwargs": before, "new": 1}}) == [
+        "gymnasium.new: not in the checkpoint, 1 now"
+    ]
+
 def test_a_checkpoint_older_than_a_key_is_compared_with_the_value_it_was_trained_with():
     # 0.3.x configurations have no `low/high.distance_output`: they were trained with softplus distances
     saved = {"seed": 0, "low": {"gamma": 0.99}, "high": {"gamma": 0.99}}

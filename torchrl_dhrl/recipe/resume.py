@@ -11,6 +11,13 @@ from .schema import IMPLIED_WHEN_ABSENT, RESUME_MUTABLE_KEYS, ConfigError, _flat
 __all__ = ["check_resume_config"]
 
 
+def _at(cfg: Mapping, path: str) -> Any:
+    """The value at the dotted ``path`` of a nested configuration."""
+    for part in path.split("."):
+        cfg = cfg[part]
+    return cfg
+
+
 def _short(value: Any, width: int = 40) -> str:
     text = repr(value)
     return text if len(text) <= width else text[: width - 3] + "..."
@@ -30,9 +37,10 @@ def check_resume_config(
     logging, device and speed settings) may differ; any other key that both configurations hold must
     have the same value, or the resumed run would not be the one that was checkpointed (and would often
     fail loading it, e.g. other network sizes). A key of :data:`IMPLIED_WHEN_ABSENT` that the checkpoint
-    predates is compared with the value the checkpoint was trained with. Other keys only one side holds (a
-    checkpoint written before a key existed, or after one was removed) are not an error: the current value
-    is used and reported.
+    predates is compared with the value the checkpoint was trained with. A key that is a value on one side and a
+    group of keys on the other (``gymnasium.make_kwargs`` ``null`` -> ``{continuing_task: false}``) is compared as
+    one value. Other keys only one side holds (a checkpoint written before a key existed, or after one was removed)
+    are not an error: the current value is used and reported.
 
     Args:
         saved (Mapping): the configuration stored in the checkpoint (under ``"config"``).
@@ -64,6 +72,18 @@ def check_resume_config(
     old, new = _flatten(saved), _flatten(current)
     # a checkpoint older than a key of IMPLIED_WHEN_ABSENT: the value it was trained with
     old |= {key: value for key, value in IMPLIED_WHEN_ABSENT.items() if key in new and key not in old}
+    # a key that is a value on one side and a group of keys on the other (null -> {continuing_task: false}): a change
+    # of that key, compared as one value; its sub-keys are not "new" or "gone" keys
+    folded = {}
+    for key in old.keys() ^ new.keys():
+        other = old if key in new else new
+        parts = key.split(".")
+        parent = next((".".join(parts[:i]) for i in range(1, len(parts)) if ".".join(parts[:i]) in other), None)
+        if parent is not None:
+            folded[parent] = (_at(saved, parent), _at(current, parent))
+    for parent, (before, after) in folded.items():
+        old = {k: v for k, v in old.items() if not k.startswith(f"{parent}.")} | {parent: before}
+        new = {k: v for k, v in new.items() if not k.startswith(f"{parent}.")} | {parent: after}
     allowed, forbidden = [], []
     for key in sorted(old.keys() & new.keys()):
         if old[key] == new[key]:
