@@ -302,15 +302,16 @@ class MazeGeometry:
         return self._free_index[nearest].reshape(points.shape[:-1])
 
     # ------------------------------------------------------------------ path lengths
-    def distance_fields(self, points: Tensor) -> Tensor:
-        """``[N, H, W]`` grid path lengths from the free cells nearest to ``points [N, 2]``."""
-        cells = self.nearest_free_cell(points.reshape(-1, 2))
+    def _fields(self, cells: Tensor) -> Tensor:
+        """``[N, H * W]`` grid path lengths from the free cells ``cells [N]`` (flat indices) to every cell."""
         width = self.shape[1]
-        sources = torch.stack([cells // width, cells % width], -1)
         size_x, size_y = self.cell_size.tolist()
         return grid_shortest_paths(
-            self.free, sources, resolution=(size_y, size_x), connectivity=self.connectivity
-        )
+            self.free,
+            torch.stack([cells // width, cells % width], -1),
+            resolution=(size_y, size_x),
+            connectivity=self.connectivity,
+        ).flatten(1)
 
     def path_length(self, starts: Tensor, ends: Tensor) -> Tensor:
         """The true obstacle-free path length between ``starts [..., 2]`` and ``ends [..., 2]`` (broadcast).
@@ -334,15 +335,7 @@ class MazeGeometry:
         if starts.shape[0] == 0:
             return torch.zeros(shape)
         cells, inverse = torch.unique(start_cells, return_inverse=True)
-        width = self.shape[1]
-        size_x, size_y = self.cell_size.tolist()
-        fields = grid_shortest_paths(
-            self.free,
-            torch.stack([cells // width, cells % width], -1),
-            resolution=(size_y, size_x),
-            connectivity=self.connectivity,
-        ).flatten(1)
-        grid = fields[inverse, end_cells]
+        grid = self._fields(cells)[inverse, end_cells]
         straight = (ends - starts).norm(dim=-1)
         visible = ~self._segments.crosses_obstacle(starts, ends)
         out = torch.where(visible, straight, torch.maximum(grid, straight))
