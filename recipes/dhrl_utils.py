@@ -315,7 +315,7 @@ def build_agent(cfg: dict, device: torch.device) -> DHRLAgent:
     group that are its arguments (:mod:`torchrl_dhrl.recipe.routing`); sizes from the env's specs."""
     env = build_environment(cfg, device)
     # a registered env's goal size is known only now: the subgoal box is checked against it, naming the keys
-    check_components(cfg, goal_dim=env.observation_spec["achieved_goal"].shape[-1], error=ConfigError)
+    check_components(cfg, goal_dim=env.observation_spec["achieved_goal"].shape[-1], device=device, error=ConfigError)
     args = component_arguments(cfg)
     return make_agent(
         env,
@@ -380,12 +380,7 @@ def build_updaters(cfg: dict, agent: DHRLAgent, low_rb, high_rb) -> tuple[LossUp
                 loss,
                 rb,
                 optimizers=args[f"{level}_optimizers"],
-                **args[f"{level}_updater"],
-                cudagraphs=cfg["cudagraphs"],
-                updates_per_graph=cfg.get("updates_per_graph", 1),
-                compile=cfg.get("compile", False),
-                # the low level's switch is top-level; the high level's, `high.capture_sampling`, is routed
-                **({"capture_sampling": cfg.get("capture_sampling")} if level == "low" else {}),
+                **args[f"{level}_updater"],  # the level's keys and the top-level speed switches, resolved
                 autocast_dtype=run_precisions(cfg, next(loss.parameters()).device)[0],
             )
         )
@@ -414,14 +409,9 @@ def build_run(cfg: dict, device: torch.device) -> RunParts:
     eval_env = build_environment(cfg, device, eval=True, agent=agent)
     low_rb, high_rb = build_replay_buffers(cfg, agent, device)
     low_updater, high_updater = build_updaters(cfg, agent, low_rb, high_rb)
-    collector = make_collector(
-        train_env,
-        agent,
-        train_env.max_episode_steps,
-        compile_policy=bool(cfg.get("compile_policy", False)),
-        cudagraph_policy=bool(cfg.get("cudagraph_policy", False)),
-    )
-    eval_policy = make_eval_policy(agent, cudagraph_policy=bool(cfg.get("cudagraph_policy", False)))
+    args = component_arguments(cfg)
+    collector = make_collector(train_env, agent, train_env.max_episode_steps, **args["collector"])
+    eval_policy = make_eval_policy(agent, **args["eval_policy"])
     return RunParts(agent, train_env, eval_env, low_rb, high_rb, low_updater, high_updater, collector, eval_policy)
 
 

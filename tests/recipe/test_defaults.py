@@ -27,6 +27,9 @@ RECIPE_CHOICES = {
     "high_updater.capture_sampling": "a speed switch, not the algorithm (the same distribution of batches): the "
     "schema keeps the high level's sampling eager on every device, its exact graph query costing 45x the eager one; "
     "the component's None captures it wherever the update is captured",
+    "low_updater.cudagraphs": "a speed switch the recipe resolves per device (null: CUDA graphs on CUDA with fast=true, "
+    "eager on a CPU); the component's False is the eager update, the same updates",
+    "high_updater.cudagraphs": "as low_updater.cudagraphs",
     "environment.goal_indices": "where the env's achieved goal sits in its observation, the env's to say (each env "
     "file sets it); make_environment has no maze default",
     "oracle.margin": "ours (the reference has no oracle distance): the agent's radius, a per-task choice; the "

@@ -33,17 +33,11 @@ def test_every_key_of_the_schema_reaches_a_constructor_or_the_recipe():
         for key in group_keys(schema, group)
         if key_path(group, key) not in RECIPE_KEYS
     ]
-    env_keys = {key for group, key in reached if group == "env"}  # the top-level keys make_environment takes
-    assert env_keys == {
-        "env_name",
-        "num_envs",
-        "seed",
-        "episode_length",
-        "goal_indices",
-        "angle_features",
-        "right_flipped_after",
-        "reference_engine",
-        "step_threads",
+    top = {key for group, key in reached if group == "top"}  # the top-level keys that reach a constructor
+    assert top == {
+        "env_name", "num_envs", "seed", "episode_length", "goal_indices", "angle_features", "right_flipped_after",
+        "reference_engine", "step_threads", "cudagraphs", "updates_per_graph", "compile", "capture_sampling",
+        "compile_policy", "cudagraph_policy",
     }
     # each such key reached at least one target, under its own name or its RENAMED argument
     for group, key in reached:
@@ -53,10 +47,10 @@ def test_every_key_of_the_schema_reaches_a_constructor_or_the_recipe():
         converted = [name for name, t in TARGETS[group].items() if key in t.convert]
         assert names or converted, path
     for path in [*RECIPE_KEYS, *RENAMED]:
-        group, key = path.split(".") if "." in path else ("env", path)
+        group, key = path.split(".") if "." in path else ("top", path)
         assert key in group_keys(schema, group), f"{path} is not a key of config.yaml"
     for path, argument in RENAMED.items():  # a renamed key names an argument some target of its group takes
-        group = path.split(".")[0] if "." in path else "env"
+        group = path.split(".")[0] if "." in path else "top"
         assert any(argument in argument_names(t.build) for t in TARGETS[group].values()), path
 
 

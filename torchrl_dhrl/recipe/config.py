@@ -185,12 +185,12 @@ def validate_config(cfg: Mapping, env_names: tuple[str, ...] | None = None) -> N
             raise ConfigError(
                 f"`{level}.hidden` must be a non-empty list of positive integers, got {hidden!r}."
             )
-    # the components' own checks of the keys they take (by argument name; messages name the keys), the env's top-level
-    # keys among them (make_environment's)
+    # the components' own checks of the keys they take (by argument name; messages name the keys), the top-level keys
+    # among them (the env's, the updaters' and the acting policy's speed switches, resolved for the device)
     from torchrl_dhrl.envs import ENVS
 
     spec = ENVS.get(name)
-    check_components(cfg, goal_dim=None if spec is None else spec.goal_dim, error=ConfigError)
+    check_components(cfg, goal_dim=None if spec is None else spec.goal_dim, device=device, error=ConfigError)
     _check_against_env(cfg, name)
     _number(cfg, "high.far_from_graph_factor", low=0.0, strict=True)
     distance = _get(cfg, "planner.distance")

@@ -1,7 +1,8 @@
 """The one path from the recipe's configuration to the constructors: a key reaches an argument of the same name.
 
 The keys of the groups ``low``, ``high``, ``planner``, ``fgs`` and ``gymnasium`` (``recipes/config/config.yaml``), and
-the top-level keys that name an argument of :func:`~torchrl_dhrl.factory.make_environment` (the group ``env``), are the keyword arguments of the components the
+the top-level keys that name an argument of :func:`~torchrl_dhrl.factory.make_environment`, of the updaters or of the
+collector (the group ``top``), are the keyword arguments of the components the
 group builds, listed in :data:`TARGETS`: a key reaches every target of
 its group whose constructor takes an argument of its name, so that a new hyperparameter is a key in the
 schema and an argument (with its :func:`~torchrl_dhrl.checks.checked` range) in the component, and nothing in
@@ -21,9 +22,17 @@ from collections.abc import Callable, Mapping
 from dataclasses import dataclass, field
 from typing import Any
 
+import torch
+
 from torchrl_dhrl.checks import argument_names, check_arguments
 from torchrl_dhrl.envs import GymnasiumGoalEnv
-from torchrl_dhrl.factory import make_environment, make_high_level_buffer, make_low_level_buffer
+from torchrl_dhrl.factory import (
+    make_collector,
+    make_environment,
+    make_eval_policy,
+    make_high_level_buffer,
+    make_low_level_buffer,
+)
 from torchrl_dhrl.modules import (
     GaussianUniformExplorationModule,
     GoalConditionedCritic,
@@ -40,6 +49,8 @@ from torchrl_dhrl.planner import (
     make_edge_rule,
 )
 from torchrl_dhrl.training import LossUpdater
+
+from .resolve import resolve_speed
 
 __all__ = [
     "RECIPE_KEYS",
@@ -111,9 +122,16 @@ TARGETS: dict[str, dict[str, Target]] = {
     },
     "fgs": {"goal_shifting": Target(FrontierGoalShifting)},
     "gymnasium": {"gymnasium_env": Target(GymnasiumGoalEnv)},
-    # the top-level keys that name an argument of make_environment (group_keys): the env the agent acts in; the
-    # recipe resolves the device itself
-    "env": {"environment": Target(make_environment, exclude=("device",))},
+    # the top-level keys that name an argument of one of these (group_keys): the env's keys, the updaters' and the
+    # acting policy's speed switches (the recipe resolves the device itself; the high level's capture_sampling is
+    # `high.capture_sampling`)
+    "top": {
+        "environment": Target(make_environment, exclude=("device",)),
+        "low_updater": Target(LossUpdater),
+        "high_updater": Target(LossUpdater, exclude=("capture_sampling",)),
+        "collector": Target(make_collector),
+        "eval_policy": Target(make_eval_policy),
+    },
 }
 
 #: Keys named otherwise than the argument they set: ``group.key -> argument``.
@@ -152,25 +170,26 @@ CHECKED_AS = {
 
 
 def key_path(group: str, key: str) -> str:
-    """The dotted configuration key of ``key`` in ``group`` (the keys of ``env`` are top-level).
+    """The dotted configuration key of ``key`` in ``group`` (the keys of ``top`` are top-level).
 
     Examples:
-        >>> key_path("high", "c_h"), key_path("env", "episode_length")
+        >>> key_path("high", "c_h"), key_path("top", "episode_length")
         ('high.c_h', 'episode_length')
     """
-    return key if group == "env" else f"{group}.{key}"
+    return key if group == "top" else f"{group}.{key}"
 
 
 def group_keys(cfg: Mapping[str, Any], group: str) -> Mapping[str, Any]:
     """The keys of ``group`` that ``cfg`` holds, with their values (a checkpoint older than a group or a key has
-    none); for ``env``, the top-level keys that name an argument of its targets (``make_environment``'s), so that a
-    new env key is a key of the schema and an argument of ``make_environment``, and nothing in between.
+    none); for ``top``, the top-level keys that name an argument of its targets (``make_environment``'s, the
+    updaters', the collector's), so that a new env key is a key of the schema and an argument of
+    ``make_environment``, and nothing in between.
 
     Examples:
-        >>> group_keys({"seed": 3, "threads": 1, "high": {"c_h": 40}}, "env"), group_keys({"high": {"c_h": 40}}, "high")
+        >>> group_keys({"seed": 3, "threads": 1, "high": {"c_h": 40}}, "top"), group_keys({"high": {"c_h": 40}}, "high")
         ({'seed': 3}, {'c_h': 40})
     """
-    if group == "env":  # the top-level keys that reach one of its targets
+    if group == "top":  # the top-level keys that reach one of its targets
         return {key: value for key, value in cfg.items() if key not in TARGETS and _routes(group, key, value)}
     return cfg.get(group, {})
 
@@ -233,15 +252,22 @@ _QUOTED = re.compile(r"`(\w+)(?=[`=])")
 
 
 def check_components(
-    cfg: Mapping[str, Any], *, goal_dim: int | None = None, error: type[Exception] = ValueError
+    cfg: Mapping[str, Any],
+    *,
+    goal_dim: int | None = None,
+    device: str | torch.device = "cpu",
+    error: type[Exception] = ValueError,
 ) -> None:
     """Runs the range checks of every component the configuration reaches (:func:`~torchrl_dhrl.checks.check_arguments`),
     without building any, and raises ``error`` naming the configuration key instead of the argument.
 
     Keyword Args:
         goal_dim (int, optional): the env's goal size, when known (the subgoal box must match it).
+        device (str or torch.device): the device the speed switches left at ``null`` are resolved for
+            (:func:`~torchrl_dhrl.recipe.resolve_speed`), as the recipe builds with them. Defaults to ``"cpu"``.
         error (type): the exception to raise (the recipe's ``ConfigError``). Defaults to ``ValueError``.
     """
+    cfg = resolve_speed(cfg, device)[0]
     routed, sources = _route(cfg)
     context = {"goal_indices": cfg.get("goal_indices")}
     if goal_dim is not None:
