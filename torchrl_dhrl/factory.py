@@ -311,7 +311,7 @@ def _right_flipped_needs_an_ant(env_name, right_flipped_after) -> None:
     if right_flipped_after is not None and not hasattr(getattr(spec, "agent", None), "upright_qpos"):
         raise ValueError(
             f"`right_flipped_after` rights a flipped ant: it applies to the ant mazes only, not to {env_name}; "
-            "leave it null."
+            "leave it None (null)."
         )
 
 
@@ -320,7 +320,7 @@ def _reference_engine_needs_an_ant_maze(env_name, reference_engine) -> None:
         return
     if _built_in(env_name) is None:
         raise ValueError(
-            f"`reference_engine` is an option of the built-in ant mazes, not of {env_name}; leave it false."
+            f"`reference_engine` is an option of the built-in ant mazes, not of {env_name}; leave it False."
         )
     from torchrl_dhrl.envs.simulation import reference_engine_spec
 
