@@ -15,6 +15,7 @@ import copy
 import inspect
 import random
 import shutil
+from collections.abc import Mapping
 from pathlib import Path
 from typing import Any, NamedTuple
 
@@ -51,7 +52,9 @@ from torchrl_dhrl.recipe import (
     resolve_speed,
     run_precisions,
     start_run,
+    validate_config,
     validate_env_name,
+    with_changes,
     with_implied_keys,
 )
 from torchrl_dhrl.recipe.routing import TARGETS, check_components, component_arguments
@@ -493,16 +496,28 @@ def build_episode_log(cfg: dict, state: dict | None = None) -> TrainingEpisodeLo
     return log
 
 
-def agent_from_checkpoint(path, device: str | torch.device = "cpu") -> tuple[dict, DHRLAgent]:
+def agent_from_checkpoint(
+    path, device: str | torch.device = "cpu", changes: Mapping[str, Any] | None = None
+) -> tuple[dict, DHRLAgent]:
     """The configuration of a run's checkpoint and its agent, rebuilt and loaded (the graph with it).
 
     Args:
         path (str or Path): a checkpoint, a saved agent (``<run dir>/agent``) or the run directory holding
             them (its checkpoint, else its saved agent: :func:`~torchrl_dhrl.recipe.agent_checkpoint_file`).
+        device (str or torch.device): where the agent is built. Defaults to ``"cpu"``.
+        changes (Mapping, optional): dotted keys no checkpointed state holds (role ``unsaved``), set before the
+            agent is built (:func:`~torchrl_dhrl.recipe.with_changes`) and checked like the recipe's: the same
+            trained agent acting otherwise. A change of a ``planner`` key redoes the loaded graph's edges with it
+            (the same landmarks and learned distances). Defaults to none.
     """
     device = torch.device(device)
     state = load_checkpoint(agent_checkpoint_file(path), map_location=device, components=("config", "agent"))
     cfg = with_implied_keys(state["config"])  # an older checkpoint rebuilt with its own behaviour
+    if changes:
+        cfg = with_changes(cfg, changes)
+        validate_config(cfg)
     agent = build_agent(cfg, device)
     agent.load_state_dict(state["agent"])
+    if changes and any(key.startswith("planner.") for key in changes):
+        agent.planner.graph.redo_edges()  # the loaded edges were the saved rule's
     return cfg, agent

@@ -19,6 +19,7 @@ from torch.utils._pytree import tree_flatten_with_path
 from torchrl.checkpoint import Checkpoint, JSONCheckpointAdapter, StateDictCheckpointAdapter
 from torchrl_dhrl.envs.simulation import GoalSimulation
 
+from torchrl_dhrl.planner import ConnectedEdgeRule, CutoffEdgeRule, LandmarkGraph
 from torchrl_dhrl.recipe import (
     AGENT_COMPONENTS,
     AGENT_NAME,
@@ -36,8 +37,13 @@ pytestmark = pytest.mark.recipe
 #: Two epochs of the smoke preset on Reacher3D (random test goals: the episodes differ), the graph built in the
 #: second; the test episodes in batches of 10 envs.
 OVERRIDES = (
-    "env=Reacher3D", "preset=smoke", "total_steps=160", "schedule.eval_episodes=10", "schedule.eval_flat=false",
-    "logger.backend=none", "plots.every_epochs=0",
+    "env=Reacher3D",
+    "preset=smoke",
+    "total_steps=160",
+    "schedule.eval_episodes=10",
+    "schedule.eval_flat=false",
+    "logger.backend=none",
+    "plots.every_epochs=0",
 )
 #: A success radius (m) at which this tiny agent succeeds in some test episodes and fails in others (0.25 as trained).
 WIDE_SUCCESS = 0.85
@@ -125,9 +131,153 @@ def test_evaluate_script_counts_whole_episodes_as_a_direct_evaluation(run_dir, t
     # at least --episodes, in whole batches; the low level alone recorded with --flat; --out
     out = tmp_path / "eval.yaml"
     flat = load_recipe("evaluate").main([str(run_dir), "--episodes", "1", "--flat", "--out", str(out)])
-    assert flat["episodes"] == 10 and isinstance(flat["flat_successes"], int) and 0 <= flat["flat_success"] <= 1
+    assert (
+        flat["episodes"] == 10 and isinstance(flat["flat_successes"], int) and 0 <= flat["flat_success"] <= 1
+    )
     assert flat["agent"] == str((run_dir / CHECKPOINT_NAME).resolve())  # a run directory: its checkpoint
     assert yaml.safe_load(out.read_text()) == flat
+
+
+def _final_successes(cfg, agent, batches: int, seed: int) -> torch.Tensor:
+    """Independently of the script: each episode's final success, batch k of the recipe's test env seeded
+    with seed + k."""
+    dhrl_utils = load_recipe("dhrl_utils")
+    env = dhrl_utils.build_environment(cfg, torch.device("cpu"), eval=True, agent=agent)
+    out = []
+    for k in range(batches):
+        dhrl_utils.seed_everything(seed + k, env)
+        rollout = evaluate(env, agent.policy, env.max_episode_steps).rollout
+        out.append(rollout["next", "is_success"].reshape(*rollout.shape, -1).any(-1)[:, -1])
+    return torch.cat(out)
+
+
+def test_evaluate_script_compares_test_time_variants_on_the_same_episodes(run_dir, monkeypatch):
+    """``--variant``: the same trained agent with keys no checkpointed state holds changed, on the same episodes
+    as the agent as trained; the counts paired episode by episode (an unchanged variant differs in none), the
+    graph's edges redone with a changed edge rule; the protocol's final_eval.yaml left alone."""
+    _wide_success(monkeypatch)
+    final = run_dir / "final_eval.yaml"
+    before = final.read_bytes() if final.exists() else None
+    critic = ["high.critic_candidates=8", "high.candidate_noise=0.5", "high.landmark_candidates=true"]
+    record = load_recipe("evaluate").main(
+        [
+            str(run_dir / AGENT_NAME),
+            "--episodes",
+            "20",
+            "--seed",
+            "3",
+            "--variant",
+            "high.critic_candidates=0",
+            "--variant",
+            *critic,
+            "--variant",
+            "planner.edge_rule=connected",
+        ]
+    )
+    assert (final.read_bytes() if final.exists() else None) == before
+    assert yaml.safe_load((run_dir / "variants_eval.yaml").read_text()) == record
+    same, guided, connected = record["variants"]
+    assert same["changes"] == {"high.critic_candidates": 0}
+    assert guided["changes"] == {
+        "high.critic_candidates": 8,
+        "high.candidate_noise": 0.5,
+        "high.landmark_candidates": True,
+    }
+    assert 0 < record["successes"] < 20  # outcomes that pairing the episodes wrongly would change
+    assert (same["successes"], same["only_variant"], same["only_reference"], same["p_value"]) == (
+        record["successes"],
+        0,
+        0,
+        1.0,
+    )
+    # the critic-guided variant, independently: its agent rebuilt from the checkpoint with the keys changed
+    dhrl_utils = load_recipe("dhrl_utils")
+    cfg, agent = dhrl_utils.agent_from_checkpoint(run_dir / AGENT_NAME)
+    trained = _final_successes(cfg, agent, 2, 3)
+    changed = dict(cfg)
+    changed["high"] = cfg["high"] | {
+        "critic_candidates": 8,
+        "candidate_noise": 0.5,
+        "landmark_candidates": True,
+    }
+    variant_agent = dhrl_utils.build_agent(changed, torch.device("cpu"))
+    variant_agent.load_state_dict(agent.state_dict())
+    assert variant_agent.high_policy.selector is not None and agent.high_policy.selector is None
+    outcome = _final_successes(changed, variant_agent, 2, 3)
+    assert int(trained.sum()) == record["successes"]
+    assert (guided["successes"], guided["only_variant"], guided["only_reference"]) == (
+        int(outcome.sum()),
+        int((outcome & ~trained).sum()),
+        int((trained & ~outcome).sum()),
+    )
+    assert guided["success"] == guided["successes"] / 20 and 0 <= guided["p_value"] <= 1
+    assert connected["changes"] == {"planner.edge_rule": "connected"} and 0 <= connected["successes"] <= 20
+
+
+def test_a_changed_edge_rule_redoes_the_loaded_graphs_edges(run_dir, monkeypatch):
+    """A saved graph cut in two by the cutoff (its distances across set above it, its edges the cutoff rule's,
+    as saved): rebuilt as saved it stays cut; with ``planner.edge_rule=connected`` its edges are
+    ConnectedEdgeRule's on the same landmarks and distances, and every landmark reaches every other."""
+    dhrl_utils = load_recipe("dhrl_utils")
+    real_load = dhrl_utils.load_checkpoint
+
+    def load_cut_graph(*args, **kwargs):
+        state = real_load(*args, **kwargs)
+        agent = state["agent"]
+        distances = agent["planner"]["graph.landmark_distances"]
+        num, cutoff = distances.shape[0], state["config"]["planner"]["cutoff"]
+        half = torch.arange(num) < num // 2
+        across = half[:, None] != half[None, :]
+        ties = torch.arange(num)[:, None] + torch.arange(num)[None, :]  # distinct lengths across, some tied
+        cut = torch.where(across, 2 * cutoff + 0.5 * (ties % 3), torch.ones(num, num)).fill_diagonal_(0.0)
+        saved = LandmarkGraph(cutoff=cutoff).set_distance_matrix(  # the graph the cutoff rule saves
+            agent["planner"]["graph.landmark_states"], agent["planner"]["graph.landmark_goals"], cut
+        )
+        for name, value in saved.state_dict().items():
+            if name in ("landmark_distances", "edge_weights", "shortest_distances", "next_hop", "hop_counts"):
+                agent["planner"][f"graph.{name}"] = value
+        return state
+
+    monkeypatch.setattr(dhrl_utils, "load_checkpoint", load_cut_graph)
+    _, saved = dhrl_utils.agent_from_checkpoint(run_dir / AGENT_NAME)
+    _, rewired = dhrl_utils.agent_from_checkpoint(
+        run_dir / AGENT_NAME, changes={"planner.edge_rule": "connected"}
+    )
+    old, graph = saved.planner.graph, rewired.planner.graph
+    assert isinstance(graph.edge_rule, ConnectedEdgeRule) and isinstance(old.edge_rule, CutoffEdgeRule)
+    torch.testing.assert_close(graph.landmark_distances, old.landmark_distances, rtol=0, atol=0)
+    torch.testing.assert_close(graph.landmark_goals, old.landmark_goals, rtol=0, atol=0)
+    off_diag = graph.landmark_distances.clone().fill_diagonal_(math.inf)
+    connected_edges = ConnectedEdgeRule()(off_diag, graph.cutoff).fill_diagonal_(False)
+    assert torch.equal(graph.edge_mask, connected_edges)
+    assert torch.equal(old.edge_mask, CutoffEdgeRule()(off_diag, old.cutoff).fill_diagonal_(False))
+    assert not torch.equal(graph.edge_mask, old.edge_mask)
+    assert graph.shortest_distances.isfinite().all() and not old.shortest_distances.isfinite().all()
+
+
+@pytest.mark.parametrize(
+    "variant, error",
+    [
+        (
+            ["high.actor_lr=0.1"],
+            r"`high\.actor_lr` cannot change on a trained agent.*accepted: .*high\.critic_candidates",
+        ),
+        (["high.critic_candidates=-1"], r"high\.critic_candidates"),
+        (["planner.edge_rule=shortest"], r"planner\.edge_rule"),
+        (["high.critic_candidate=8"], r"`high\.critic_candidate` is not a key of the saved configuration"),
+    ],
+)
+def test_evaluate_script_refuses_a_bad_variant_before_any_episode(run_dir, monkeypatch, variant, error):
+    evaluate_script = load_recipe("evaluate")
+
+    def no_episodes(*args, **kwargs):
+        raise AssertionError("an episode ran before the variants were checked")
+
+    monkeypatch.setattr(evaluate_script, "episode_successes", no_episodes)
+    with pytest.raises(ConfigError, match=error):
+        evaluate_script.main([str(run_dir / AGENT_NAME), "--episodes", "10", "--variant", *variant])
+    with pytest.raises(SystemExit):  # not KEY=VALUE
+        evaluate_script.main([str(run_dir / AGENT_NAME), "--variant", "high.critic_candidates"])
 
 
 def test_sigterm_writes_the_saved_agent_with_the_checkpoint(tmp_path, monkeypatch):
@@ -143,7 +293,10 @@ def test_sigterm_writes_the_saved_agent_with_the_checkpoint(tmp_path, monkeypatc
     with pytest.raises(KeyboardInterrupt):
         # no checkpoint of the schedule before the stop
         recipe.train(recipe_config(*OVERRIDES, "checkpoint.every_epochs=100"), run_dir=tmp_path)
-    saved, full = load_checkpoint(tmp_path / AGENT_NAME), load_checkpoint(tmp_path, components=AGENT_COMPONENTS)
+    saved, full = (
+        load_checkpoint(tmp_path / AGENT_NAME),
+        load_checkpoint(tmp_path, components=AGENT_COMPONENTS),
+    )
     assert saved["counters"]["env_steps"] == full["counters"]["env_steps"] == 80
     _assert_same_states(saved["agent"], full["agent"])
     # a saved agent does not resume

@@ -110,10 +110,7 @@ def planning_ablations(
     def set_cutoff(c: float):
         def setup() -> None:  # the same landmarks and learned distances, edges redone at the new cutoff
             graph.cutoff = c
-            if graph.has_graph:
-                graph.set_distance_matrix(
-                    graph.landmark_states, graph.landmark_goals, graph.landmark_distances
-                )
+            graph.redo_edges()
 
         return setup
 

@@ -384,6 +384,32 @@ class LandmarkGraph(UnregisteredAttributes, nn.Module):
         return self
 
     @torch.no_grad()
+    def redo_edges(self) -> LandmarkGraph:
+        """The edges and shortest paths redone from the same landmarks and distances with the graph's current
+        :attr:`cutoff` and :attr:`edge_rule` (both take effect at the next build otherwise), e.g. on a loaded
+        graph evaluated with another edge rule. The landmarks, their distances and the coverage radius stay;
+        a graph without landmarks stays empty.
+
+        Examples:
+            >>> import torch
+            >>> from torchrl_dhrl.planner import ConnectedEdgeRule
+            >>> graph = LandmarkGraph(max_landmarks=3, cutoff=2.0)
+            >>> points = torch.tensor([[0.0], [1.0], [4.0]])
+            >>> graph = graph.set_distance_matrix(points, points, torch.cdist(points, points))
+            >>> graph.edges.tolist()  # 1 -> 2 (3 steps) is above the cutoff and 1.2x 1's nearest neighbour
+            [[0, 1], [1, 0], [2, 1]]
+            >>> graph.edge_rule = ConnectedEdgeRule()
+            >>> graph.redo_edges().edges.tolist()  # the shortest edge that lets 0 and 1 reach 2
+            [[0, 1], [1, 0], [1, 2], [2, 1]]
+        """
+        if not self.has_graph:
+            return self
+        coverage = self.coverage_radius.clone()
+        self.set_distance_matrix(self.landmark_states, self.landmark_goals, self.landmark_distances)
+        self.coverage_radius = coverage
+        return self
+
+    @torch.no_grad()
     def reserve(
         self,
         obs_dim: int,

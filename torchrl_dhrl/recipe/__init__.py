@@ -4,13 +4,13 @@ reference agent with :mod:`torchrl_dhrl.factory`, which the recipe calls too).
 
 ``schema`` (the keys, their roles on resume, fork and aggregation, :class:`ConfigError`), ``config`` (value
 checks), ``resolve`` (device, speed switches, precisions, goal units derived from the env), ``resume`` (whether a
-checkpoint's configuration may be continued), ``routing`` (each configuration key to the constructor
+checkpoint's configuration may be continued; a saved agent's test-time variant), ``routing`` (each configuration key to the constructor
 argument of its name, the components' own checks run on them before anything is built), ``run`` (start-up, resume
 and fork, run directory, provenance), ``loop`` (the loop's counters, :class:`GracefulStop`, :class:`LoopTimer`,
 metrics files, logger), ``checkpoint`` (one ``torchrl.checkpoint`` registry of everything a run carries, and the
 run's saved agent), ``epoch`` (the epoch end: graph rebuild, evaluation, pictures), ``plots`` and ``aggregate``
 (many runs' curves), ``protocol`` (the results protocol: success per seed over a window before each budget, in
-whole episodes)."""
+whole episodes; paired test episodes of two variants of an agent)."""
 
 from .aggregate import (
     RunRecord,
@@ -55,7 +55,15 @@ from .plots import (
     plot_success_curve,
     success_curve_series,
 )
-from .protocol import Protocol, episodes_succeeded, report_points, summarize_point, window_success
+from .protocol import (
+    PairedComparison,
+    Protocol,
+    episodes_succeeded,
+    paired_comparison,
+    report_points,
+    summarize_point,
+    window_success,
+)
 from .resolve import (
     FAST_PATH,
     REFERENCE_PATH,
@@ -66,7 +74,7 @@ from .resolve import (
     resolve_speed,
     run_precisions,
 )
-from .resume import check_resume_config
+from .resume import check_resume_config, with_changes
 from .routing import RECIPE_KEYS, RENAMED, TARGETS, ConfigRoutingError, check_components, component_arguments
 from .run import (
     CONFIG_NAME,
@@ -179,8 +187,10 @@ __all__ = [
     "write_run_dir",
     "write_yaml",
     "PROVENANCE_NAME",
+    "PairedComparison",
     "Protocol",
     "episodes_succeeded",
+    "paired_comparison",
     "report_points",
     "summarize_point",
     "window_success",
@@ -189,6 +199,7 @@ __all__ = [
     "read_provenance",
     "success_curve_series",
     "validate_config",
+    "with_changes",
     "validate_env_name",
     "with_implied_keys",
     "write_aggregate_csv",

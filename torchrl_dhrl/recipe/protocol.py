@@ -14,6 +14,9 @@ The reporting points (:func:`report_points`) are the budgets; a budget counts fo
 (their last evaluation within one evaluation interval of it). Where a seed stopped short of a budget, the
 last evaluation every seed reached is reported too, labelled as such, so that no run is dropped and no point
 is chosen after seeing the curves.
+
+Two variants of one agent (as trained, and with a test-time switch) are compared on the same test episodes
+(:func:`paired_comparison`): the episodes only one of them succeeded in, and the exact McNemar test on those.
 """
 
 from __future__ import annotations
@@ -27,11 +30,13 @@ import numpy as np
 from .aggregate import RunRecord, bootstrap_iqm_ci, iqm
 
 __all__ = [
+    "PairedComparison",
     "Protocol",
     "ReportPoint",
     "WindowSuccess",
     "episodes_succeeded",
     "evaluation_steps",
+    "paired_comparison",
     "report_points",
     "summarize_point",
     "window_success",
@@ -90,6 +95,56 @@ class ReportPoint:
 
     steps: int
     kind: str
+
+
+@dataclass(frozen=True)
+class PairedComparison:
+    """Two variants of an agent on the same test episodes: how many each succeeded in, the episodes only one did,
+    and the two-sided exact McNemar p-value (a binomial test of ``only_variant`` among the discordant episodes at
+    1/2: the chance of so uneven a split if the switch changed nothing)."""
+
+    episodes: int
+    reference: int
+    variant: int
+    only_variant: int
+    only_reference: int
+    p_value: float
+
+    def as_dict(self) -> dict:
+        return {name: getattr(self, name) for name in self.__dataclass_fields__}
+
+
+def paired_comparison(reference: Sequence[bool], variant: Sequence[bool]) -> PairedComparison:
+    """Compares two variants' per-episode final successes on the same test episodes (episode ``i`` of both met the
+    same start and goal).
+
+    Examples:
+        >>> comparison = paired_comparison([1, 1, 0, 0, 0, 0], [1, 0, 1, 1, 1, 1])
+        >>> comparison.reference, comparison.variant, comparison.only_variant, comparison.only_reference
+        (2, 5, 4, 1)
+        >>> round(comparison.p_value, 3)  # 4 against 1 of 5 discordant episodes: 2 x (5 + 1) / 32
+        0.375
+    """
+    from scipy.stats import binomtest
+
+    a = np.asarray(reference, dtype=bool).reshape(-1)
+    b = np.asarray(variant, dtype=bool).reshape(-1)
+    if a.shape != b.shape or a.size == 0:
+        raise ValueError(
+            f"`reference` and `variant` must hold one success per episode each, the same episodes, got "
+            f"{a.size} and {b.size}."
+        )
+    only_variant, only_reference = int((b & ~a).sum()), int((a & ~b).sum())
+    discordant = only_variant + only_reference
+    p_value = binomtest(only_variant, discordant, 0.5).pvalue if discordant else 1.0
+    return PairedComparison(
+        episodes=int(a.size),
+        reference=int(a.sum()),
+        variant=int(b.sum()),
+        only_variant=only_variant,
+        only_reference=only_reference,
+        p_value=float(p_value),
+    )
 
 
 def episodes_succeeded(rate: float, episodes: int) -> int:

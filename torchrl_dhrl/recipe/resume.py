@@ -1,14 +1,16 @@
-"""Whether a checkpoint's configuration may be continued (resume) or branched from (fork) by the current one."""
+"""Whether a checkpoint's configuration may be continued (resume) or branched from (fork) by the current one, and
+a saved configuration with the hyperparameters no checkpointed state holds changed (a saved agent's variant)."""
 
 from __future__ import annotations
 
+import copy
 import fnmatch
 from collections.abc import Mapping
 from typing import Any
 
-from .schema import IMPLIED_WHEN_ABSENT, RESUME_MUTABLE_KEYS, ConfigError, _flatten
+from .schema import IMPLIED_WHEN_ABSENT, RESUME_MUTABLE_KEYS, ConfigError, _flatten, keys_with_role
 
-__all__ = ["check_resume_config"]
+__all__ = ["check_resume_config", "with_changes"]
 
 
 def _at(cfg: Mapping, path: str) -> Any:
@@ -108,3 +110,44 @@ def check_resume_config(
         for key in sorted(old.keys() - new.keys())
     ]
     return allowed
+
+
+def with_changes(saved: Mapping, changes: Mapping[str, Any]) -> dict:
+    """A copy of a saved configuration with the dotted keys of ``changes`` set to their values, for the same trained
+    agent acting otherwise (``recipes/evaluate.py --variant``: a saved agent re-evaluated with another edge rule).
+
+    Only the hyperparameters no checkpointed state holds may change (role ``unsaved`` of
+    :data:`~torchrl_dhrl.recipe.KEY_ROLES`, those a fork may change too): the trained networks and graph would
+    silently keep their values of any other key. The values are not checked here (the recipe's
+    :func:`~torchrl_dhrl.recipe.validate_config` does, naming the key).
+
+    Raises:
+        ConfigError: naming a key ``saved`` does not hold, or one that may not change, with the keys that may.
+
+    Examples:
+        >>> saved = {"planner": {"edge_rule": "cutoff", "cutoff": 30}, "high": {"lr": 1e-4}}
+        >>> with_changes(saved, {"planner.edge_rule": "connected"})["planner"]
+        {'edge_rule': 'connected', 'cutoff': 30}
+        >>> try:
+        ...     with_changes(saved, {"high.lr": 1e-3})
+        ... except ConfigError as err:
+        ...     print(str(err).split(";")[0])
+        `high.lr` cannot change on a trained agent: its state holds it, or the run was trained under it
+    """
+    mutable = keys_with_role("unsaved")
+    flat = _flatten(saved)
+    out = copy.deepcopy(dict(saved))
+    for key, value in changes.items():
+        if key not in flat:
+            raise ConfigError(f"`{key}` is not a key of the saved configuration; accepted: {', '.join(mutable)}.")
+        if not any(fnmatch.fnmatchcase(key, pattern) for pattern in mutable):
+            raise ConfigError(
+                f"`{key}` cannot change on a trained agent: its state holds it, or the run was trained under it; "
+                f"accepted: {', '.join(mutable)}."
+            )
+        *parents, last = key.split(".")
+        node = out
+        for part in parents:
+            node = node[part]
+        node[last] = value
+    return out
