@@ -85,6 +85,7 @@ from .run import (
     describe_start,
     read_provenance,
     start_run,
+    write_csv,
     write_run_dir,
     write_yaml,
 )
@@ -185,6 +186,7 @@ __all__ = [
     "save_checkpoint",
     "start_run",
     "write_run_dir",
+    "write_csv",
     "write_yaml",
     "PROVENANCE_NAME",
     "PairedComparison",

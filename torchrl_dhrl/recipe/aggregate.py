@@ -25,7 +25,7 @@ import yaml
 from matplotlib.figure import Figure
 from scipy.stats import trim_mean
 
-from .run import read_provenance
+from .run import read_provenance, write_csv
 from .schema import IGNORED_KEYS, RESOLVED_KEYS, with_implied_keys
 
 __all__ = [
@@ -242,14 +242,8 @@ def write_aggregate_csv(table: Sequence[Mapping[str, Any]], path: str | Path) ->
     """Writes the rows of :func:`aggregate_runs` as CSV (atomically: a temporary file, then renamed)."""
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
-    tmp = path.with_suffix(path.suffix + ".tmp")
     columns = list(table[0]) if table else ["env", "variant", "env_steps", "n", "mean", "std", "iqm"]
-    with open(tmp, "w", newline="") as file:
-        writer = csv.DictWriter(file, fieldnames=columns)
-        writer.writeheader()
-        writer.writerows(table)
-    tmp.replace(path)
-    return path
+    return write_csv(table, columns, path)
 
 
 def plot_aggregate(

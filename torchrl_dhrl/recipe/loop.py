@@ -10,7 +10,6 @@ from __future__ import annotations
 
 import contextlib
 import copy
-import csv
 import dataclasses
 import gc
 import os
@@ -24,6 +23,8 @@ from typing import Any
 import torch
 
 from torchrl_dhrl.training import ModuleTimer
+
+from .run import write_csv
 
 __all__ = [
     "GracefulStop",
@@ -225,15 +226,8 @@ def write_metrics_csv(history: Sequence[Mapping[str, Any]], path: str | os.PathL
         >>> path.read_text().splitlines()[0]
         'env_steps,epoch,eval/success'
     """
-    path = Path(path)
     keys = sorted({k for h in history for k in h}, key=lambda k: (k not in ("epoch", "env_steps"), k))
-    tmp = path.with_suffix(".tmp")
-    with tmp.open("w", newline="") as file:
-        writer = csv.DictWriter(file, fieldnames=keys)
-        writer.writeheader()
-        writer.writerows(history)
-    tmp.replace(path)
-    return path
+    return write_csv(history, keys, path)
 
 
 def make_logger(

@@ -10,6 +10,7 @@ provenance (:func:`describe_start`). The loop's own machinery (counters, stops, 
 from __future__ import annotations
 
 import contextlib
+import csv
 import datetime
 import importlib.metadata
 import os
@@ -17,7 +18,7 @@ import platform
 import shlex
 import subprocess
 import sys
-from collections.abc import Mapping
+from collections.abc import Mapping, Sequence
 from pathlib import Path
 from typing import Any, NamedTuple
 
@@ -48,6 +49,7 @@ __all__ = [
     "read_provenance",
     "start_run",
     "write_run_dir",
+    "write_csv",
     "write_yaml",
 ]
 
@@ -385,6 +387,27 @@ def write_yaml(value: Any, path: str | os.PathLike) -> None:
     tmp = path.with_suffix(".yaml.tmp")
     tmp.write_text(yaml.safe_dump(_plain(value), sort_keys=False))
     tmp.replace(path)
+
+
+def write_csv(rows: Sequence[Mapping[str, Any]], columns: Sequence[str], path: str | os.PathLike) -> Path:
+    """Writes ``rows`` under ``columns`` (a header line, then one line per row; a key a row lacks is left empty)
+    to ``path`` atomically (a temporary file, then renamed): a crash leaves the previous file whole.
+
+    Examples:
+        >>> import tempfile
+        >>> from pathlib import Path
+        >>> path = write_csv([{"a": 1}, {"a": 2, "b": 3}], ["a", "b"], Path(tempfile.mkdtemp()) / "t.csv")
+        >>> path.read_text().splitlines()
+        ['a,b', '1,', '2,3']
+    """
+    path = Path(path)
+    tmp = path.with_suffix(path.suffix + ".tmp")
+    with tmp.open("w", newline="") as file:
+        writer = csv.DictWriter(file, fieldnames=list(columns))
+        writer.writeheader()
+        writer.writerows(rows)
+    tmp.replace(path)
+    return path
 
 
 def _plain(value: Any) -> Any:
