@@ -306,6 +306,9 @@ def test_cuda_device():
 @pytest.mark.parametrize("name", ["PointMaze", "AntMaze", "Reacher3D"])
 def test_state_dict_round_trip_continues_exactly(name):
     """Saving mid-episode and loading into a fresh env continues steps and future resets bit for bit."""
+    # seeded: after some draws of actions (13 of 60 seeds) a point's solver warm start is all zeros, which the
+    # check below takes for a warm start not restored; the test ran unseeded and failed with such draws
+    torch.manual_seed(0)
     env = make_env(name, num_envs=2, seed=3, max_episode_steps=6)
     env.reset()
     actions = torch.rand(12, *env.action_spec.shape) * 2 - 1
