@@ -101,7 +101,13 @@ class ReportPoint:
 class PairedComparison:
     """Two variants of an agent on the same test episodes: how many each succeeded in, the episodes only one did,
     and the two-sided exact McNemar p-value (a binomial test of ``only_variant`` among the discordant episodes at
-    1/2: the chance of so uneven a split if the switch changed nothing)."""
+    1/2: the chance of so uneven a split if the switch changed nothing).
+
+    Examples:
+        >>> comparison = paired_comparison([True, False, False], [True, True, True])
+        >>> comparison.as_dict()
+        {'episodes': 3, 'reference': 1, 'variant': 3, 'only_variant': 2, 'only_reference': 0, 'p_value': 0.5}
+    """
 
     episodes: int
     reference: int
