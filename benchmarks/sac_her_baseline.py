@@ -7,6 +7,20 @@ The baseline next to ``env=gymnasium`` runs of the recipe (docs/results.md)::
     python benchmarks/sac_her_baseline.py --env-id PointMaze_UMaze-v3 --steps 60000 --seed 0 \\
         --reset-options '{"reset_cell": [3, 1]}' --out runs/sac_her_umaze_s0
 
+``--eval-reset-options`` gives the test episodes their own reset options (the recipe's
+``gymnasium.eval_reset_options``, e.g. a fixed far goal cell: ``'{"reset_cell": [1, 1], "goal_cell": [7, 10]}'``);
+by default they are the training ones. At the end the final model (``<out>/model.zip``) is re-evaluated over
+``--final-episodes`` deterministic test episodes, episode ``i`` reset with seed ``--final-seed + i``, and
+``<out>/final_eval.yaml`` records them as ``recipes/evaluate.py`` records a DHRL agent's (``episodes``,
+``successes``, ``success``, the code, versions and machine); ``--evaluate-only`` does that again for a finished run.
+``<out>/provenance.yaml`` holds one entry per start (command, code, versions, machine).
+
+Long runs: the model and its HER buffer are checkpointed every ``--checkpoint-every`` evaluations, at the end and
+on SIGTERM or Ctrl-C (at the next episode's end, then exit 130), to ``<out>/checkpoint/`` (replaced atomically);
+``--resume`` continues from it (and may raise ``--steps``). Training runs in chunks of one episode, so every
+checkpoint falls between episodes and the buffer holds whole episodes; a resumed run is the same algorithm but not
+bit for bit the uninterrupted one (the random streams are not restored).
+
 Needs ``pip install stable-baselines3 gymnasium-robotics`` (the ``[baselines]`` extra).
 """
 
@@ -14,11 +28,19 @@ from __future__ import annotations
 
 import argparse
 import csv
+import datetime
 import json
+import shlex
+import shutil
+import signal
+import sys
 import time
 from pathlib import Path
 
 import numpy as np
+import yaml
+
+CHECKPOINT = "checkpoint"
 
 
 def _env(env_id: str, options: dict | None, make_kwargs: dict):
@@ -41,11 +63,12 @@ def _env(env_id: str, options: dict | None, make_kwargs: dict):
     return ResetOptions(gym.make(env_id, **make_kwargs))
 
 
-def evaluate(model, env, episodes: int) -> tuple[float, float]:
-    """Final-state and any-time success of ``episodes`` deterministic episodes."""
+def episode_successes(model, env, episodes: int, seeds=None) -> tuple[list[bool], list[bool]]:
+    """Final-state and any-time success of ``episodes`` deterministic episodes (episode ``i`` reset with
+    ``seeds[i]`` when given, else continuing the env's stream)."""
     final, anytime = [], []
-    for _ in range(episodes):
-        obs, info = env.reset()
+    for i in range(episodes):
+        obs, info = env.reset(seed=None if seeds is None else int(seeds[i]))
         reached, done = False, False
         while not done:
             action, _ = model.predict(obs, deterministic=True)
@@ -54,7 +77,83 @@ def evaluate(model, env, episodes: int) -> tuple[float, float]:
             done = terminated or truncated
         final.append(bool(info.get("success", info.get("is_success", False))))
         anytime.append(reached)
-    return float(np.mean(final)), float(np.mean(anytime))
+    return final, anytime
+
+
+def _write_metrics(rows: list[dict], path: Path) -> None:
+    tmp = path.with_suffix(".csv.tmp")
+    with tmp.open("w", newline="") as file:
+        writer = csv.DictWriter(file, fieldnames=list(rows[0]))
+        writer.writeheader()
+        writer.writerows(rows)
+    tmp.replace(path)
+
+
+def _write_yaml(value, path: Path) -> None:
+    tmp = path.with_suffix(".yaml.tmp")
+    tmp.write_text(yaml.safe_dump(value, sort_keys=False))
+    tmp.replace(path)
+
+
+def _machine() -> dict:
+    """The code, package versions and machine (as the recipe's provenance), with stable-baselines3's version."""
+    from importlib.metadata import PackageNotFoundError, version
+
+    from torchrl_dhrl.recipe import code_and_machine
+
+    record = code_and_machine("cpu")
+    for package in ("stable-baselines3", "gymnasium", "gymnasium-robotics"):
+        try:
+            record["versions"][package] = version(package)
+        except PackageNotFoundError:
+            record["versions"][package] = None
+    return record
+
+
+def save_checkpoint(model, rows: list[dict], wall_s: float, out: Path) -> None:
+    """The model, its replay buffer, the metrics so far and the training's wall clock, to ``out/checkpoint`` (a
+    staged copy renamed)."""
+    stage, final, old = out / f".{CHECKPOINT}.stage", out / CHECKPOINT, out / f".{CHECKPOINT}.old"
+    shutil.rmtree(stage, ignore_errors=True)
+    stage.mkdir(parents=True)
+    model.save(stage / "model.zip")
+    model.save_replay_buffer(stage / "replay_buffer.pkl")
+    state = {"env_steps": int(model.num_timesteps), "wall_s": wall_s, "rows": rows}
+    (stage / "state.json").write_text(json.dumps(state))
+    if final.exists():
+        final.rename(old)
+    stage.rename(final)
+    shutil.rmtree(old, ignore_errors=True)
+
+
+def final_evaluation(model, args, command: str, env_steps: int) -> dict:
+    """``--final-episodes`` test episodes of the model, written to ``<out>/final_eval.yaml``."""
+    env = _env(args.env_id, args.eval_reset_options, args.make_kwargs)
+    start = time.perf_counter()
+    seeds = [args.final_seed + i for i in range(args.final_episodes)]
+    final, anytime = episode_successes(model, env, args.final_episodes, seeds)
+    record = {
+        "env_name": f"gymnasium:{args.env_id}",
+        "agent": str(args.out / "model.zip"),
+        "env_steps": env_steps,
+        "episodes": args.final_episodes,
+        "successes": int(sum(final)),
+        "success": sum(final) / args.final_episodes,
+        "any_successes": int(sum(anytime)),
+        "seed": args.final_seed,
+        "episode_length": env.spec.max_episode_steps,
+        "reset_options": args.eval_reset_options,
+        "command": command,
+        **_machine(),
+        "date": datetime.datetime.now(datetime.timezone.utc).isoformat(timespec="seconds"),
+        "wall_s": round(time.perf_counter() - start, 1),
+    }
+    _write_yaml(record, args.out / "final_eval.yaml")
+    print(
+        f"final model at {env_steps} env steps: {record['successes']}/{record['episodes']} test episodes succeeded",
+        flush=True,
+    )
+    return record
 
 
 def main(argv: list[str] | None = None) -> Path:
@@ -65,54 +164,109 @@ def main(argv: list[str] | None = None) -> Path:
     parser.add_argument("--eval-every", type=int, default=4_500, help="env steps (the recipe's epoch: 15 x 300)")
     parser.add_argument("--eval-episodes", type=int, default=10)
     parser.add_argument("--reset-options", type=json.loads, default=None, help="JSON, e.g. '{\"reset_cell\": [3, 1]}'")
+    parser.add_argument(
+        "--eval-reset-options", type=json.loads, default=None, help="JSON, the test episodes' (default: the training's)"
+    )
     parser.add_argument("--make-kwargs", type=json.loads, default={})
     parser.add_argument("--learning-starts", type=int, default=1_000)
+    parser.add_argument("--final-episodes", type=int, default=100, help="test episodes of the final model")
+    parser.add_argument("--final-seed", type=int, default=0, help="final test episode i is reset with this + i")
+    parser.add_argument("--checkpoint-every", type=int, default=5, help="evaluations between checkpoints")
+    parser.add_argument("--resume", action="store_true", help="continue from <out>/checkpoint")
+    parser.add_argument("--evaluate-only", action="store_true", help="only the final evaluation of <out>/model.zip")
     parser.add_argument("--out", type=Path, required=True)
     args = parser.parse_args(argv)
+    if args.eval_reset_options is None:
+        args.eval_reset_options = args.reset_options
+    command = shlex.join(["python", "benchmarks/sac_her_baseline.py", *(sys.argv[1:] if argv is None else argv)])
 
     import torch
     from stable_baselines3 import SAC, HerReplayBuffer
-    from stable_baselines3.common.callbacks import BaseCallback
 
     torch.set_num_threads(1)
+    if args.evaluate_only:
+        env = _env(args.env_id, args.reset_options, args.make_kwargs)  # HER's buffer class wants it to load
+        model = SAC.load(args.out / "model.zip", env=env, device="cpu")
+        steps = json.loads((args.out / CHECKPOINT / "state.json").read_text())["env_steps"]
+        final_evaluation(model, args, command, steps)
+        return args.out / "final_eval.yaml"
     env = _env(args.env_id, args.reset_options, args.make_kwargs)
-    eval_env = _env(args.env_id, args.reset_options, args.make_kwargs)
-    eval_env.reset(seed=args.seed + 10_000)
-    model = SAC(
-        "MultiInputPolicy",
-        env,
-        replay_buffer_class=HerReplayBuffer,
-        replay_buffer_kwargs={"n_sampled_goal": 4, "goal_selection_strategy": "future"},
-        learning_starts=args.learning_starts,
-        seed=args.seed,
-        device="cpu",
-        verbose=0,
-    )
+    episode = env.spec.max_episode_steps
+    if not episode or args.eval_every % episode or args.steps % episode:
+        parser.error(
+            f"--eval-every ({args.eval_every}) and --steps ({args.steps}) must be multiples of {args.env_id}'s episode "
+            f"length ({episode}): training runs whole episodes between evaluations and checkpoints."
+        )
+    checkpoint = args.out / CHECKPOINT
+    if args.resume and not (checkpoint / "state.json").is_file():
+        parser.error(f"--resume: no checkpoint in {checkpoint}.")
+    if not args.resume and checkpoint.exists():
+        parser.error(f"{args.out} already holds a checkpoint; continue it with --resume, or give another --out.")
     args.out.mkdir(parents=True, exist_ok=True)
-    rows: list[dict] = []
-    start = time.perf_counter()
+    eval_env = _env(args.env_id, args.eval_reset_options, args.make_kwargs)
+    eval_env.reset(seed=args.seed + 10_000)
+    if args.resume:
+        model = SAC.load(checkpoint / "model.zip", env=env, device="cpu")
+        model.load_replay_buffer(checkpoint / "replay_buffer.pkl")
+        state = json.loads((checkpoint / "state.json").read_text())
+        rows, wall_before = state["rows"], state.get("wall_s", 0.0)
+    else:
+        model = SAC(
+            "MultiInputPolicy",
+            env,
+            replay_buffer_class=HerReplayBuffer,
+            replay_buffer_kwargs={"n_sampled_goal": 4, "goal_selection_strategy": "future"},
+            learning_starts=args.learning_starts,
+            seed=args.seed,
+            device="cpu",
+            verbose=0,
+        )
+        rows, wall_before = [], 0.0
+    provenance = args.out / "provenance.yaml"
+    starts = yaml.safe_load(provenance.read_text()) if provenance.is_file() else []
+    starts.append(
+        {
+            "started": datetime.datetime.now(datetime.timezone.utc).isoformat(timespec="seconds"),
+            "env_steps": int(model.num_timesteps),
+            "command": command,
+            **_machine(),
+            "threads": 1,
+        }
+    )
+    _write_yaml(starts, provenance)
+    (args.out / "config.json").write_text(json.dumps(vars(args) | {"out": str(args.out)}, indent=2, default=str))
 
-    class Evaluate(BaseCallback):
-        def _on_step(self) -> bool:
-            if self.num_timesteps % args.eval_every == 0:
-                success, any_success = evaluate(self.model, eval_env, args.eval_episodes)
+    stop = []
+    handlers = {s: signal.signal(s, lambda *_: stop.append(True)) for s in (signal.SIGTERM, signal.SIGINT)}
+    start, evaluations = time.perf_counter(), 0
+    wall = lambda: round(wall_before + time.perf_counter() - start, 1)  # noqa: E731 - over every start
+    try:
+        while model.num_timesteps < args.steps and not stop:
+            model.learn(total_timesteps=episode, reset_num_timesteps=False)
+            if model.num_timesteps % args.eval_every == 0:
+                final, anytime = episode_successes(model, eval_env, args.eval_episodes)
                 rows.append(
                     {
-                        "env_steps": self.num_timesteps,
-                        "eval/success": success,
-                        "eval/any_success": any_success,
-                        "time/wall_s": round(time.perf_counter() - start, 1),
+                        "env_steps": int(model.num_timesteps),
+                        "eval/success": float(np.mean(final)),
+                        "eval/any_success": float(np.mean(anytime)),
+                        "time/wall_s": wall(),
                     }
                 )
-                with (args.out / "metrics.csv").open("w", newline="") as file:
-                    writer = csv.DictWriter(file, fieldnames=list(rows[0]))
-                    writer.writeheader()
-                    writer.writerows(rows)
+                _write_metrics(rows, args.out / "metrics.csv")
                 print(rows[-1], flush=True)
-            return True
-
-    model.learn(total_timesteps=args.steps, callback=Evaluate())
-    (args.out / "config.json").write_text(json.dumps(vars(args) | {"out": str(args.out)}, indent=2))
+                evaluations += 1
+                if evaluations % args.checkpoint_every == 0:
+                    save_checkpoint(model, rows, wall(), args.out)
+        save_checkpoint(model, rows, wall(), args.out)
+    finally:
+        for sig, handler in handlers.items():
+            signal.signal(sig, handler)
+    if stop:
+        print(f"Interrupted at {model.num_timesteps} env steps: checkpoint written; continue with --resume.")
+        raise SystemExit(130)
+    model.save(args.out / "model.zip")
+    final_evaluation(model, args, command, int(model.num_timesteps))
     return args.out / "metrics.csv"
 
 
