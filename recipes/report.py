@@ -259,7 +259,7 @@ def results_table(entries: Sequence[Entry], frm: Path) -> str:
         if entry.baseline:
             agents.append((entry.baseline_name, entry.baseline))
         for name, runs in agents:
-            finals = ", ".join(final_eval_text(r) for r in runs) if runs is entry.runs else "-"
+            finals = ", ".join(final_eval_text(r) for r in runs)  # the baseline's final models too
             for point in entry.points(runs):
                 paper = (
                     entry.paper.get(point["steps"])

@@ -65,3 +65,17 @@ def test_relative_links_resolve(doc):
             ):
                 broken.append(f"{path.relative_to(ROOT)}: {target}")
     assert not broken, broken
+
+
+def test_a_baseline_runs_final_evaluation_is_reported(tmp_path):
+    """A baseline run with a ``final_eval.yaml`` (benchmarks/sac_her_baseline.py writes one) shows its count in the
+    results table, as a DHRL run's; one without it reads "agent not kept"."""
+    (tmp_path / "docs").mkdir()
+    shutil.copy(ROOT / "README.md", tmp_path / "README.md")
+    shutil.copy(ROOT / "docs" / "results.md", tmp_path / "docs" / "results.md")
+    shutil.copytree(ROOT / "results", tmp_path / "results")
+    sac = tmp_path / "results" / "pointmaze_umaze_dhrl_vs_sac" / "sac_s1"
+    (sac / "final_eval.yaml").write_text(yaml.safe_dump({"env_steps": 30000, "episodes": 100, "successes": 87}))
+    table = report.render(tmp_path)[tmp_path / "docs" / "results.md"]
+    rows = [line for line in table.splitlines() if "| SAC + HER" in line]
+    assert rows and all("| agent not kept, 87/100 (87.0%) at 30k, agent not kept |" in row for row in rows)
