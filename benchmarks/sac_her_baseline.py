@@ -197,6 +197,11 @@ def main(argv: list[str] | None = None) -> Path:
             f"--eval-every ({args.eval_every}) and --steps ({args.steps}) must be multiples of {args.env_id}'s episode "
             f"length ({episode}): training runs whole episodes between evaluations and checkpoints."
         )
+    if args.learning_starts < episode:
+        parser.error(
+            f"--learning-starts ({args.learning_starts}) must be at least {args.env_id}'s episode length ({episode}): "
+            "HER samples only from finished episodes."
+        )
     checkpoint = args.out / CHECKPOINT
     if args.resume and not (checkpoint / "state.json").is_file():
         parser.error(f"--resume: no checkpoint in {checkpoint}.")

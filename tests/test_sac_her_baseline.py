@@ -141,6 +141,7 @@ def test_sigterm_stops_at_an_episode_end_with_a_checkpoint(run, tmp_path, monkey
         (["--eval-every", "500"], "must be multiples of PointMaze_UMaze-v3's episode length"),
         (["--steps", "1000"], "must be multiples of PointMaze_UMaze-v3's episode length"),
         (["--resume"], "--resume: no checkpoint"),
+        (["--learning-starts", "299"], "--learning-starts (299) must be at least PointMaze_UMaze-v3's episode length"),
     ],
 )
 def test_bad_arguments_are_refused_before_training(tmp_path, capsys, extra, message):
