@@ -27,7 +27,6 @@ Needs ``pip install stable-baselines3 gymnasium-robotics`` (the ``[baselines]`` 
 from __future__ import annotations
 
 import argparse
-import csv
 import datetime
 import json
 import shlex
@@ -39,6 +38,8 @@ from pathlib import Path
 
 import numpy as np
 import yaml
+
+from torchrl_dhrl.recipe import code_and_machine, write_csv, write_yaml
 
 CHECKPOINT = "checkpoint"
 
@@ -80,26 +81,9 @@ def episode_successes(model, env, episodes: int, seeds=None) -> tuple[list[bool]
     return final, anytime
 
 
-def _write_metrics(rows: list[dict], path: Path) -> None:
-    tmp = path.with_suffix(".csv.tmp")
-    with tmp.open("w", newline="") as file:
-        writer = csv.DictWriter(file, fieldnames=list(rows[0]))
-        writer.writeheader()
-        writer.writerows(rows)
-    tmp.replace(path)
-
-
-def _write_yaml(value, path: Path) -> None:
-    tmp = path.with_suffix(".yaml.tmp")
-    tmp.write_text(yaml.safe_dump(value, sort_keys=False))
-    tmp.replace(path)
-
-
 def _machine() -> dict:
     """The code, package versions and machine (as the recipe's provenance), with stable-baselines3's version."""
     from importlib.metadata import PackageNotFoundError, version
-
-    from torchrl_dhrl.recipe import code_and_machine
 
     record = code_and_machine("cpu")
     for package in ("stable-baselines3", "gymnasium", "gymnasium-robotics"):
@@ -148,7 +132,7 @@ def final_evaluation(model, args, command: str, env_steps: int) -> dict:
         "date": datetime.datetime.now(datetime.timezone.utc).isoformat(timespec="seconds"),
         "wall_s": round(time.perf_counter() - start, 1),
     }
-    _write_yaml(record, args.out / "final_eval.yaml")
+    write_yaml(record, args.out / "final_eval.yaml")
     print(
         f"final model at {env_steps} env steps: {record['successes']}/{record['episodes']} test episodes succeeded",
         flush=True,
@@ -238,7 +222,7 @@ def main(argv: list[str] | None = None) -> Path:
             "threads": 1,
         }
     )
-    _write_yaml(starts, provenance)
+    write_yaml(starts, provenance)
     (args.out / "config.json").write_text(json.dumps(vars(args) | {"out": str(args.out)}, indent=2, default=str))
 
     stop = []
@@ -258,7 +242,7 @@ def main(argv: list[str] | None = None) -> Path:
                         "time/wall_s": wall(),
                     }
                 )
-                _write_metrics(rows, args.out / "metrics.csv")
+                write_csv(rows, list(rows[0]), args.out / "metrics.csv")
                 print(rows[-1], flush=True)
                 evaluations += 1
                 if evaluations % args.checkpoint_every == 0:
