@@ -16,7 +16,8 @@ by default they are the training ones. At the end the final model (``<out>/model
 ``<out>/provenance.yaml`` holds one entry per start (command, code, versions, machine).
 
 Long runs: the model and its HER buffer are checkpointed every ``--checkpoint-every`` evaluations, at the end and
-on SIGTERM or Ctrl-C (at the next episode's end, then exit 130), to ``<out>/checkpoint/`` (replaced atomically);
+on SIGTERM or Ctrl-C (at the next episode's end, then exit 130), to ``<out>/checkpoint/`` (staged, then renamed into
+place; a save killed between the renames is recovered at the next start);
 ``--resume`` continues from it (and may raise ``--steps``). Training runs in chunks of one episode, so every
 checkpoint falls between episodes and the buffer holds whole episodes; a resumed run is the same algorithm but not
 bit for bit the uninterrupted one (the random streams are not restored).
@@ -110,6 +111,19 @@ def save_checkpoint(model, rows: list[dict], wall_s: float, out: Path) -> None:
     shutil.rmtree(old, ignore_errors=True)
 
 
+def recover_checkpoint(out: Path) -> None:
+    """A save killed between its two renames leaves no ``checkpoint``: the staged one goes into place when it is
+    complete (its ``state.json``, written last, is there), else the previous one comes back; leftovers go."""
+    stage, final, old = out / f".{CHECKPOINT}.stage", out / CHECKPOINT, out / f".{CHECKPOINT}.old"
+    if not final.exists():
+        if (stage / "state.json").is_file():
+            stage.rename(final)
+        elif old.exists():
+            old.rename(final)
+    shutil.rmtree(stage, ignore_errors=True)
+    shutil.rmtree(old, ignore_errors=True)
+
+
 def final_evaluation(model, args, command: str, env_steps: int) -> dict:
     """``--final-episodes`` test episodes of the model, written to ``<out>/final_eval.yaml``."""
     env = _env(args.env_id, args.eval_reset_options, args.make_kwargs)
@@ -187,6 +201,7 @@ def main(argv: list[str] | None = None) -> Path:
             "HER samples only from finished episodes."
         )
     checkpoint = args.out / CHECKPOINT
+    recover_checkpoint(args.out)
     if args.resume and not (checkpoint / "state.json").is_file():
         parser.error(f"--resume: no checkpoint in {checkpoint}.")
     if not args.resume and checkpoint.exists():

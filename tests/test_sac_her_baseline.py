@@ -141,7 +141,10 @@ def test_sigterm_stops_at_an_episode_end_with_a_checkpoint(run, tmp_path, monkey
         (["--eval-every", "500"], "must be multiples of PointMaze_UMaze-v3's episode length"),
         (["--steps", "1000"], "must be multiples of PointMaze_UMaze-v3's episode length"),
         (["--resume"], "--resume: no checkpoint"),
-        (["--learning-starts", "299"], "--learning-starts (299) must be at least PointMaze_UMaze-v3's episode length"),
+        (
+            ["--learning-starts", "299"],
+            "--learning-starts (299) must be at least PointMaze_UMaze-v3's episode length",
+        ),
     ],
 )
 def test_bad_arguments_are_refused_before_training(tmp_path, capsys, extra, message):
@@ -155,3 +158,20 @@ def test_an_existing_checkpoint_is_not_overwritten(run, capsys):
     with pytest.raises(SystemExit):
         _load().main([*ARGS, "--steps", "1200", "--out", str(run)])
     assert "already holds a checkpoint; continue it with --resume" in capsys.readouterr().err
+
+
+@pytest.mark.parametrize("killed", ["after the first rename", "between the renames, the stage complete"])
+def test_a_save_killed_between_its_renames_is_recovered(run, tmp_path, killed):
+    import shutil
+
+    out = tmp_path / "run"
+    shutil.copytree(run, out)
+    if killed == "after the first rename":  # the previous checkpoint renamed away, no stage
+        (out / "checkpoint").rename(out / ".checkpoint.old")
+    else:  # the new checkpoint staged completely, the previous one renamed away
+        shutil.copytree(out / "checkpoint", out / ".checkpoint.stage")
+        (out / "checkpoint").rename(out / ".checkpoint.old")
+    _load().main([*ARGS, "--steps", "1500", "--out", str(out), "--resume"])
+    state = json.loads((out / "checkpoint" / "state.json").read_text())
+    assert state["env_steps"] == 1500 and [row["env_steps"] for row in state["rows"]] == [600, 1200]
+    assert not (out / ".checkpoint.stage").exists() and not (out / ".checkpoint.old").exists()
