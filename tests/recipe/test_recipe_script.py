@@ -1,6 +1,7 @@
 """Smoke tests of ``recipes/dhrl_antmaze.py``: every phase on every maze with a tiny config, exact resume,
 ablation switches and the command line."""
 
+import importlib.metadata
 import os
 import shlex
 import shutil
@@ -17,7 +18,8 @@ from _recipe import RECIPES, TIMING_COLUMNS, load_recipe, metrics_rows, recipe_c
 from tensordict import TensorDict
 from torchrl_dhrl.envs import ENV_NAMES
 
-from torchrl_dhrl.recipe import ConfigError, load_checkpoint, read_provenance
+import torchrl_dhrl
+from torchrl_dhrl.recipe import ConfigError, code_and_machine, load_checkpoint, read_provenance
 from torchrl_dhrl.training import AdaptiveThreads
 
 pytestmark = pytest.mark.recipe
@@ -123,11 +125,21 @@ def test_resume_continues_exactly(tmp_path):
     for start in starts:
         assert start["precision"] == {"update_dtype": "float32", "planner.build_dtype": "float32"}
         assert start["code"]["commit"] == commit
+        assert start["code"]["version"] == torchrl_dhrl.__version__
         assert start["versions"]["torch"] == torch.__version__
         assert start["device"] == "cpu" and start["threads"] >= 1
         assert start["machine"]["cores"] == os.cpu_count() and start["machine"]["cpu"]
         # the command this process was started with, as a shell would split it again
         assert shlex.split(start["command"]) == [Path(sys.executable).name, *sys.argv]
+
+
+def test_provenance_version_is_the_imported_code_s(monkeypatch):
+    """The version a start records is the imported package's, not the installed distribution's metadata (an
+    editable install leaves it stale; a ``PYTHONPATH`` snapshot of other code bypasses it)."""
+    monkeypatch.setattr(importlib.metadata, "version", lambda name: "0.0.0-stale")
+    record = code_and_machine("cpu")
+    assert record["code"]["version"] == torchrl_dhrl.__version__
+    assert record["versions"]["torch"] == "0.0.0-stale"  # the other packages still from their metadata
 
 
 def test_a_0_2_0_checkpoint_resumes_exactly(tmp_path):

@@ -251,7 +251,7 @@ def describe_start(start: RunStart) -> dict[str, Any]:
     continues: 0, a resumed or forked checkpoint's count; ``forked_from`` for a fork), ``command`` (the
     interpreter's name and the process's arguments, as a shell would take them), ``code`` (the git
     commit of the checkout ``torchrl_dhrl`` is imported from and whether its tracked files were modified,
-    ``None`` outside a git checkout, and the installed package's version), ``versions``
+    ``None`` outside a git checkout, and the imported package's ``__version__``), ``versions``
     (:data:`PROVENANCE_PACKAGES` and Python), ``machine`` (architecture, CPU model, cores, whether the
     device has native bfloat16), ``device``, ``threads`` and ``precision`` (``update_dtype`` and
     ``planner.build_dtype`` as resolved, :func:`~torchrl_dhrl.recipe.run_precisions`). ``recipes/aggregate.py``
@@ -276,7 +276,7 @@ def describe_start(start: RunStart) -> dict[str, Any]:
 def code_and_machine(device: str | torch.device) -> dict[str, Any]:
     """What a result was computed with, for a provenance record: ``code`` (the git commit of the checkout
     ``torchrl_dhrl`` is imported from and whether its tracked files were modified, ``None`` outside a git checkout,
-    and the installed package's version), ``versions`` (:data:`PROVENANCE_PACKAGES` and Python), ``machine``
+    and the imported package's ``__version__``), ``versions`` (:data:`PROVENANCE_PACKAGES` and Python), ``machine``
     (architecture, CPU model, cores, whether ``device`` has native bfloat16) and ``device``.
 
     Examples:
@@ -286,7 +286,7 @@ def code_and_machine(device: str | torch.device) -> dict[str, Any]:
     """
     device = torch.device(device)
     return {
-        "code": {**_git_commit(Path(__file__).resolve().parents[2]), "version": _version("torchrl-dhrl")},
+        "code": {**_git_commit(Path(__file__).resolve().parents[2]), "version": _package_version()},
         "versions": {"python": platform.python_version(), **{p: _version(p) for p in PROVENANCE_PACKAGES[1:]}},
         "machine": {
             "architecture": platform.machine(),
@@ -322,6 +322,14 @@ def _version(distribution: str) -> str | None:
         return importlib.metadata.version(distribution)
     except importlib.metadata.PackageNotFoundError:
         return None
+
+
+def _package_version() -> str:
+    """The version of the ``torchrl_dhrl`` package this code is (``torchrl_dhrl.__version__``), not the installed
+    distribution's metadata, which an editable install leaves stale and a ``PYTHONPATH`` snapshot bypasses."""
+    from torchrl_dhrl import __version__  # here: the package imports this module
+
+    return __version__
 
 
 def _cpu_model() -> str:
