@@ -13,6 +13,7 @@ import functools
 import math
 from collections.abc import Sequence
 
+import numpy as np
 import torch
 from torch import Tensor
 
@@ -174,6 +175,11 @@ class MazeGeometry:
         resolution (float): grid cell size (rounded so that whole cells tile the arena). Defaults to
             ``0.5``.
         connectivity (int): of the grid graph, see :func:`grid_moves`. Defaults to ``16``.
+        start (sequence of float, optional): where progress along the maze is measured from
+            (:func:`furthest_progress`); ``None`` where episodes start anywhere (progress is then undefined).
+            Defaults to the origin, the built-in mazes' start.
+        scale (float, optional): the maze's cell size (the width of a corridor), for sizes that follow it
+            (:func:`~torchrl_dhrl.diagnostics.default_coverage_radius`). Defaults to ``None``.
 
     Examples:
         >>> import torch
@@ -197,8 +203,14 @@ class MazeGeometry:
         margin: float = 0.0,
         resolution: float = 0.5,
         connectivity: int = 16,
+        start: Sequence[float] | None = (0.0, 0.0),
+        scale: float | None = None,
     ) -> None:
         boxes = torch.as_tensor(boxes, dtype=torch.float32).reshape(-1, 2, 2)
+        #: ``[2]`` where progress is measured from, or ``None``
+        self.start = None if start is None else torch.as_tensor(start, dtype=torch.float32).reshape(2)
+        #: the maze's cell size, or ``None``
+        self.scale = None if scale is None else float(scale)
         if not margin >= 0 or not resolution > 0:
             raise ValueError(f"Need margin >= 0 and resolution > 0, got {margin}, {resolution}.")
         self.boxes = boxes
@@ -250,6 +262,58 @@ class MazeGeometry:
             margin=margin,
             resolution=resolution,
             connectivity=connectivity,
+            scale=layout.scale,
+        )
+
+    @classmethod
+    def from_gymnasium_maze(
+        cls,
+        maze,
+        *,
+        start_cell: Sequence[int] | None = None,
+        margin: float = 0.0,
+        resolution: float | None = None,
+        connectivity: int = 16,
+    ) -> MazeGeometry:
+        """The geometry of a gymnasium-robotics maze (``env.unwrapped.maze`` of ``PointMaze_*`` and ``AntMaze_*``):
+        a wall box per wall cell of its ``maze_map`` (cells of ``maze_size_scaling``, centred where its
+        ``cell_rowcol_to_xy`` puts them), the arena inside the outer walls, the start at the centre of
+        ``start_cell`` (the ``reset_cell`` of fixed-start resets; ``None``: no start). ``resolution`` as
+        :meth:`from_maze`.
+
+        Examples:
+            >>> from types import SimpleNamespace
+            >>> import numpy as np
+            >>> cells = [[1, 1, 1, 1], [1, 0, 0, 1], [1, 0, 1, 1], [1, 1, 1, 1]]  # an L of 3 free cells
+            >>> maze = SimpleNamespace(maze_map=cells, maze_size_scaling=1.0,
+            ...                        cell_rowcol_to_xy=lambda rc: np.array([rc[1] - 1.5, 1.5 - rc[0]]))
+            >>> geometry = MazeGeometry.from_gymnasium_maze(maze, start_cell=(2, 1))
+            >>> geometry.arena_low.tolist(), geometry.arena_high.tolist(), geometry.start.tolist(), geometry.scale
+            ([-1.0, -1.0], [1.0, 1.0], [-0.5, -0.5], 1.0)
+            >>> round(furthest_progress(geometry, torch.tensor([[-0.5, 0.5]])), 2)  # one cell up the L
+            1.0
+        """
+        walls = np.asarray(maze.maze_map) == 1
+        scale = float(maze.maze_size_scaling)
+        rows, cols = walls.shape
+
+        def centre(row: int, col: int) -> np.ndarray:
+            return np.asarray(maze.cell_rowcol_to_xy(np.array([row, col])), dtype=np.float64)
+
+        boxes = [[centre(r, c) - scale / 2, centre(r, c) + scale / 2] for r, c in zip(*walls.nonzero(), strict=True)]
+        corners = np.stack([centre(1, 1), centre(rows - 2, cols - 2)])  # the cells inside the outer walls
+        low, high = corners.min(0) - scale / 2, corners.max(0) + scale / 2
+        if resolution is None:
+            resolution = _aligned_resolution(scale, margin)
+        return cls(
+            np.asarray(boxes, dtype=np.float32).reshape(-1, 2, 2),
+            low.tolist(),
+            high.tolist(),
+            margin=margin,
+            resolution=resolution,
+            connectivity=connectivity,
+            start=None if start_cell is None else centre(*start_cell).tolist(),
+            scale=scale,
         )
 
     # ------------------------------------------------------------------ points
@@ -371,8 +435,8 @@ def furthest_progress(geometry: MazeGeometry, points: Tensor, start: Tensor | No
 
     How far into the maze a set of points reaches: the graph's landmarks (``landmark_progress`` of
     :func:`graph_quality`), the states of training episodes (:class:`TrainingEpisodeLog`). ``start`` defaults
-    to the origin, every maze's start; points cut off from it are ignored, and ``-inf`` is returned when none
-    is left.
+    to the geometry's (the origin, every built-in maze's start); points cut off from it are ignored, and
+    ``-inf`` is returned when none is left, ``NaN`` when neither gives a start.
 
     Examples:
         >>> geometry = MazeGeometry.from_maze("PointMaze", margin=0.5)
@@ -381,7 +445,10 @@ def furthest_progress(geometry: MazeGeometry, points: Tensor, start: Tensor | No
         >>> furthest_progress(geometry, torch.zeros(0, 2))
         -inf
     """
-    origin = torch.zeros(2) if start is None else torch.as_tensor(start, dtype=torch.float32).reshape(2)
+    start = geometry.start if start is None else start
+    if start is None:
+        return math.nan
+    origin = torch.as_tensor(start, dtype=torch.float32).reshape(2)
     reach = geometry.path_length(origin, points.reshape(-1, 2))
     reach = reach[torch.isfinite(reach)]
     return float(reach.max()) if reach.numel() else -math.inf

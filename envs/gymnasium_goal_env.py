@@ -416,6 +416,21 @@ class GymnasiumGoalEnv(EnvBase):
 
     # ---- the goal space --------------------------------------------------------------------------------------
 
+    def maze_geometry(self, *, margin: float = 0.0, resolution: float | None = None):
+        """The true geometry of the env's maze (:meth:`MazeGeometry.from_gymnasium_maze
+        <torchrl_dhrl.envs.geometry.MazeGeometry.from_gymnasium_maze>`: gymnasium-robotics' ``PointMaze_*`` and
+        ``AntMaze_*`` keep theirs as ``env.unwrapped.maze``), walls inflated by ``margin``, or ``None`` for an env
+        without one. Progress is measured from the centre of the resets' ``reset_cell`` where every reset option
+        gives the same one; elsewhere the geometry has no start (``start`` is ``None``)."""
+        maze = getattr(self._envs[0].unwrapped, "maze", None)
+        if maze is None or not hasattr(maze, "maze_map") or not hasattr(maze, "cell_rowcol_to_xy"):
+            return None
+        from .geometry import MazeGeometry
+
+        cells = {tuple(np.asarray(o["reset_cell"]).tolist()) if "reset_cell" in o else None for o in self.reset_options or [{}]}
+        start_cell = next(iter(cells)) if len(cells) == 1 else None
+        return MazeGeometry.from_gymnasium_maze(maze, start_cell=start_cell, margin=margin, resolution=resolution)
+
     def success_radius(self, *, tolerance: float = 1e-6) -> float | None:
         """The distance within which the env counts a goal as reached: ``success_threshold`` if given, else
         found from the env's ``compute_reward`` (the largest offset of the achieved goal that still earns the

@@ -309,14 +309,27 @@ def plot_arm(
     return ax
 
 
-def _plot_goal_space(name: str, *, ax=None, title: str | None = None, **overlays):
-    """The overlays alone on goal axes 0 and 1 (an environment without a known scene)."""
+def _plot_goal_space(name: str, *, ax=None, title: str | None = None, maze=None, **overlays):
+    """The overlays on goal axes 0 and 1 (an environment without a known scene), over the walls, the arena and
+    the start of ``maze`` (a :class:`~torchrl_dhrl.envs.geometry.MazeGeometry`) where given."""
     import matplotlib.pyplot as plt
+    from matplotlib.patches import Rectangle
 
     if ax is None:
         _, ax = plt.subplots(figsize=(5, 5))
+    if maze is not None:
+        for low, high in maze.boxes.tolist():
+            size = (high[0] - low[0], high[1] - low[1])
+            ax.add_patch(Rectangle(low, *size, facecolor=_WALL_COLOR, edgecolor="none", zorder=1))
     _draw_overlays(ax, (0, 1), **overlays)
-    ax.set_aspect("equal", adjustable="datalim")
+    if maze is not None:
+        if maze.start is not None:
+            ax.plot(*maze.start.tolist(), "s", color="#2ca02c", ms=8, zorder=6, label="start")
+        ax.set_xlim(float(maze.arena_low[0]), float(maze.arena_high[0]))
+        ax.set_ylim(float(maze.arena_low[1]), float(maze.arena_high[1]))
+        ax.set_aspect("equal")
+    else:
+        ax.set_aspect("equal", adjustable="datalim")
     ax.set_xlabel(_AXIS_LABELS[0])
     ax.set_ylabel(_AXIS_LABELS[1])
     ax.set_title(name if title is None else title)
@@ -334,6 +347,7 @@ def plot_env(
     ax=None,
     view: str = "top",
     title: str | None = None,
+    maze=None,
 ):
     """Draws any environment and returns the Axes: :func:`plot_maze` for a maze, :func:`plot_arm` for an arm.
 
@@ -352,6 +366,9 @@ def plot_env(
         view (str): the arms' projection, ``"top"``, ``"front"`` or ``"side"`` (see :func:`plot_arm`); the
             mazes are always drawn from above (only ``"top"`` is accepted). Defaults to ``"top"``.
         title (str, optional): axes title (defaults to the environment's name).
+        maze (MazeGeometry, optional): for an environment without a known scene, a maze to draw under the
+            overlays (its walls, arena and start), e.g. a gymnasium-robotics maze's
+            (:meth:`~torchrl_dhrl.envs.GymnasiumGoalEnv.maze_geometry`). Defaults to none.
 
     Returns:
         the :class:`matplotlib.axes.Axes` drawn on.
@@ -369,7 +386,7 @@ def plot_env(
     """
     overlays = {"trajectory": trajectory, "landmarks": landmarks, "edges": edges, "path": path, "goal": goal}
     if get_env_factory(name) is not None or gymnasium_id(name) is not None:  # goal space only
-        return _plot_goal_space(name, ax=ax, title=title, **overlays)
+        return _plot_goal_space(name, ax=ax, title=title, maze=maze, **overlays)
     spec = get_env_spec(name)
     if isinstance(spec, MazeSpec):
         if view != "top":

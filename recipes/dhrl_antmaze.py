@@ -110,6 +110,7 @@ from dhrl_utils import (  # noqa: E402
     evaluation_kwargs,
     remove_unused_output_dir,
     resumed_run_dir,
+    run_maze,
     seed_everything,
     start_up,
     sweep_defaults,
@@ -176,7 +177,8 @@ def train(cfg: DictConfig | dict, run_dir: str | Path | None = None) -> dict:
                 }
         logger = build_logger(cfg, run_dir)
         # the training episodes' success, FGS shifts and maze progress per epoch; its counts travel in the counters
-        episode_log = build_episode_log(cfg, counters.train_episodes)
+        maze = run_maze(cfg, run.train_env)  # the maze's true geometry (diag/..., pictures), or None
+        episode_log = build_episode_log(cfg, counters.train_episodes, maze)
         warmup_end = schedule["warmup_episodes"]
         set_phase(cfg, agent, counters.episodes)
         bar = tqdm.tqdm(
@@ -236,7 +238,7 @@ def train(cfg: DictConfig | dict, run_dir: str | Path | None = None) -> dict:
                     # ---- epoch end (l.30-31): graph, evaluation, logs, checkpoint
                     if epoch > counters.epochs:
                         metrics = end_epoch(
-                            cfg, run, run_dir, counters, epoch, episode_log, timer, low_out, high_out
+                            cfg, run, run_dir, counters, epoch, episode_log, timer, low_out, high_out, maze
                         )
                         history.append(metrics)
                         log_metrics(logger, metrics, counters.env_steps)
@@ -328,9 +330,11 @@ def end_epoch(
     timer: LoopTimer,
     low_out,
     high_out,
+    maze=None,
 ) -> dict:
     """The epoch end (Alg. 6 l.30-31, and the evaluation): rebuilds the graph when due, evaluates the agent on the
-    test goals, draws the graph and a test episode; returns the epoch's metrics row."""
+    test goals (the ``diag/...`` metrics against ``maze``, the run's :func:`run_maze`), draws the graph and a test
+    episode; returns the epoch's metrics row."""
     schedule = cfg["schedule"]
     counters.epochs = epoch
     metrics = {"epoch": epoch, "env_steps": counters.env_steps, "episodes": counters.episodes}
@@ -347,7 +351,7 @@ def end_epoch(
     if epoch % schedule["eval_every_epochs"] == 0:
         episode_length = run.train_env.max_episode_steps
         evaluation, result = evaluate_epoch(
-            run.agent, run.eval_env, episode_length, policy=run.eval_policy, **evaluation_kwargs(cfg)
+            run.agent, run.eval_env, episode_length, policy=run.eval_policy, maze=maze, **evaluation_kwargs(cfg)
         )
         metrics.update(evaluation)
         every = cfg["plots"]["every_epochs"]
@@ -359,6 +363,7 @@ def end_epoch(
                 run_dir / "episodes",
                 epoch=epoch,
                 env_steps=counters.env_steps,
+                maze=maze,
             )
     metrics.update(timer.metrics(counters.env_steps))
     for prefix, out in (("low", low_out), ("high", high_out)):

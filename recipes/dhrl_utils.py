@@ -476,20 +476,36 @@ def evaluation_kwargs(cfg: dict) -> dict[str, Any]:
     }
 
 
-def build_episode_log(cfg: dict, state: dict | None = None) -> TrainingEpisodeLog:
+def run_maze(cfg: dict, env=None):
+    """The true geometry of the run's maze (:class:`~torchrl_dhrl.envs.geometry.MazeGeometry`, walls inflated by
+    ``planner.oracle_margin``): a built-in maze's, the maze of a gymnasium-robotics env (``env``'s
+    :meth:`~torchrl_dhrl.envs.GymnasiumGoalEnv.maze_geometry`, with the start of its fixed ``reset_cell``), or
+    ``None`` (the arms, other envs)."""
+    from torchrl_dhrl.envs import MAZE_NAMES
+    from torchrl_dhrl.envs.geometry import cached_maze_geometry
+
+    margin = float(cfg["planner"]["oracle_margin"])
+    if cfg["env_name"] in MAZE_NAMES:
+        return cached_maze_geometry(cfg["env_name"], margin, None)
+    geometry = getattr(getattr(env, "base_env", env), "maze_geometry", None)
+    return geometry(margin=margin) if callable(geometry) else None
+
+
+def build_episode_log(cfg: dict, state: dict | None = None, maze=None) -> TrainingEpisodeLog:
     """The run's per-epoch statistics of its training episodes (progress along the maze for the mazes).
 
     ``state``: a :meth:`TrainingEpisodeLog.state_dict` to continue from (the recipe keeps it in its
-    checkpointed counters, so a run stopped in the middle of an epoch resumes its counts).
+    checkpointed counters, so a run stopped in the middle of an epoch resumes its counts). ``maze``: the run's
+    :func:`run_maze` (defaults to a built-in maze's); progress is logged where it has a start.
     """
     from torchrl_dhrl.envs import MAZE_NAMES, get_maze_spec
-    from torchrl_dhrl.envs.geometry import MazeGeometry
 
-    geometry = upside_down = None
+    maze = run_maze(cfg) if maze is None else maze
+    upside_down = None
     if cfg["env_name"] in MAZE_NAMES:
-        geometry = MazeGeometry.from_maze(cfg["env_name"], margin=cfg["planner"]["oracle_margin"])
         # The ant can flip over (righted only with `right_flipped_after`): log how much of the training it spends so.
         upside_down = getattr(get_maze_spec(cfg["env_name"]).agent, "is_upside_down", None)
+    geometry = maze if maze is not None and maze.start is not None else None
     log = TrainingEpisodeLog(geometry, upside_down=upside_down)
     if state:
         log.load_state_dict(state)

@@ -266,3 +266,42 @@ def test_a_run_refused_at_a_late_terminated_step_stops_with_a_checkpoint_that_re
     monkeypatch.setattr(TerminatingPoint, "fixed", True)
     recipe.train(recipe_config(*overrides, f"resume={run_dir}"), run_dir=run_dir)
     assert [row["env_steps"] for row in metrics_rows(run_dir)] == ["80", "160", "240", "320", "400", "480"]
+
+
+@pytest.mark.parametrize(
+    ("env_id", "start_cell", "far_cell"), [("PointMaze_Large-v3", (1, 1), (7, 10)), ("AntMaze_Medium-v5", (1, 1), (6, 6))]
+)
+def test_a_gymnasium_maze_s_geometry_is_its_map(env_id, start_cell, far_cell):
+    """The geometry of a gymnasium-robotics maze against the maze's own map: with no margin a grid cell is free exactly
+    where the env's ``cell_xy_to_rowcol`` puts it in an open map cell; the start is the reset cell's centre; the path
+    length from it to a far cell lies between the straight line and the 4-connected cell path (networkx); an inner wall
+    cell's centre is in a wall."""
+    import networkx as nx
+
+    env = GymnasiumGoalEnv(env_id, 1, seed=0, reset_options={"reset_cell": list(start_cell)})
+    maze = env._envs[0].unwrapped.maze
+    geometry = env.maze_geometry()
+    scale = maze.maze_size_scaling
+    assert geometry.scale == scale
+    torch.testing.assert_close(geometry.start, torch.as_tensor(maze.cell_rowcol_to_xy(np.array(start_cell)), dtype=torch.float32))
+    grid = np.asarray(maze.maze_map)
+    centres = geometry.cell_centers.reshape(-1, 2).numpy()
+    open_cells = np.array([grid[tuple(maze.cell_xy_to_rowcol(c))] == 0 for c in centres])
+    assert np.array_equal(geometry.free.reshape(-1).numpy(), open_cells)
+    # the arena is the rectangle inside the outer wall ring
+    rows, cols = grid.shape
+    assert (geometry.arena_high - geometry.arena_low).tolist() == [(cols - 2) * scale, (rows - 2) * scale]
+    cells = nx.grid_2d_graph(rows, cols)
+    cells.remove_nodes_from([(r, c) for r, c in list(cells) if grid[r, c] == 1])
+    hops = nx.shortest_path_length(cells, start_cell, far_cell)
+    far = torch.as_tensor(maze.cell_rowcol_to_xy(np.array(far_cell)), dtype=torch.float32)
+    length = geometry.path_length(geometry.start, far.reshape(1, 2)).item()
+    assert (far - geometry.start).norm().item() <= length <= hops * scale + 1e-4
+    wall = next((r, c) for r in range(rows) for c in range(cols) if grid[r, c] == 1 and 0 < r < rows - 1 and 0 < c < cols - 1)
+    centre = torch.as_tensor(maze.cell_rowcol_to_xy(np.array(wall)), dtype=torch.float32)
+    assert geometry.in_walls(centre).item() and not geometry.in_walls(geometry.start).item()
+    # a margin narrows the free space; resets without one fixed cell leave no start (no progress to measure)
+    assert geometry.free.float().mean() > env.maze_geometry(margin=scale / 8).free.float().mean()
+    assert GymnasiumGoalEnv(env_id, 1, seed=0).maze_geometry().start is None
+    assert GymnasiumGoalEnv(env_id, 1, seed=0, reset_options=[{"reset_cell": [1, 1]}, {"reset_cell": list(far_cell)}]).maze_geometry().start is None
+    assert GymnasiumGoalEnv(TERMINATING, 1, seed=0).maze_geometry() is None  # no maze

@@ -167,3 +167,20 @@ def test_plot_arm_errors():
         plot_env("UR3Obstacle", edges=np.zeros((2, 2, 1)), view="front")
     with pytest.raises(ValueError, match="Valid names"):
         plot_arm("AntMaze")
+
+
+def test_a_maze_geometry_is_drawn_under_a_goal_space_plot():
+    """An env without a scene of its own (a Gymnasium id) drawn over a maze's geometry: one wall-coloured rectangle per
+    wall box at its corners, the arena as the limits, the start marked."""
+    from torchrl_dhrl.envs.geometry import MazeGeometry
+
+    boxes = torch.tensor([[[0.0, 0.0], [1.0, 2.0]], [[2.0, 1.0], [3.0, 3.0]]])
+    maze = MazeGeometry(boxes, [-1.0, -1.0], [4.0, 3.0], start=(-0.5, -0.5), scale=1.0)
+    ax = plot_env("gymnasium:PointMaze_UMaze-v3", maze=maze, trajectory=np.zeros((3, 2)))
+    walls = [p for p in ax.patches if isinstance(p, Rectangle)]
+    assert sorted((r.get_x(), r.get_y(), r.get_width(), r.get_height()) for r in walls) == [(0, 0, 1, 2), (2, 1, 1, 2)]
+    assert ax.get_xlim() == (-1.0, 4.0) and ax.get_ylim() == (-1.0, 3.0)
+    assert "start" in ax.get_legend_handles_labels()[1]
+    bare = plot_env("gymnasium:PointMaze_UMaze-v3", trajectory=np.zeros((3, 2)))
+    assert not [p for p in bare.patches if isinstance(p, Rectangle)]
+    plt.close("all")

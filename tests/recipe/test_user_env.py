@@ -169,7 +169,8 @@ def test_an_ant_maze_whose_observation_leaves_out_the_goal_starts_and_trains(tmp
 
 
 GOAL_UNITS = ("goal_indices=[0,1]", "high.subgoal_low=[-2.0,-2.0]", "high.subgoal_high=[2.0,2.0]",
-              "high.subgoal_noise=0.3", "low.reward_threshold=0.45", "planner.reach_radius=0.45", "fgs.noise=0.5")
+              "high.subgoal_noise=0.3", "low.reward_threshold=0.45", "planner.reach_radius=0.45", "fgs.noise=0.5",
+              "planner.oracle_margin=0.125")
 
 
 @pytest.mark.parametrize("given", [(), GOAL_UNITS], ids=["derived", "given"])
@@ -229,3 +230,28 @@ def test_a_gymnasium_run_resumes_exactly(tmp_path):
     recipe.train(recipe_config(*gym, "total_steps=240"), run_dir=tmp_path / "resumed")
     recipe.train(recipe_config(*gym, f"resume={tmp_path / 'resumed'}"), run_dir=tmp_path / "resumed")
     assert metrics_rows(tmp_path / "resumed", TIMING_COLUMNS) == metrics_rows(tmp_path / "straight", TIMING_COLUMNS)
+
+
+def test_a_gymnasium_maze_run_measures_against_its_maze(tmp_path, capsys):
+    """A gymnasium-robotics maze gets the built-in mazes' diagnostics: the agent's radius derived from its cells (an
+    8th of a cell), the ``diag/...`` metrics against its walls and, with a fixed start cell, the training frontier
+    (within the maze's farthest free point from the start); resets that start anywhere leave the frontier out."""
+    pytest.importorskip("gymnasium_robotics")
+    from torchrl_dhrl.envs import GymnasiumGoalEnv
+
+    gym = ("env=gymnasium", "env_name=gymnasium:PointMaze_UMaze-v3", *SMOKE, "total_steps=240")
+    start = ("gymnasium.reset_options={reset_cell:[3,1]}",)
+    recipe.train(recipe_config(*gym, *start), run_dir=tmp_path / "fixed")
+    assert "planner.oracle_margin=0.125." in capsys.readouterr().out
+    assert yaml.safe_load((tmp_path / "fixed" / "config.yaml").read_text())["planner"]["oracle_margin"] == 0.125
+    rows = metrics_rows(tmp_path / "fixed", TIMING_COLUMNS)
+    geometry = GymnasiumGoalEnv("PointMaze_UMaze-v3", reset_options={"reset_cell": [3, 1]}).maze_geometry(margin=0.125)
+    farthest = geometry.path_length(geometry.start, geometry.cell_centers[geometry.free]).max().item()
+    frontier = [float(r["train/frontier"]) for r in rows]
+    assert all(0.0 <= f <= farthest + 0.5 for f in frontier) and frontier == sorted(frontier)
+    for key in ("diag/subgoals_in_walls", "diag/waypoints_in_walls", "diag/start_subgoal_feasible"):
+        assert all(0.0 <= float(r[key]) <= 1.0 for r in rows), key
+    assert any(float(r["diag/landmark_coverage"]) > 0 for r in rows)
+    recipe.train(recipe_config(*gym), run_dir=tmp_path / "anywhere")
+    rows = metrics_rows(tmp_path / "anywhere", TIMING_COLUMNS)
+    assert "train/frontier" not in rows[-1] and 0.0 <= float(rows[-1]["diag/subgoals_in_walls"]) <= 1.0

@@ -40,6 +40,7 @@ from .maze import (
     GraphDiagnosis,
     graph_diagnosis,
     maze_epoch_diagnostics,
+    maze_geometry,
     start_subgoal,
 )
 from .planning_ablations import (
@@ -90,6 +91,7 @@ __all__ = [
     "landscape_summary",
     "low_level_reach_test",
     "maze_epoch_diagnostics",
+    "maze_geometry",
     "planning_ablations",
     "reach_offsets",
     "reach_test",

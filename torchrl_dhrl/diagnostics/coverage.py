@@ -12,17 +12,22 @@ from torchrl_dhrl.envs.geometry import MazeGeometry
 __all__ = ["default_coverage_radius", "landmark_coverage"]
 
 
-def default_coverage_radius(env_name: str) -> float:
+def default_coverage_radius(maze: str | MazeGeometry) -> float:
     """The ``coverage_radius`` of the recipe's ``diag/landmark_coverage``: half the maze's scale, half a corridor width
-    (2 for PointMaze and AntMazeSmall, 4 for the other mazes).
+    (2 for PointMaze and AntMazeSmall, 4 for the other mazes; ``maze`` a built-in maze's name or a geometry that
+    knows its ``scale``).
 
     Examples:
         >>> default_coverage_radius("PointMaze"), default_coverage_radius("AntMaze")
         (2.0, 4.0)
     """
+    if isinstance(maze, MazeGeometry):
+        if maze.scale is None:
+            raise ValueError("default_coverage_radius: the geometry has no `scale`; pass coverage_radius.")
+        return maze.scale / 2
     from torchrl_dhrl.envs import get_maze_spec
 
-    return get_maze_spec(env_name).layout.scale / 2
+    return get_maze_spec(maze).layout.scale / 2
 
 
 def landmark_coverage(geometry: MazeGeometry, landmarks: Tensor, radius: float) -> float:

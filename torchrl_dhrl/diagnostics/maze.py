@@ -20,7 +20,7 @@ from tensordict import TensorDict, TensorDictBase
 from tensordict.nn import TensorDictModuleBase
 from torch import Tensor
 
-from torchrl_dhrl.envs.geometry import cached_maze_geometry
+from torchrl_dhrl.envs.geometry import MazeGeometry, cached_maze_geometry
 
 from .coverage import default_coverage_radius
 from .feasibility import feasibility_fractions
@@ -33,6 +33,7 @@ __all__ = [
     "LANDSCAPE_DIAG_KEYS",
     "start_subgoal",
     "maze_epoch_diagnostics",
+    "maze_geometry",
     "GraphDiagnosis",
     "graph_diagnosis",
 ]
@@ -94,7 +95,7 @@ def start_subgoal(high_actor: TensorDictModuleBase, observation: Tensor, desired
 
 
 def maze_epoch_diagnostics(
-    env_name: str,
+    env_name: str | MazeGeometry,
     planner,
     rollout: TensorDictBase,
     high_actor: TensorDictModuleBase,
@@ -125,7 +126,8 @@ def maze_epoch_diagnostics(
       (:func:`start_subgoal`), and whether it is feasible (``1.0``/``0.0``).
 
     Args:
-        env_name (str): the environment.
+        env_name (str or MazeGeometry): the environment, or the geometry of its maze (:func:`maze_geometry`: a
+            gymnasium-robotics maze's; ``margin`` and ``resolution`` are then the geometry's own).
         planner (GraphPlanner): the planner whose graph is evaluated.
         rollout (TensorDictBase): ``[B, T]`` evaluation rollout (``observation``, ``desired_goal``,
             ``subgoal``, ``new_subgoal``, ``waypoint``).
@@ -162,14 +164,12 @@ def maze_epoch_diagnostics(
         >>> maze_epoch_diagnostics("Reacher3D", planner, rollout, actor)
         {}
     """
-    from torchrl_dhrl.envs import MAZE_NAMES
-
-    if env_name not in MAZE_NAMES:
+    geometry = maze_geometry(env_name, margin, resolution)
+    if geometry is None:
         return {}
     start = time.perf_counter()
-    geometry = cached_maze_geometry(env_name, float(margin), resolution)
     if coverage_radius is None:
-        coverage_radius = default_coverage_radius(env_name)
+        coverage_radius = default_coverage_radius(geometry)
     metrics = {f"diag/{k}": v for k, v in feasibility_fractions(geometry, rollout).items()}
     quality = graph_quality(geometry, planner, coverage_radius=coverage_radius, max_sources=max_sources)
     metrics.update({f"diag/{k}": v for k, v in quality.items()})
@@ -193,6 +193,22 @@ def maze_epoch_diagnostics(
         metrics["diag/start_actor_q_gap"] = summary["actor_q_gap"]
     metrics["time/diag_s"] = time.perf_counter() - start
     return metrics
+
+
+def maze_geometry(maze: str | MazeGeometry, margin: float = 0.5, resolution: float | None = None) -> MazeGeometry | None:
+    """The geometry the maze diagnostics measure against: ``maze`` itself when it is a :class:`MazeGeometry` (a
+    gymnasium-robotics maze's, :meth:`~torchrl_dhrl.envs.GymnasiumGoalEnv.maze_geometry`), a built-in maze's by
+    name (walls inflated by ``margin``, cached), ``None`` for any other env.
+
+    Examples:
+        >>> maze_geometry("PointMaze").scale, maze_geometry("Reacher3D")
+        (4.0, None)
+    """
+    if isinstance(maze, MazeGeometry):
+        return maze
+    from torchrl_dhrl.envs import MAZE_NAMES
+
+    return cached_maze_geometry(maze, float(margin), resolution) if maze in MAZE_NAMES else None
 
 
 class GraphDiagnosis(NamedTuple):
@@ -219,7 +235,7 @@ class GraphDiagnosis(NamedTuple):
 def graph_diagnosis(
     agent,
     eval_env,
-    env_name: str,
+    env_name: str | MazeGeometry,
     *,
     oracle_margin: float = 0.5,
     rollout: bool = True,
@@ -235,7 +251,7 @@ def graph_diagnosis(
     Args:
         agent (DHRLAgent): the agent, its graph built (or not).
         eval_env (EnvBase): the evaluation env with the agent's primers.
-        env_name (str): the maze.
+        env_name (str or MazeGeometry): the maze, or its geometry (:func:`maze_geometry`).
 
     Keyword Args:
         oracle_margin (float): the agent's radius (walls are inflated by it). Defaults to ``0.5``.
@@ -260,10 +276,10 @@ def graph_diagnosis(
         >>> diagnosis.metrics["graph/landmarks"], diagnosis.pairs["true"].numel()
         (0, 0)
     """
-    from torchrl_dhrl.envs import MAZE_NAMES
     from torchrl_dhrl.training import evaluate
 
-    if env_name not in MAZE_NAMES:
+    geometry = maze_geometry(env_name, oracle_margin, resolution)
+    if geometry is None:
         raise ValueError(f"The graph diagnostics need a maze; this run is on {env_name}.")
     if rollout:
         length = eval_env.max_episode_steps
@@ -273,7 +289,7 @@ def graph_diagnosis(
         nan = torch.full_like(td["achieved_goal"], math.nan)
         td.set("subgoal", nan).set("waypoint", nan).set("new_subgoal", torch.zeros_like(nan[..., :1]).bool())
     metrics = maze_epoch_diagnostics(
-        env_name,
+        geometry,
         agent.planner,
         td,
         agent.high_policy.actor,
@@ -287,7 +303,6 @@ def graph_diagnosis(
     graph = agent.planner.graph
     metrics["graph/landmarks"] = graph.num_landmarks
     metrics["graph/edges"] = int(graph.edges.shape[0]) if graph.has_graph else 0
-    geometry = cached_maze_geometry(env_name, float(oracle_margin), resolution)
     _, pairs = graph_quality(geometry, graph, coverage_radius=1.0, max_sources=max_sources, return_pairs=True)
     names = ("rows", "cols", "true", "learned", "graph")
     pairs = (

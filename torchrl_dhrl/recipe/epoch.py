@@ -17,6 +17,7 @@ from torchrl.data import RandomSampler, ReplayBuffer
 from torchrl.envs import EnvBase
 
 from torchrl_dhrl.diagnostics import hierarchy_diagnostics, maze_epoch_diagnostics
+from torchrl_dhrl.envs.geometry import MazeGeometry
 from torchrl_dhrl.planner import GraphPlanner
 from torchrl_dhrl.training import EvaluationResult, evaluate, goal_as_waypoint
 
@@ -108,6 +109,7 @@ def evaluate_epoch(
     oracle_margin: float = 0.5,
     flat: bool = True,
     policy: TensorDictModuleBase | None = None,
+    maze: MazeGeometry | None = None,
 ) -> tuple[dict[str, Any], EvaluationResult]:
     """The evaluation of an epoch: the test episodes with the agent's policy, and what the recipe logs of it.
 
@@ -118,8 +120,9 @@ def evaluate_epoch(
     * ``graph/mean_path_landmarks`` (planned path length) and ``graph/learned_distance_start_goal`` (the
       planner's distance from the first episode's start to its goal);
     * on the mazes, the subgoals and the graph against the true geometry
-      (:func:`~torchrl_dhrl.diagnostics.maze_epoch_diagnostics`, with ``oracle_margin`` as the agent's radius,
-      and the high level's critic over the subgoal box at the first test start);
+      (:func:`~torchrl_dhrl.diagnostics.maze_epoch_diagnostics`: ``maze``, else the built-in maze of
+      ``env_name`` with ``oracle_margin`` as the agent's radius; and the high level's critic over the subgoal box
+      at the first test start);
     * on every env, ``diag/...`` of :func:`~torchrl_dhrl.diagnostics.hierarchy` (with
       ``reward_threshold`` as the reach radius and ``far_from_graph_threshold`` for the gradual penalty's
       "far from the graph");
@@ -137,6 +140,9 @@ def evaluate_epoch(
     Keyword Args:
         policy (TensorDictModuleBase, optional): what acts in the test episodes, e.g. the agent's policy captured
             as a CUDA graph (:func:`~torchrl_dhrl.factory.make_eval_policy`). Defaults to ``agent.policy``.
+        maze (MazeGeometry, optional): the geometry of an env's maze that is not built in (a gymnasium-robotics
+            maze's, :meth:`~torchrl_dhrl.envs.GymnasiumGoalEnv.maze_geometry`). Defaults to the built-in maze of
+            ``env_name`` (none for the arms and other envs).
 
     Returns:
         ``(metrics, result)``: the metrics and the main evaluation's
@@ -175,7 +181,7 @@ def evaluate_epoch(
     # subgoals and graph against the maze's true geometry (diag/...; nothing for the arms)
     metrics.update(
         maze_epoch_diagnostics(
-            env_name,
+            env_name if maze is None else maze,
             planner,
             rollout,
             agent.high_policy.actor,
@@ -211,10 +217,11 @@ def plot_epoch(
     *,
     epoch: int,
     env_steps: int,
+    maze: MazeGeometry | None = None,
 ) -> Path:
     """Draws the graph, its route and the first test episode of ``result`` into
     ``directory/epoch_<epoch>.png`` (:func:`~torchrl_dhrl.recipe.plot_episode`), titled with the epoch, the
-    env steps and the success rate; returns the file.
+    env steps and the success rate, over ``maze`` (the geometry of a maze that is not built in); returns the file.
 
     Examples:
         >>> import tempfile, torch
@@ -234,4 +241,5 @@ def plot_epoch(
         result.rollout,
         Path(directory) / f"epoch_{epoch:04d}.png",
         title=f"{env_name} epoch {epoch}, {env_steps} steps: success {result.success:.0%}",
+        maze=maze,
     )

@@ -12,6 +12,7 @@ from matplotlib.figure import Figure  # no pyplot: no global figure registry, no
 from tensordict import TensorDictBase
 
 from torchrl_dhrl.envs import plot_env
+from torchrl_dhrl.envs.geometry import MazeGeometry
 from torchrl_dhrl.planner import GraphPlanner
 
 __all__ = [
@@ -42,9 +43,11 @@ def plot_episode(
     path: str | Path,
     *,
     title: str | None = None,
+    maze: MazeGeometry | None = None,
 ) -> Path:
     """Saves a top view with the graph (landmarks, edges), the route the graph plans from the start
-    to the test goal and the executed trajectory of the first episode of ``rollout`` (``[B, T]``)."""
+    to the test goal and the executed trajectory of the first episode of ``rollout`` (``[B, T]``), over ``maze``
+    where the env has no scene of its own (:func:`~torchrl_dhrl.envs.plot_env`)."""
     episode = rollout[0]
     start, goal = episode[0]["observation"], episode[0]["desired_goal"]
     trajectory = torch.cat([episode[0]["achieved_goal"].reshape(1, -1), episode["next", "achieved_goal"]])
@@ -63,6 +66,7 @@ def plot_episode(
         goal=goal.cpu().numpy(),
         ax=ax,
         title=title,
+        maze=maze,
     )
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)

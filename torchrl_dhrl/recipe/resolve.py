@@ -188,6 +188,11 @@ def derive_goal_units(cfg: dict, env) -> list[str]:
     - ``low.reward_threshold``: the env's success radius (``env.success_radius``, a number or a method;
       :meth:`~torchrl_dhrl.envs.GymnasiumGoalEnv.success_radius` reads it from ``compute_reward``);
     - ``planner.reach_radius``: the reward threshold (as every built-in env);
+    - ``planner.oracle_margin`` (the agent's radius: walls are inflated by it in the true geometry the maze
+      diagnostics measure against): an 8th of the maze's cell size where the env has a maze
+      (:meth:`~torchrl_dhrl.envs.GymnasiumGoalEnv.maze_geometry`: gymnasium-robotics' ``PointMaze_*`` 0.125,
+      ``AntMaze_*`` 0.5, as the built-in PointMaze's 0.5 for its 4-unit cells), a 48th of the subgoal box's
+      largest side elsewhere (AntMaze's 0.5 for its 24-unit box);
     - ``goal_indices=auto``: :func:`~torchrl_dhrl.envs.goal_indices_of` (``null`` when the goal is not in the
       observation).
 
@@ -209,7 +214,12 @@ def derive_goal_units(cfg: dict, env) -> list[str]:
         if cfg.get("goal_indices") == "auto":
             put("goal_indices", indices)
         return notes
-    low, high = goal_extent(env)
+    maze_geometry = getattr(getattr(env, "base_env", env), "maze_geometry", None)
+    maze = maze_geometry() if callable(maze_geometry) else None
+    if any(path in missing for path in ("high.subgoal_low", "high.subgoal_high", "high.subgoal_noise", "fgs.noise")):
+        low, high = goal_extent(env)  # a random walk: only when a value needs the env's box
+    else:  # the configured subgoal box
+        low, high = _get(cfg, "high.subgoal_low"), _get(cfg, "high.subgoal_high")
     extent = max(h - lo for lo, h in zip(low, high, strict=True))
     radius = getattr(env, "success_radius", None)
     radius = radius() if callable(radius) else radius
@@ -224,13 +234,14 @@ def derive_goal_units(cfg: dict, env) -> list[str]:
     if cfg.get("goal_indices") == "auto":  # nothing is changed before every value is known
         put("goal_indices", indices)
     derived = {
-        "high.subgoal_low": [_round(v) for v in low],
-        "high.subgoal_high": [_round(v) for v in high],
-        "high.subgoal_noise": _round(extent / 12),
-        "fgs.noise": _round(extent / 8),
-        "low.reward_threshold": reward_threshold,
-        "planner.reach_radius": reward_threshold,
+        "high.subgoal_low": lambda: [_round(v) for v in low],
+        "high.subgoal_high": lambda: [_round(v) for v in high],
+        "high.subgoal_noise": lambda: _round(extent / 12),
+        "fgs.noise": lambda: _round(extent / 8),
+        "low.reward_threshold": lambda: reward_threshold,
+        "planner.reach_radius": lambda: reward_threshold,
+        "planner.oracle_margin": lambda: _round(maze.scale / 8 if maze is not None else extent / 48),
     }
     for path in missing:
-        put(path, derived[path])
+        put(path, derived[path]())
     return notes

@@ -166,6 +166,7 @@ GOAL_UNIT_KEYS = (
     "low.reward_threshold",
     "planner.reach_radius",
     "fgs.noise",
+    "planner.oracle_margin",
 )
 
 
