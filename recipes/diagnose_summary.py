@@ -3,7 +3,8 @@
     python recipes/diagnose_summary.py results/antmazebottleneck_cps/seed0 results/antmazebottleneck_cps/seed1
     python recipes/diagnose_summary.py ~/runs/complex_s{0,1,2,3} --ablations --repeats 5 --out diagnosis.md
 
-Per run (a built-in maze), from its ``metrics.csv`` row at ``--at`` env steps (the last evaluation at or before; by
+Per run (a built-in maze, or a gymnasium-robotics maze with a fixed start cell: its test goals from its test env's
+resets, no ``--ablations``), from its ``metrics.csv`` row at ``--at`` env steps (the last evaluation at or before; by
 default the last): the test success of that evaluation; ``G``, the farthest test goal's progress along the maze
 (the obstacle-free path length from the start); how far the training episodes got (``F``, ``train/frontier``),
 the landmarks (``L``, ``diag/landmark_progress``) and the landmarks a plan from the start can use (``R``,
@@ -26,8 +27,9 @@ from collections.abc import Mapping, Sequence
 from pathlib import Path
 
 import torch
-from dhrl_utils import agent_from_checkpoint, build_environment, oracle_distance
-from torchrl_dhrl.envs import ENVS, MAZE_NAMES, MazeSpec, get_maze_spec
+import yaml
+from dhrl_utils import agent_from_checkpoint, build_environment, oracle_distance, run_maze
+from torchrl_dhrl.envs import ENVS, MAZE_NAMES, MazeSpec, get_maze_spec, gymnasium_id
 from torchrl_dhrl.envs.geometry import MazeGeometry
 
 from torchrl_dhrl.diagnostics import graph_diagnosis, planning_ablations
@@ -163,6 +165,20 @@ def goal_progress(env_name: str, margin: float) -> tuple[float, float]:
     return progress, float(spec.success_threshold)
 
 
+def gymnasium_goal_progress(cfg: dict) -> tuple[float, float]:
+    """:func:`goal_progress` of a run on a gymnasium-robotics maze (its nested configuration ``cfg``): the farthest
+    goal of the recipe's first batch of test episodes (its test env, seeded as the recipe seeds it), from the fixed
+    start of its training resets (:func:`run_maze`), and its success radius (``low.reward_threshold``). Raises
+    ``SystemExit`` naming the run's env when it has no maze or no fixed start."""
+    cpu = torch.device("cpu")
+    geometry = run_maze(cfg, build_environment(cfg, cpu))
+    if geometry is None or geometry.start is None:
+        what = "no maze" if geometry is None else "no fixed start (`gymnasium.reset_options` without one `reset_cell`)"
+        raise SystemExit(f"env_name={cfg['env_name']}: {what}; the table measures progress along a maze from its start.")
+    goals = build_environment(cfg, cpu, eval=True).reset()["desired_goal"][..., :2]
+    return geometry.path_length(geometry.start, goals).max().item(), float(cfg["low"]["reward_threshold"])
+
+
 def check_run(path, *, ablations: bool = False):
     """The run of directory ``path`` (:func:`~torchrl_dhrl.recipe.aggregate.read_run`), checked: a built-in maze,
     with an agent to re-evaluate for ``ablations``. Raises ``SystemExit`` naming the run and what is missing."""
@@ -172,9 +188,16 @@ def check_run(path, *, ablations: bool = False):
             f"{path}: no metrics.csv (a run directory of the recipe, or a results folder's seed)."
         )
     run = read_run(path)
-    if not isinstance(ENVS.get(run.env), MazeSpec):
+    gymnasium = gymnasium_id(run.env) is not None
+    if not isinstance(ENVS.get(run.env), MazeSpec) and not gymnasium:
         raise SystemExit(
-            f"{path}: env_name={run.env!r} is not a built-in maze; accepted: {', '.join(MAZE_NAMES)}."
+            f"{path}: env_name={run.env!r} is not a maze; accepted: {', '.join(MAZE_NAMES)} and gymnasium-robotics "
+            "mazes (gymnasium:PointMaze_*, gymnasium:AntMaze_*)."
+        )
+    if ablations and gymnasium:
+        raise SystemExit(
+            f"{path}: --ablations takes the built-in mazes ({', '.join(MAZE_NAMES)}): its oracle variants need the "
+            "maze's oracle distance; run the table of a gymnasium maze without it."
         )
     if ablations and not agent_checkpoint_file(path).exists():
         raise SystemExit(f"{path}: --ablations needs the run's agent/ or checkpoint/; it has neither.")
@@ -185,7 +208,10 @@ def summarize_run(run, *, at: float | None = None, ablations: bool = False, repe
     """One run's row of the table (a :func:`check_run` record): the figures and :func:`findings`."""
     env_name, path = run.env, run.path
     margin = float(run.config.get("planner.oracle_margin", 0.5))
-    goal, tolerance = goal_progress(env_name, margin)
+    if gymnasium_id(env_name) is not None:
+        goal, tolerance = gymnasium_goal_progress(yaml.safe_load((path / "config.yaml").read_text()))
+    else:
+        goal, tolerance = goal_progress(env_name, margin)
     values, variants, agent_steps = {}, {}, None
     if ablations:
         checkpoint = agent_checkpoint_file(path)

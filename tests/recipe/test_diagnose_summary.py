@@ -8,6 +8,7 @@ from pathlib import Path
 
 import pytest
 import torch
+import yaml
 from _recipe import load_recipe, recipe_config
 
 pytestmark = pytest.mark.recipe
@@ -231,7 +232,38 @@ def test_bad_runs_are_refused_before_any_work(summary, pointmaze_run, tmp_path, 
     with pytest.raises(SystemExit, match="no metrics.csv"):
         summary.main([str(pointmaze_run), str(tmp_path)])
     reacher = ROOT / "results" / "reacher3d_quick" / "seed0"
-    with pytest.raises(SystemExit, match=r"env_name='Reacher3D' is not a built-in maze; accepted: PointMaze"):
+    with pytest.raises(SystemExit, match=r"env_name='Reacher3D' is not a maze; accepted: PointMaze.*gymnasium:AntMaze_\*"):
         summary.main([str(pointmaze_run), str(reacher)])
     with pytest.raises(SystemExit, match="--ablations needs the run's agent/ or checkpoint/"):
         summary.main([str(pointmaze_run), str(BOTTLENECK / "seed0"), "--ablations"])
+
+
+def test_a_gymnasium_maze_run_from_its_metrics(summary, tmp_path):
+    """A gymnasium-robotics maze with a fixed start: the goal's progress G is the farthest test goal's path length from
+    the start cell on the env's own map (independently: the test env's goals against the maze geometry), the frontier
+    and the graph figures come from its metrics; --ablations is refused naming why, and so is a run without a fixed
+    start."""
+    pytest.importorskip("gymnasium_robotics")
+    from torchrl_dhrl.envs import GymnasiumGoalEnv
+
+    gym = ("env=gymnasium", "env_name=gymnasium:PointMaze_UMaze-v3", "preset=smoke", "logger.backend=none",
+           "plots.every_epochs=0", "total_steps=160")
+    start = "gymnasium.reset_options={reset_cell:[3,1]}"
+    load_recipe().train(recipe_config(*gym, start, "gymnasium.eval_reset_options={reset_cell:[3,1],goal_cell:[1,1]}"),
+                        run_dir=tmp_path / "run")
+    (row,) = summary.main([str(tmp_path / "run")])
+    geometry = GymnasiumGoalEnv("PointMaze_UMaze-v3", reset_options={"reset_cell": [3, 1]}).maze_geometry(margin=0.125)
+    cfg = yaml.safe_load((tmp_path / "run" / "config.yaml").read_text())
+    test = load_recipe("dhrl_utils").build_environment(cfg, torch.device("cpu"), eval=True)  # the recipe's test envs
+    goals = test.reset()["desired_goal"]
+    assert ((goals - torch.tensor([-1.0, 1.0])).abs() <= 0.25 + 1e-6).all()  # cell (1, 1) with the env's noise
+    goal = geometry.path_length(geometry.start, goals).max().item()
+    assert row["goal"] == pytest.approx(goal) and 3.5 < goal < 6.0  # around the U: two cells down, two across
+    last = _last_row(tmp_path / "run")
+    assert row["frontier"] == pytest.approx(float(last["train/frontier"]))
+    assert row["tolerance"] == 0.45 and "findings" in row
+    with pytest.raises(SystemExit, match="--ablations takes the built-in mazes"):
+        summary.main([str(tmp_path / "run"), "--ablations"])
+    load_recipe().train(recipe_config(*gym), run_dir=tmp_path / "anywhere")
+    with pytest.raises(SystemExit, match="no fixed start"):
+        summary.main([str(tmp_path / "anywhere")])
