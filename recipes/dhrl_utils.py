@@ -178,6 +178,13 @@ def _get_path(cfg: dict, path: str) -> Any:
     return node
 
 
+def print_table(text: str, out: str | Path | None = None) -> None:
+    """Prints an analysis script's table (markdown) and, with ``out``, writes the same text there (``--out``)."""
+    print(text, end="")
+    if out:
+        Path(out).write_text(text)
+
+
 def seed_everything(seed: int, *envs) -> None:
     """Seeds the global random streams (torch on every device, NumPy, Python's ``random``) and ``envs``' own
     (their simulations' per-env streams, through ``set_seed``)."""

@@ -28,7 +28,7 @@ from pathlib import Path
 
 import torch
 import yaml
-from dhrl_utils import agent_from_checkpoint, build_environment, oracle_distance, run_maze
+from dhrl_utils import agent_from_checkpoint, build_environment, oracle_distance, print_table, run_maze
 from torchrl_dhrl.envs import ENVS, MAZE_NAMES, MazeSpec, get_maze_spec, gymnasium_id
 from torchrl_dhrl.envs.geometry import MazeGeometry
 
@@ -310,10 +310,7 @@ def main(argv: list[str] | None = None) -> list[dict]:
         parser.error("--repeats must be at least 1")
     runs = [check_run(path, ablations=args.ablations) for path in args.runs]  # every run before any work
     rows = [summarize_run(run, at=args.at, ablations=args.ablations, repeats=args.repeats) for run in runs]
-    text = markdown(rows)
-    print(text, end="")
-    if args.out:
-        Path(args.out).write_text(text)
+    print_table(markdown(rows), args.out)
     return rows
 
 

@@ -212,6 +212,18 @@ def test_evaluate_script_compares_test_time_variants_on_the_same_episodes(run_di
     )
     assert guided["success"] == guided["successes"] / 20 and 0 <= guided["p_value"] <= 1
     assert connected["changes"] == {"planner.edge_rule": "connected"} and 0 <= connected["successes"] <= 20
+    # the record as recipes/variants_summary.py reads it: one run pooled is the run itself
+    rows = load_recipe("variants_summary").summarize([run_dir])
+    assert [row["variant"] for row in rows] == [
+        "high.critic_candidates=0",
+        "high.candidate_noise=0.5 high.critic_candidates=8 high.landmark_candidates=true",
+        "planner.edge_rule=connected",
+    ]
+    for row, variant in zip(rows, record["variants"], strict=True):
+        assert (row["pooled"].variant, row["pooled"].only_variant, row["pooled"].only_reference) == (
+            variant["successes"], variant["only_variant"], variant["only_reference"]
+        )
+        assert row["pooled"].p_value == pytest.approx(variant["p_value"])
 
 
 def test_a_changed_edge_rule_redoes_the_loaded_graphs_edges(run_dir, monkeypatch):

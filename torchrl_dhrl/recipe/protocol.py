@@ -37,6 +37,7 @@ __all__ = [
     "episodes_succeeded",
     "evaluation_steps",
     "paired_comparison",
+    "pooled_comparison",
     "report_points",
     "summarize_point",
     "window_success",
@@ -150,6 +151,34 @@ def paired_comparison(reference: Sequence[bool], variant: Sequence[bool]) -> Pai
         only_variant=only_variant,
         only_reference=only_reference,
         p_value=float(p_value),
+    )
+
+
+def pooled_comparison(comparisons: Sequence[PairedComparison]) -> PairedComparison:
+    """Several paired comparisons of one switch (e.g. one per seed, each on its own test episodes) as one: the
+    counts summed, and the exact McNemar p-value of the summed discordant episodes (under "the switch changes
+    nothing" each discordant episode of every seed is the variant's with probability 1/2, so their sum is a
+    binomial at 1/2 whatever each seed's own success rate).
+
+    Examples:
+        >>> seeds = [paired_comparison([0, 0, 1, 1], [1, 1, 1, 0]), paired_comparison([0, 0, 0], [1, 1, 0])]
+        >>> pooled = pooled_comparison(seeds)
+        >>> pooled.episodes, pooled.reference, pooled.variant, pooled.only_variant, pooled.only_reference
+        (7, 2, 5, 4, 1)
+        >>> round(pooled.p_value, 3)
+        0.375
+    """
+    from scipy.stats import binomtest
+
+    if not comparisons:
+        raise ValueError("pooled_comparison needs at least one comparison.")
+    total = {name: sum(getattr(c, name) for c in comparisons) for name in ("episodes", "reference", "variant")}
+    only_variant = sum(c.only_variant for c in comparisons)
+    only_reference = sum(c.only_reference for c in comparisons)
+    discordant = only_variant + only_reference
+    p_value = binomtest(only_variant, discordant, 0.5).pvalue if discordant else 1.0
+    return PairedComparison(
+        **total, only_variant=only_variant, only_reference=only_reference, p_value=float(p_value)
     )
 
 
