@@ -488,14 +488,11 @@ def run_maze(cfg: dict, env=None):
     ``planner.oracle_margin``): a built-in maze's, the maze of a gymnasium-robotics env (``env``'s
     :meth:`~torchrl_dhrl.envs.GymnasiumGoalEnv.maze_geometry`, with the start of its fixed ``reset_cell``), or
     ``None`` (the arms, other envs)."""
-    from torchrl_dhrl.envs import MAZE_NAMES
-    from torchrl_dhrl.envs.geometry import cached_maze_geometry
+    from torchrl_dhrl.diagnostics import maze_geometry
 
     margin = float(cfg["planner"]["oracle_margin"])
-    if cfg["env_name"] in MAZE_NAMES:
-        return cached_maze_geometry(cfg["env_name"], margin, None)
-    geometry = getattr(getattr(env, "base_env", env), "maze_geometry", None)
-    return geometry(margin=margin) if callable(geometry) else None
+    of_env = getattr(getattr(env, "base_env", env), "maze_geometry", None)
+    return of_env(margin=margin) if callable(of_env) else maze_geometry(cfg["env_name"], margin)
 
 
 def build_episode_log(cfg: dict, state: dict | None = None, maze=None) -> TrainingEpisodeLog:

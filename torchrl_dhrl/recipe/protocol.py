@@ -132,8 +132,6 @@ def paired_comparison(reference: Sequence[bool], variant: Sequence[bool]) -> Pai
         >>> round(comparison.p_value, 3)  # 4 against 1 of 5 discordant episodes: 2 x (5 + 1) / 32
         0.375
     """
-    from scipy.stats import binomtest
-
     a = np.asarray(reference, dtype=bool).reshape(-1)
     b = np.asarray(variant, dtype=bool).reshape(-1)
     if a.shape != b.shape or a.size == 0:
@@ -142,16 +140,23 @@ def paired_comparison(reference: Sequence[bool], variant: Sequence[bool]) -> Pai
             f"{a.size} and {b.size}."
         )
     only_variant, only_reference = int((b & ~a).sum()), int((a & ~b).sum())
-    discordant = only_variant + only_reference
-    p_value = binomtest(only_variant, discordant, 0.5).pvalue if discordant else 1.0
     return PairedComparison(
         episodes=int(a.size),
         reference=int(a.sum()),
         variant=int(b.sum()),
         only_variant=only_variant,
         only_reference=only_reference,
-        p_value=float(p_value),
+        p_value=_mcnemar_p(only_variant, only_reference),
     )
+
+
+def _mcnemar_p(only_variant: int, only_reference: int) -> float:
+    """The two-sided exact McNemar p-value: a binomial test of ``only_variant`` among the discordant episodes at 1/2
+    (1.0 without a discordant episode)."""
+    from scipy.stats import binomtest
+
+    discordant = only_variant + only_reference
+    return float(binomtest(only_variant, discordant, 0.5).pvalue) if discordant else 1.0
 
 
 def pooled_comparison(comparisons: Sequence[PairedComparison]) -> PairedComparison:
@@ -168,18 +173,11 @@ def pooled_comparison(comparisons: Sequence[PairedComparison]) -> PairedComparis
         >>> round(pooled.p_value, 3)
         0.375
     """
-    from scipy.stats import binomtest
-
     if not comparisons:
         raise ValueError("pooled_comparison needs at least one comparison.")
-    total = {name: sum(getattr(c, name) for c in comparisons) for name in ("episodes", "reference", "variant")}
-    only_variant = sum(c.only_variant for c in comparisons)
-    only_reference = sum(c.only_reference for c in comparisons)
-    discordant = only_variant + only_reference
-    p_value = binomtest(only_variant, discordant, 0.5).pvalue if discordant else 1.0
-    return PairedComparison(
-        **total, only_variant=only_variant, only_reference=only_reference, p_value=float(p_value)
-    )
+    counts = ("episodes", "reference", "variant", "only_variant", "only_reference")
+    total = {name: sum(getattr(c, name) for c in comparisons) for name in counts}
+    return PairedComparison(**total, p_value=_mcnemar_p(total["only_variant"], total["only_reference"]))
 
 
 def episodes_succeeded(rate: float, episodes: int) -> int:
