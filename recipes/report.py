@@ -149,12 +149,22 @@ def provenance_rows(run: RunRecord) -> dict[str, str]:
         if short not in commits:
             commits.append(short)
     machines = list(dict.fromkeys(machine_text(s) for s in starts))
-    reconstructed = any("provenance" in s for s in starts)
+    status = reconstruction_text(starts)
     resumes = len(starts) - 1
-    status = "reconstructed from the docs" if reconstructed else "recorded by the recipe"
     if resumes:
         status += f"; {resumes} resume{'s' if resumes > 1 else ''}"
     return {"code": ", then ".join(commits), "machine": "; ".join(machines), "provenance": status}
+
+
+def reconstruction_text(starts: list[dict]) -> str:
+    """"recorded by the recipe", or where a start's record was filled in afterwards (its ``provenance`` note says
+    how): from what, and for how many of the run's starts where not all."""
+    notes = [start["provenance"] for start in starts if "provenance" in start]
+    if not notes:
+        return "recorded by the recipe"
+    source = "the docs" if all("docs/" in note for note in notes) else "run notes"
+    share = "" if len(notes) == len(starts) else f" for {len(notes)} of {len(starts)} starts"
+    return f"reconstructed from {source}{share}"
 
 
 def final_eval_text(run: RunRecord) -> str:

@@ -79,3 +79,13 @@ def test_a_baseline_runs_final_evaluation_is_reported(tmp_path):
     table = report.render(tmp_path)[tmp_path / "docs" / "results.md"]
     rows = [line for line in table.splitlines() if "| SAC + HER" in line]
     assert rows and all("| agent not kept, 87/100 (87.0%) at 30k, agent not kept |" in row for row in rows)
+
+
+def test_the_provenance_column_says_what_was_reconstructed_and_from_what():
+    recorded = {"started": "2026-01-01T00:00:00+00:00", "env_steps": 0}
+    docs = {**recorded, "provenance": "reconstructed: ... as docs/results.md stated them when the run was reported"}
+    notes = {**recorded, "provenance": "reconstructed: commit from the snapshot, command from the run notes"}
+    assert report.reconstruction_text([recorded, recorded]) == "recorded by the recipe"
+    assert report.reconstruction_text([docs, docs]) == "reconstructed from the docs"
+    assert report.reconstruction_text([docs, notes]) == "reconstructed from run notes"
+    assert report.reconstruction_text([notes, recorded, recorded]) == "reconstructed from run notes for 1 of 3 starts"
