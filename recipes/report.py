@@ -257,6 +257,46 @@ def glance_table(entries: Sequence[Entry], frm: Path) -> str:
     return "\n".join(lines)
 
 
+def against_flat_table(entries: Sequence[Entry], frm: Path) -> str:
+    """README's "Against a flat agent": every entry with a baseline, both agents at each of its reporting points
+    (a point only one of them reached reads ``-`` for the other), with their final agents' re-evaluations."""
+    lines = [
+        "| task | env steps | DHRL: mean ± std over seeds (per seed) | flat agent, the same protocol | "
+        "final agents re-evaluated (DHRL; flat) | seeds | details |",
+        "|---|---|---|---|---|---|---|",
+    ]
+
+    def cell(point: Mapping | None, runs: Sequence[RunRecord], entry: Entry) -> str:
+        if point is None:
+            return "-"
+        label = point_label(point, entry, runs)
+        note = label[len(steps_text(point["steps"])) :].strip()  # "(the last point every seed reached ...)"
+        per_seed = f": {', '.join(pct(w.rate) for w in point['seeds'])}" if len(point["seeds"]) > 1 else ""
+        return f"**{over_seeds(point)}**{per_seed}" + (f" {note}" if note else "")
+
+    def finals(runs: Sequence[RunRecord]) -> str:
+        kept = [yaml.safe_load((r.path / FINAL_EVAL).read_text()) for r in runs if (r.path / FINAL_EVAL).is_file()]
+        if not kept:
+            return "not kept"
+        rate = sum(k["successes"] for k in kept) / sum(k["episodes"] for k in kept)
+        return f"{pct(rate)} ({len(kept)} of {len(runs)} runs, {kept[0]['episodes']} episodes each)"
+
+    for entry in entries:
+        if not entry.baseline:
+            continue
+        ours = {pt["steps"]: pt for pt in entry.points(entry.runs)}
+        theirs = {pt["steps"]: pt for pt in entry.points(entry.baseline)}
+        flat = entry.baseline_name.split(" (")[0]
+        for steps in sorted(ours.keys() | theirs.keys()):
+            lines.append(
+                f"| {entry.task} | {steps_text(steps)} | {cell(ours.get(steps), entry.runs, entry)} | "
+                f"{flat}: {cell(theirs.get(steps), entry.baseline, entry)} | "
+                f"{finals(entry.runs)}; {finals(entry.baseline)} | {len(entry.runs)}, {len(entry.baseline)} | "
+                f"[report]({_rel(frm, entry.folder / 'report.md')}) |"
+            )
+    return "\n".join(lines)
+
+
 def results_table(entries: Sequence[Entry], frm: Path) -> str:
     """docs/results.md's table: every entry at every reporting point."""
     lines = [
@@ -381,6 +421,7 @@ def render(root: Path = ROOT) -> dict[Path, str]:
     out: dict[Path, str] = {e.folder / "report.md": folder_report(e) for e in entries}
     readme = root / "README.md"
     text = replace_block(readme.read_text(), "glance", glance_table(entries, root), readme)
+    text = replace_block(text, "against-flat", against_flat_table(entries, root), readme)
     out[readme] = replace_block(text, "main-job", main_job_text(entries), readme)
     results = root / "docs" / "results.md"
     text = replace_block(results.read_text(), "results", results_table(entries, results.parent), results)

@@ -89,3 +89,32 @@ def test_the_provenance_column_says_what_was_reconstructed_and_from_what():
     assert report.reconstruction_text([docs, docs]) == "reconstructed from the docs"
     assert report.reconstruction_text([docs, notes]) == "reconstructed from run notes"
     assert report.reconstruction_text([notes, recorded, recorded]) == "reconstructed from run notes for 1 of 3 starts"
+
+
+def test_the_readme_sets_each_baseline_beside_dhrl_at_every_reporting_point(tmp_path):
+    """README's "against a flat agent" table: a row per point either agent's runs reach, the other agent's cell
+    ``-`` where its runs do not reach it, and the final agents pooled over the runs that kept one."""
+    (tmp_path / "docs").mkdir()
+    shutil.copy(ROOT / "README.md", tmp_path / "README.md")
+    shutil.copy(ROOT / "docs" / "results.md", tmp_path / "docs" / "results.md")
+    shutil.copytree(ROOT / "results", tmp_path / "results")
+    folder = tmp_path / "results" / "pointmaze_umaze_dhrl_vs_sac"
+    for name, successes in (("sac_s1", 87), ("sac_s2", 90)):
+        (folder / name / "final_eval.yaml").write_text(
+            yaml.safe_dump({"env_steps": 27000, "episodes": 100, "successes": successes})
+        )
+    entry = next(e for e in report.read_entries(tmp_path) if e.baseline)
+    table = report.render(tmp_path)[tmp_path / "README.md"]
+    rows = [line for line in table.splitlines() if line.startswith(f"| {entry.task} |")]
+    ours = {report.steps_text(p["steps"]): p for p in entry.points(entry.runs)}
+    theirs = {report.steps_text(p["steps"]): p for p in entry.points(entry.baseline)}
+    steps_of = {report.steps_text(p["steps"]): p["steps"] for p in [*ours.values(), *theirs.values()]}
+    assert [row.split(" | ")[1] for row in rows] == sorted(steps_of, key=steps_of.get)
+    for row in rows:
+        steps = row.split(" | ")[1]
+        for points, agent_cell in ((ours, row.split(" | ")[2]), (theirs, row.split(" | ")[3])):
+            if steps in points:
+                assert f"**{report.over_seeds(points[steps])}**" in agent_cell, row
+            else:
+                assert agent_cell.endswith("-"), row
+        assert "| not kept; 88.5% (2 of 3 runs, 100 episodes each) |" in row
