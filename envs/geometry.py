@@ -232,6 +232,11 @@ class MazeGeometry:
         #: ``[H, W]`` bool, free cells
         self.free = ~self.in_walls(self.cell_centers, margin=self.margin)
         self._free_index = self.free.flatten().nonzero().squeeze(-1)
+        if not self._free_index.numel():
+            width = f"; its corridors are {self.scale:g} wide: accepted a margin well below {self.scale / 2:g}" if self.scale else ""
+            raise ValueError(
+                f"margin={margin:g} leaves no free cell: the walls grown by it cover the whole arena{width}."
+            )
         # segment tests of (x, y) points (crosses_obstacle): the goals are the states
         self._segments = LineOfSightDistance(1.0, boxes=self.boxes, margin=self.margin, goal_indices=(0, 1))
         self._walls = LineOfSightDistance(1.0, boxes=self.boxes, goal_indices=(0, 1))

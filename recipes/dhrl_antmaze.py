@@ -134,6 +134,7 @@ def train(cfg: DictConfig | dict, run_dir: str | Path | None = None) -> dict:
     schedule = cfg["schedule"]
     # ---- build: env specs -> agent -> envs with the agent's primers -> buffers, updaters, collector
     run = build_run(cfg, device)
+    maze = run_maze(cfg, run.train_env)  # the maze's true geometry (diag/..., pictures), or None; checks oracle_margin
     write_run_dir(start)
     agent, low_rb, high_rb = run.agent, run.low_rb, run.high_rb
     low_updater, high_updater = run.low_updater, run.high_updater
@@ -177,7 +178,6 @@ def train(cfg: DictConfig | dict, run_dir: str | Path | None = None) -> dict:
                 }
         logger = build_logger(cfg, run_dir)
         # the training episodes' success, FGS shifts and maze progress per epoch; its counts travel in the counters
-        maze = run_maze(cfg, run.train_env)  # the maze's true geometry (diag/..., pictures), or None
         episode_log = build_episode_log(cfg, counters.train_episodes, maze)
         warmup_end = schedule["warmup_episodes"]
         set_phase(cfg, agent, counters.episodes)

@@ -492,7 +492,10 @@ def run_maze(cfg: dict, env=None):
 
     margin = float(cfg["planner"]["oracle_margin"])
     of_env = getattr(getattr(env, "base_env", env), "maze_geometry", None)
-    return of_env(margin=margin) if callable(of_env) else maze_geometry(cfg["env_name"], margin)
+    try:
+        return of_env(margin=margin) if callable(of_env) else maze_geometry(cfg["env_name"], margin)
+    except ValueError as err:  # a margin that closes the maze
+        raise ConfigError(f"planner.oracle_margin={margin:g} on env_name={cfg['env_name']}: {err}") from err
 
 
 def build_episode_log(cfg: dict, state: dict | None = None, maze=None) -> TrainingEpisodeLog:

@@ -179,9 +179,11 @@ def gymnasium_goal_progress(cfg: dict) -> tuple[float, float]:
     return geometry.path_length(geometry.start, goals).max().item(), float(cfg["low"]["reward_threshold"])
 
 
-def check_run(path, *, ablations: bool = False):
-    """The run of directory ``path`` (:func:`~torchrl_dhrl.recipe.aggregate.read_run`), checked: a built-in maze,
-    with an agent to re-evaluate for ``ablations``. Raises ``SystemExit`` naming the run and what is missing."""
+def check_run(path, *, ablations: bool = False, oracle_margin: float | None = None):
+    """The run of directory ``path`` (:func:`~torchrl_dhrl.recipe.aggregate.read_run`), checked: a maze (built-in,
+    or gymnasium-robotics' with a fixed start) whose geometry its ``planner.oracle_margin`` (or ``oracle_margin``, which
+    then replaces it in the record) leaves open, with an agent to re-evaluate for ``ablations``. Raises
+    ``SystemExit`` naming the run and what is missing."""
     path = Path(path)
     if not (path / "metrics.csv").is_file():
         raise SystemExit(
@@ -201,17 +203,37 @@ def check_run(path, *, ablations: bool = False):
         )
     if ablations and not agent_checkpoint_file(path).exists():
         raise SystemExit(f"{path}: --ablations needs the run's agent/ or checkpoint/; it has neither.")
+    if oracle_margin is not None:
+        run.config["planner.oracle_margin"] = oracle_margin
+    try:
+        run_goal(run)
+    except ValueError as err:  # a margin that closes the maze (ConfigError from run_maze)
+        raise SystemExit(
+            f"{path}: {err} Give the maze diagnostics' agent radius with --oracle-margin (runs of 0.4.0 and earlier "
+            "recorded the ant mazes' 0.5 for every gymnasium-robotics maze; the recipe now derives an 8th of a cell)."
+        ) from err
     return run
+
+
+def run_goal(run) -> tuple[float, float]:
+    """The run's :func:`goal_progress` (a built-in maze) or :func:`gymnasium_goal_progress`, walls inflated by its
+    record's ``planner.oracle_margin``."""
+    margin = float(run.config.get("planner.oracle_margin", 0.5))
+    if gymnasium_id(run.env) is None:
+        try:
+            return goal_progress(run.env, margin)
+        except ValueError as err:
+            raise ValueError(f"planner.oracle_margin={margin:g} on env_name={run.env}: {err}") from err
+    cfg = yaml.safe_load((run.path / "config.yaml").read_text())
+    cfg["planner"]["oracle_margin"] = margin
+    return gymnasium_goal_progress(cfg)
 
 
 def summarize_run(run, *, at: float | None = None, ablations: bool = False, repeats: int = 5) -> dict:
     """One run's row of the table (a :func:`check_run` record): the figures and :func:`findings`."""
     env_name, path = run.env, run.path
     margin = float(run.config.get("planner.oracle_margin", 0.5))
-    if gymnasium_id(env_name) is not None:
-        goal, tolerance = gymnasium_goal_progress(yaml.safe_load((path / "config.yaml").read_text()))
-    else:
-        goal, tolerance = goal_progress(env_name, margin)
+    goal, tolerance = run_goal(run)
     values, variants, agent_steps = {}, {}, None
     if ablations:
         checkpoint = agent_checkpoint_file(path)
@@ -305,10 +327,20 @@ def main(argv: list[str] | None = None) -> list[dict]:
     )
     parser.add_argument("--repeats", type=int, default=5, help="with --ablations: batches of test episodes")
     parser.add_argument("--out", default=None, help="also write the table to this file")
+    parser.add_argument(
+        "--oracle-margin",
+        type=float,
+        default=None,
+        help="the agent's radius in the maze geometry, instead of each run's planner.oracle_margin",
+    )
     args = parser.parse_args(argv)
     if args.repeats < 1:
         parser.error("--repeats must be at least 1")
-    runs = [check_run(path, ablations=args.ablations) for path in args.runs]  # every run before any work
+    if args.oracle_margin is not None and not args.oracle_margin >= 0:
+        parser.error(f"--oracle-margin must be >= 0, got {args.oracle_margin}")
+    runs = [  # every run before any work
+        check_run(path, ablations=args.ablations, oracle_margin=args.oracle_margin) for path in args.runs
+    ]
     rows = [summarize_run(run, at=args.at, ablations=args.ablations, repeats=args.repeats) for run in runs]
     print_table(markdown(rows), args.out)
     return rows

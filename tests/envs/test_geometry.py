@@ -166,3 +166,16 @@ def test_grid_paths_refuse_bad_input():
     free[:, 1] = False
     d = grid_shortest_paths(free, torch.tensor([[0, 0]]))[0]
     assert torch.isinf(d[:, 1:]).all() and torch.isfinite(d[:, 0]).all()
+
+
+def test_a_margin_that_leaves_no_free_cell_is_refused():
+    """Walls grown by half a corridor or more close the maze: refused at construction, naming the margin and the
+    corridor's width where the maze has one; just below, the corridors' centre lines stay free."""
+    with pytest.raises(ValueError, match=r"^margin=2 leaves no free cell.*corridors are 4 wide"):
+        MazeGeometry.from_maze("PointMaze", margin=2.0)
+    narrow = MazeGeometry.from_maze("PointMaze", margin=1.9)
+    free_centres = narrow.cell_centers[narrow.free]
+    assert len(free_centres) and not narrow.in_walls(free_centres, margin=1.9).any()
+    boxes = torch.tensor([[[0.0, 0.0], [1.0, 1.0]]])  # one wall box filling the arena
+    with pytest.raises(ValueError, match=r"^margin=0 leaves no free cell: the walls grown by it cover the whole arena\.$"):
+        MazeGeometry(boxes, [0.0, 0.0], [1.0, 1.0], margin=0.0, resolution=0.25)

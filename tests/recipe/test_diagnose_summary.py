@@ -4,6 +4,7 @@ planning variants from a saved agent, bad runs refused before any work."""
 
 import csv
 import math
+import shutil
 from pathlib import Path
 
 import pytest
@@ -264,6 +265,17 @@ def test_a_gymnasium_maze_run_from_its_metrics(summary, tmp_path):
     assert row["tolerance"] == 0.45 and "findings" in row
     with pytest.raises(SystemExit, match="--ablations takes the built-in mazes"):
         summary.main([str(tmp_path / "run"), "--ablations"])
+    # a run recorded with the ant mazes' 0.5 (0.4.0 and earlier): refused before any work, naming the option that
+    # fixes it; with it, the same row as the run recorded with the derived margin
+    old = tmp_path / "old"
+    shutil.copytree(tmp_path / "run", old)
+    cfg["planner"]["oracle_margin"] = 0.5
+    (old / "config.yaml").write_text(yaml.safe_dump(cfg))
+    with pytest.raises(SystemExit, match=r"old: planner.oracle_margin=0.5 on env_name=gymnasium:PointMaze_UMaze-v3: "
+                                         r"margin=0.5 leaves no free cell.*--oracle-margin"):
+        summary.main([str(tmp_path / "run"), str(old)])
+    (again,) = summary.main([str(old), "--oracle-margin", "0.125"])
+    assert again["goal"] == row["goal"] and again["frontier"] == row["frontier"]
     load_recipe().train(recipe_config(*gym), run_dir=tmp_path / "anywhere")
     with pytest.raises(SystemExit, match="no fixed start"):
         summary.main([str(tmp_path / "anywhere")])

@@ -278,6 +278,11 @@ def test_bad_config_fails_before_anything_is_written(tmp_path):
     with pytest.raises(ConfigError, match="planner.cutoff"):
         recipe.train(cfg, run_dir=tmp_path / "run")
     assert not (tmp_path / "run").exists()
+    # the maze diagnostics' agent radius closing every corridor of PointMaze (4 wide): refused, nothing written
+    cfg = recipe_config("env=PointMaze", *SMOKE, "planner.oracle_margin=2.0")
+    with pytest.raises(ConfigError, match=r"planner.oracle_margin=2 on env_name=PointMaze: margin=2 leaves no free cell"):
+        recipe.train(cfg, run_dir=tmp_path / "run")
+    assert not (tmp_path / "run").exists()
     with pytest.raises(ConfigError, match="oracle needs the achieved goal"):  # Reacher3D: goal not in obs
         recipe.train(
             recipe_config("env=Reacher3D", *SMOKE, "planner.distance=oracle"), run_dir=tmp_path / "r"
