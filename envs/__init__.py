@@ -29,7 +29,14 @@ from .arms import ARM_NAMES, ARMS, ArmSpec, build_arm_mjcf, get_arm_spec, ur3_bo
 from .goal_env import GOAL_ENV_KEYS, GoalEnvError, check_goal_env
 from .goals import BoxGoalSampler, FixedGoalSampler, FreeCellGoalSampler, GaussianGoalSampler, GoalSampler
 from .gym_env import GymGoalEnv, register_gym_envs
-from .gymnasium_goal_env import GYMNASIUM_PREFIX, GymnasiumGoalEnv, goal_extent, goal_indices_of, gymnasium_id
+from .gymnasium_goal_env import (
+    GYMNASIUM_PREFIX,
+    GymnasiumGoalEnv,
+    goal_extent,
+    goal_indices_of,
+    goal_speed,
+    gymnasium_id,
+)
 from .layouts import COMPLEX_MAZE, U_MAZE, MazeLayout, WallBox, bottleneck_walls
 from .mazes import MAZE_NAMES, MAZES, MazeSpec, build_maze_mjcf, compile_maze_model, get_maze_spec
 from .plotting import plot_arm, plot_env, plot_maze
@@ -81,6 +88,7 @@ __all__ = [
     "get_maze_spec",
     "GOAL_ENV_KEYS",
     "goal_extent",
+    "goal_speed",
     "goal_indices_of",
     "GoalEnv",
     "GoalEnvError",

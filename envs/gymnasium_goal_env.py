@@ -539,6 +539,60 @@ def goal_extent(env: EnvBase, *, episodes: int = 32, seed: int = 0) -> tuple[lis
     return (low - pad).tolist(), (high + pad).tolist()
 
 
+def goal_speed(env: EnvBase, *, episodes: int = 32, steps: int = 50, seed: int = 0) -> float:
+    """The agent's top speed in goal units per env step, from short rollouts: the larger of
+
+    - the fastest 5 steps in a row (mean per-step move of the achieved goal) while one action entry is held at
+      either end of its range for ``steps`` steps (the others at the box's centre), from a reset each, over those
+      pushes: a body that a constant action speeds up (gymnasium-robotics' point, 0.052; the built-in PointMaze's,
+      0.2);
+    - the 95th percentile of its per-step moves under uniform random actions (``episodes`` resets of ``steps``
+      steps): a legged body that a constant action does not carry, but whose random steps do (the ants, about 0.1).
+
+    Checked against the built-in env files' hand-set ``planner.oracle_speed`` (tests/envs/test_gymnasium_goal_env.py).
+    Deterministic for a given ``seed``; the global torch random state is left as it was.
+
+    Examples:
+        >>> from torchrl_dhrl.envs import make_env
+        >>> round(goal_speed(make_env("PointMaze", seed=0)), 2)
+        0.2
+    """
+    generator = torch.Generator().manual_seed(seed)
+    box = env.full_action_spec["action"].space
+    low, high = box.low, box.high
+    size = low.shape[-1]
+    moves = []
+    with torch.random.fork_rng():
+        torch.manual_seed(seed)
+        env.set_seed(seed)
+
+        def rollout(action_of) -> torch.Tensor:  # [steps, envs] per-step moves of the achieved goal
+            td = env.reset()
+            goal, out = td["achieved_goal"], []
+            for _ in range(min(env.max_episode_steps, steps)):
+                td = env.step(td.set("action", action_of().to(td.device)))["next"]
+                out.append((td["achieved_goal"] - goal).norm(dim=-1).reshape(-1))
+                goal = td["achieved_goal"]
+            return torch.stack(out)
+
+        pushed = []
+        try:  # an env that ends an episode itself is refused at its next episode (GymnasiumGoalEnv): measured so far
+            for i in range(size):
+                for end in (low, high):
+                    action = (low + high) / 2
+                    action[..., i] = end[..., i]
+                    held = rollout(lambda a=action: a)
+                    window = min(5, held.shape[0])
+                    pushed.append(held.unfold(0, window, 1).mean(-1).max())  # its fastest 5 steps in a row
+            for _ in range(math.ceil(episodes / env.batch_size.numel())):
+                moves.append(rollout(lambda: low + (high - low) * torch.rand(low.shape, generator=generator)))
+        except GoalEnvError:
+            if not pushed:
+                raise
+    top = torch.stack(pushed).max().float()
+    return float(torch.maximum(top, torch.quantile(torch.cat(moves).flatten().float(), 0.95)) if moves else top)
+
+
 def goal_indices_of(env: EnvBase, *, steps: int = 20, seed: int = 0) -> list[int] | None:
     """Where the achieved goal sits in the observation, read from a short random rollout: for each goal entry,
     the first observation entry equal to it at every step; ``None`` when some goal entry has none.

@@ -158,9 +158,31 @@ def resolve_goal_units(cfg: dict) -> dict:
         env.close()
         return cfg
     notes = derive_goal_units(cfg, env)
+    of_env = getattr(getattr(env, "base_env", env), "maze_geometry", None)
+    maze = of_env() if callable(of_env) else None
     env.close()
     print(f"Derived from {name}: {'; '.join(notes)}.")
+    print(step_keys_in_goal_units(cfg, maze))
     return cfg
+
+
+def step_keys_in_goal_units(cfg: dict, maze=None) -> str:
+    """One start-up line: the keys in env steps (``high.c_h``, ``planner.cutoff``) as lengths at the agent's top
+    speed (``planner.oracle_speed``), and in the maze's cells where it has them.
+
+    Examples:
+        >>> step_keys_in_goal_units({"high": {"c_h": 40}, "planner": {"cutoff": 30.0, "oracle_speed": 0.052}})
+        'In goal units at the top speed 0.052 per step: high.c_h=40 steps reach 2.08, planner.cutoff=30 steps 1.56.'
+    """
+    speed = cfg["planner"]["oracle_speed"]
+    c_h, cutoff = cfg["high"]["c_h"] * speed, cfg["planner"]["cutoff"] * speed
+    line = (
+        f"In goal units at the top speed {speed:g} per step: high.c_h={cfg['high']['c_h']:g} steps reach {c_h:.3g}, "
+        f"planner.cutoff={cfg['planner']['cutoff']:g} steps {cutoff:.3g}"
+    )
+    if maze is not None and maze.scale:
+        line += f" ({c_h / maze.scale:.2g} and {cutoff / maze.scale:.2g} of its {maze.scale:g}-unit cells)"
+    return line + "."
 
 
 def default_goal_units() -> dict[str, Any]:

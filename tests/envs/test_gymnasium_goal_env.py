@@ -18,6 +18,7 @@ from torchrl_dhrl.envs import (
     check_goal_env,
     goal_extent,
     goal_indices_of,
+    goal_speed,
     gymnasium_id,
     make_env,
 )
@@ -25,6 +26,7 @@ from torchrl_dhrl.envs import (
 pytest.importorskip("gymnasium_robotics")
 UMAZE = "PointMaze_UMaze-v3"
 ANT_UMAZE = "AntMaze_UMaze-v5"
+LARGE = "PointMaze_Large-v3"
 TERMINATING = "DhrlTestTerminatingPoint-v0"
 
 
@@ -124,6 +126,25 @@ def test_goal_space_helpers():
     low, high = goal_extent(env, episodes=8)
     assert all(-2.2 < v < -1.0 for v in low) and all(1.0 < v < 2.2 for v in high)  # the U spans [-1.5, 1.5]^2
     assert goal_indices_of(make_env("Reacher3D", seed=0)) is None  # the arm's goal is not in its observation
+
+
+def test_goal_speed_is_the_agents_top_speed():
+    """The built-in env files' hand-set oracle speeds (PointMaze 0.2, AntMaze 0.1: the ant's random steps), and the
+    gymnasium point's top speed measured on the raw env held at full thrust along a corridor (its velocity is clipped:
+    constant after about 22 steps); deterministic, the global torch random state untouched."""
+    assert goal_speed(make_env("PointMaze", seed=0)) == pytest.approx(0.2, abs=0.002)
+    assert goal_speed(make_env("AntMaze", seed=0)) == pytest.approx(0.1, rel=0.15)
+    raw = gym.make(LARGE)
+    obs, _ = raw.reset(seed=0, options={"reset_cell": [1, 1]})  # 4 free cells to the right
+    path = [obs["achieved_goal"]]
+    for _ in range(40):
+        path.append(raw.step(np.array([1.0, 0.0], dtype=np.float32))[0]["achieved_goal"])
+    top = float(np.linalg.norm(np.diff(np.array(path), axis=0), axis=1)[-10:].mean())
+    env = GymnasiumGoalEnv(LARGE, 1, seed=0)
+    state = torch.get_rng_state()
+    speed = goal_speed(env)
+    assert torch.equal(torch.get_rng_state(), state) and goal_speed(env) == speed
+    assert speed == pytest.approx(top, rel=0.01) and top == pytest.approx(0.0523, abs=1e-3)
 
 
 def test_bad_arguments_and_envs_are_refused():
@@ -255,7 +276,7 @@ def test_a_run_refused_at_a_late_terminated_step_stops_with_a_checkpoint_that_re
         # copy 0 of the training env resets for the 5th time (with the construction's reset) in the 4th batch
         "gymnasium.make_kwargs={terminate_at:3,from_episode:5}", "goal_indices=[0,1]",
         "high.subgoal_low=[-1.2,-1.2]", "high.subgoal_high=[1.2,1.2]", "high.subgoal_noise=0.2",
-        "low.reward_threshold=0.2", "planner.reach_radius=0.2", "fgs.noise=0.3",
+        "low.reward_threshold=0.2", "planner.reach_radius=0.2", "fgs.noise=0.3", "planner.oracle_speed=0.1",
     )
     run_dir = tmp_path / "run"
     with pytest.raises(SystemExit, match=r"ended an episode itself \(terminated\) after 3 of 40 steps.*resume="

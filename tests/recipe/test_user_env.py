@@ -5,6 +5,7 @@ resume, goal-unit keys inherited from AntMaze, a stray Hydra directory, config.y
 from __future__ import annotations
 
 import os
+import re
 import subprocess
 import sys
 
@@ -170,7 +171,7 @@ def test_an_ant_maze_whose_observation_leaves_out_the_goal_starts_and_trains(tmp
 
 GOAL_UNITS = ("goal_indices=[0,1]", "high.subgoal_low=[-2.0,-2.0]", "high.subgoal_high=[2.0,2.0]",
               "high.subgoal_noise=0.3", "low.reward_threshold=0.45", "planner.reach_radius=0.45", "fgs.noise=0.5",
-              "planner.oracle_margin=0.125")
+              "planner.oracle_margin=0.125", "planner.oracle_speed=0.052")
 
 
 @pytest.mark.parametrize("given", [(), GOAL_UNITS], ids=["derived", "given"])
@@ -206,8 +207,9 @@ def test_goal_units_the_env_cannot_tell_are_named(user_env):
     assert cfg["fgs"]["noise"] == pytest.approx(1.5 * cfg["high"]["subgoal_noise"], rel=1e-3)  # extent/8, /12
     assert [note.split("=")[0] for note in notes] == [
         "goal_indices", "high.subgoal_low", "high.subgoal_high", "high.subgoal_noise", "planner.reach_radius",
-        "fgs.noise",
+        "fgs.noise", "planner.oracle_speed",
     ]
+    assert cfg["planner"]["oracle_speed"] == 0.2  # PointMaze's top speed, as its env file sets it
 
 
 def test_a_resumed_run_writes_where_it_wrote(tmp_path):
@@ -242,8 +244,12 @@ def test_a_gymnasium_maze_run_measures_against_its_maze(tmp_path, capsys):
     gym = ("env=gymnasium", "env_name=gymnasium:PointMaze_UMaze-v3", *SMOKE, "total_steps=240")
     start = ("gymnasium.reset_options={reset_cell:[3,1]}",)
     recipe.train(recipe_config(*gym, *start), run_dir=tmp_path / "fixed")
-    assert "planner.oracle_margin=0.125." in capsys.readouterr().out
-    assert yaml.safe_load((tmp_path / "fixed" / "config.yaml").read_text())["planner"]["oracle_margin"] == 0.125
+    printed = capsys.readouterr().out
+    assert "planner.oracle_margin=0.125;" in printed and "planner.oracle_speed=0.05" in printed  # the point's top speed
+    assert re.search(r"In goal units at the top speed 0\.05\d* per step: high\.c_h=(\d+) steps reach ([\d.]+), "
+                     r"planner\.cutoff=30 steps 1\.5\d* \([\d.]+ and 1\.\d of its 1-unit cells\)\.", printed)
+    planner = yaml.safe_load((tmp_path / "fixed" / "config.yaml").read_text())["planner"]
+    assert planner["oracle_margin"] == 0.125 and 0.04 <= planner["oracle_speed"] <= 0.0523
     rows = metrics_rows(tmp_path / "fixed", TIMING_COLUMNS)
     geometry = GymnasiumGoalEnv("PointMaze_UMaze-v3", reset_options={"reset_cell": [3, 1]}).maze_geometry(margin=0.125)
     farthest = geometry.path_length(geometry.start, geometry.cell_centers[geometry.free]).max().item()

@@ -193,13 +193,16 @@ def derive_goal_units(cfg: dict, env) -> list[str]:
       (:meth:`~torchrl_dhrl.envs.GymnasiumGoalEnv.maze_geometry`: gymnasium-robotics' ``PointMaze_*`` 0.125,
       ``AntMaze_*`` 0.5, as the built-in PointMaze's 0.5 for its 4-unit cells), a 48th of the subgoal box's
       largest side elsewhere (AntMaze's 0.5 for its 24-unit box);
+    - ``planner.oracle_speed`` (goal units per env step: the oracle distance's and the diagnostics' step count of a
+      length): the agent's top speed, :func:`~torchrl_dhrl.envs.goal_speed` (gymnasium-robotics' point 0.052, its
+      ants about 0.1; the built-in PointMaze's 0.2 and AntMaze's 0.1 as their env files set them);
     - ``goal_indices=auto``: :func:`~torchrl_dhrl.envs.goal_indices_of` (``null`` when the goal is not in the
       observation).
 
     Raises:
         ConfigError: naming the key when the env cannot tell it (no success radius).
     """
-    from torchrl_dhrl.envs import goal_extent, goal_indices_of
+    from torchrl_dhrl.envs import goal_extent, goal_indices_of, goal_speed
 
     notes = []
 
@@ -241,6 +244,7 @@ def derive_goal_units(cfg: dict, env) -> list[str]:
         "low.reward_threshold": lambda: reward_threshold,
         "planner.reach_radius": lambda: reward_threshold,
         "planner.oracle_margin": lambda: _round(maze.scale / 8 if maze is not None else extent / 48),
+        "planner.oracle_speed": lambda: _round(goal_speed(env)),  # its own rollouts: only when needed
     }
     for path in missing:
         put(path, derived[path]())

@@ -167,6 +167,7 @@ GOAL_UNIT_KEYS = (
     "planner.reach_radius",
     "fgs.noise",
     "planner.oracle_margin",
+    "planner.oracle_speed",
 )
 
 
