@@ -378,12 +378,15 @@ AGENT_PARTS = tuple(
 )
 
 
-def oracle_distance(cfg: dict) -> LineOfSightDistance:
+def oracle_distance(cfg: dict, env=None) -> LineOfSightDistance:
     """``planner.distance=oracle``: straight-line steps at ``oracle_speed``, blocked by walls and boards (the
-    configuration's check makes sure that the env has ``goal_indices``)."""
-    return LineOfSightDistance(
-        **component_arguments(cfg)["oracle"], boxes=obstacle_boxes(cfg["env_name"]), goal_indices=goal_indices(cfg)
-    )
+    configuration's check makes sure that the env has ``goal_indices``): a built-in env's, or the walls of a
+    gymnasium-robotics maze (:func:`run_maze` of ``env``, or of an env built from ``cfg`` when it is ``None``)."""
+    boxes = obstacle_boxes(cfg["env_name"])
+    if boxes is None and gymnasium_id(cfg["env_name"]) is not None:
+        maze = run_maze(cfg, env if env is not None else build_environment(cfg, torch.device("cpu")))
+        boxes = None if maze is None else maze.boxes
+    return LineOfSightDistance(**component_arguments(cfg)["oracle"], boxes=boxes, goal_indices=goal_indices(cfg))
 
 
 def build_replay_buffers(cfg: dict, agent: DHRLAgent, device: torch.device):

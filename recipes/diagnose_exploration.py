@@ -21,10 +21,8 @@ from __future__ import annotations
 import argparse
 
 import torch
-from dhrl_utils import agent_from_checkpoint, build_replay_buffers
+from dhrl_utils import agent_from_checkpoint, build_environment, build_replay_buffers, run_maze
 from tensordict import TensorDictBase
-from torchrl_dhrl.envs import MAZE_NAMES
-from torchrl_dhrl.envs.geometry import MazeGeometry
 
 from torchrl_dhrl.diagnostics import EpisodeProgress, episode_progress, episodes_in_boxes
 from torchrl_dhrl.recipe import load_checkpoint
@@ -33,7 +31,7 @@ from torchrl_dhrl.recipe import load_checkpoint
 def stored_records(path, buffer: str) -> tuple[dict, TensorDictBase]:
     """The configuration of a maze run's checkpoint and every record of its ``"low_rb"`` or ``"high_rb"`` buffer."""
     cfg, agent = agent_from_checkpoint(path)
-    if cfg["env_name"] not in MAZE_NAMES:
+    if run_maze(cfg, build_environment(cfg, torch.device("cpu"))) is None:
         raise ValueError(f"diagnose_exploration needs a maze run; {path} is a {cfg['env_name']} run.")
     low_rb, high_rb = build_replay_buffers(cfg, agent, torch.device("cpu"))
     rb = {"low_rb": low_rb, "high_rb": high_rb}[buffer]  # a KeyError names any other buffer
@@ -53,7 +51,7 @@ def exploration_from_checkpoint(
     cfg, records = stored_records(path, "high_rb")
     first = records["segment_index"].reshape(-1) == 0
     start = records["achieved_goal"][first].float().mean(0)  # where the episodes start
-    geometry = MazeGeometry.from_maze(cfg["env_name"], margin=0.5)
+    geometry = run_maze(cfg, build_environment(cfg, torch.device("cpu")))  # walls grown by planner.oracle_margin
     out = episode_progress(geometry, records, start, last=episodes)
     beyond = out.goal_progress > out.explored
     summary = {

@@ -23,8 +23,7 @@ import math
 from pathlib import Path
 
 import torch
-from dhrl_utils import agent_from_checkpoint, build_environment, build_replay_buffers
-from torchrl_dhrl.envs.geometry import MazeGeometry
+from dhrl_utils import agent_from_checkpoint, build_environment, build_replay_buffers, run_maze
 
 from torchrl_dhrl.diagnostics import (
     GraphDiagnosis,
@@ -51,10 +50,13 @@ def graph_diagnosis_from_checkpoint(
     """
     cfg, agent = agent_from_checkpoint(path, device)
     env = build_environment(cfg, torch.device(device), eval=True, agent=agent)
+    maze = run_maze(cfg, env)  # a built-in maze's geometry, or a gymnasium-robotics maze's from its map
+    if maze is None:
+        raise ValueError(f"diagnose_graph needs a maze run; {path} is a {cfg['env_name']} run.")
     diagnosis = graph_diagnosis(
         agent,
         env,
-        cfg["env_name"],
+        maze,
         oracle_margin=cfg["planner"]["oracle_margin"],
         rollout=rollout,
         max_sources=max_sources,
@@ -70,14 +72,14 @@ def budget_table(path, budgets, *, draws: int = 3, seed: int = 0, device: str | 
     cfg, agent = agent_from_checkpoint(path, device)
     low_rb, _ = build_replay_buffers(cfg, agent, torch.device(device))
     low_rb.load_state_dict(load_checkpoint(path, map_location=device, components=("low_rb",))["low_rb"])
-    geometry = MazeGeometry.from_maze(cfg["env_name"], margin=cfg["planner"]["oracle_margin"])
+    geometry = run_maze(cfg, build_environment(cfg, torch.device("cpu")))
     return landmark_budget_sweep(
         geometry,
         agent.planner,
         low_rb,
         budgets,
         draws=draws,
-        coverage_radius=default_coverage_radius(cfg["env_name"]),
+        coverage_radius=default_coverage_radius(geometry),
         generator=torch.Generator().manual_seed(seed),
     )
 

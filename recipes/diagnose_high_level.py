@@ -16,10 +16,8 @@ from __future__ import annotations
 import argparse
 
 import torch
-from dhrl_utils import agent_from_checkpoint, build_environment
+from dhrl_utils import agent_from_checkpoint, build_environment, run_maze
 from tensordict import TensorDict
-from torchrl_dhrl.envs import MAZE_NAMES
-from torchrl_dhrl.envs.geometry import MazeGeometry
 
 from torchrl_dhrl.diagnostics import landscape_summary, subgoal_box, subgoal_landscape, subgoal_values
 from torchrl_dhrl.recipe import load_checkpoint
@@ -72,7 +70,7 @@ def main(argv: list[str] | None = None) -> dict:
     land = subgoal_landscape(
         agent.high_loss, agent.high_policy.actor, observations[0], goals[0], low, high, args.resolution
     )
-    geometry = MazeGeometry.from_maze(cfg["env_name"]) if cfg["env_name"] in MAZE_NAMES else None
+    geometry = run_maze({**cfg, "planner": {**cfg["planner"], "oracle_margin": 0.0}}, env)  # the walls themselves
     points = land.points()
     walls = _in_walls(geometry, points)
     summary = landscape_summary(land, walls, args.top)

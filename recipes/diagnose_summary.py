@@ -4,7 +4,7 @@
     python recipes/diagnose_summary.py ~/runs/complex_s{0,1,2,3} --ablations --repeats 5 --out diagnosis.md
 
 Per run (a built-in maze, or a gymnasium-robotics maze with a fixed start cell: its test goals from its test env's
-resets, no ``--ablations``), from its ``metrics.csv`` row at ``--at`` env steps (the last evaluation at or before; by
+resets, its oracle's walls from the env's map), from its ``metrics.csv`` row at ``--at`` env steps (the last evaluation at or before; by
 default the last): the test success of that evaluation; ``G``, the farthest test goal's progress along the maze
 (the obstacle-free path length from the start); how far the training episodes got (``F``, ``train/frontier``),
 the landmarks (``L``, ``diag/landmark_progress``) and the landmarks a plan from the start can use (``R``,
@@ -196,11 +196,6 @@ def check_run(path, *, ablations: bool = False, oracle_margin: float | None = No
             f"{path}: env_name={run.env!r} is not a maze; accepted: {', '.join(MAZE_NAMES)} and gymnasium-robotics "
             "mazes (gymnasium:PointMaze_*, gymnasium:AntMaze_*)."
         )
-    if ablations and gymnasium:
-        raise SystemExit(
-            f"{path}: --ablations takes the built-in mazes ({', '.join(MAZE_NAMES)}): its oracle variants need the "
-            "maze's oracle distance; run the table of a gymnasium maze without it."
-        )
     if ablations and not agent_checkpoint_file(path).exists():
         raise SystemExit(f"{path}: --ablations needs the run's agent/ or checkpoint/; it has neither.")
     if oracle_margin is not None:
@@ -242,12 +237,14 @@ def summarize_run(run, *, at: float | None = None, ablations: bool = False, repe
         )
         at = agent_steps if agent_steps is not None else at
         cfg, agent = agent_from_checkpoint(checkpoint)
+        cfg["planner"]["oracle_margin"] = margin  # the record's, or --oracle-margin
         env = build_environment(cfg, torch.device("cpu"), eval=True, agent=agent)
-        diagnosis = graph_diagnosis(agent, env, env_name, oracle_margin=margin, rollout=False)
+        maze = run_maze(cfg, env) if gymnasium_id(env_name) is not None else env_name
+        diagnosis = graph_diagnosis(agent, env, maze, oracle_margin=margin, rollout=False)
         values = {key: diagnosis.metrics.get(column, math.nan) for key, column in COLUMNS.items()}
         values["bridge_distance"] = diagnosis.reach.get("bridge_distance", math.nan)
         rows = planning_ablations(
-            agent, env, env.max_episode_steps, repeats=repeats, oracle=oracle_distance(cfg)
+            agent, env, env.max_episode_steps, repeats=repeats, oracle=oracle_distance(cfg, env)
         )
         variants = {r["variant"]: r["success"] for r in rows if r["variant"] in VARIANTS}
         variants["episodes"] = rows[0]["episodes"]

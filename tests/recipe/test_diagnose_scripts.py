@@ -351,3 +351,32 @@ def test_recipe_logs_diag_columns_and_the_tool_reads_the_checkpoint(tmp_path, ca
     assert quick.metrics["graph/landmarks"] == diagnosis.metrics["graph/landmarks"]
     with pytest.raises(SystemExit):
         cli.main([str(run), "--no-rollout", "--budgets", "300-6000"])
+
+
+def test_the_scripts_read_a_gymnasium_maze_run(tmp_path, capsys):
+    """A gymnasium-robotics maze's run (fixed start cell) through the checkpoint scripts, measured against the env's
+    own map: the graph's diagnosis, the high level's subgoal landscape (its walls those of the map), the exploration
+    of its training episodes (progress within the maze's farthest free point)."""
+    pytest.importorskip("gymnasium_robotics")
+    from _recipe import load_recipe, recipe_config
+    from torchrl_dhrl.envs import GymnasiumGoalEnv
+
+    start = "gymnasium.reset_options={reset_cell:[3,1]}"
+    load_recipe().train(
+        recipe_config("env=gymnasium", "env_name=gymnasium:PointMaze_UMaze-v3", "preset=smoke", start,
+                      "logger.backend=none", "plots.every_epochs=0", "total_steps=240"),
+        run_dir=tmp_path,
+    )
+    capsys.readouterr()
+    walls = GymnasiumGoalEnv("PointMaze_UMaze-v3", reset_options={"reset_cell": [3, 1]}).maze_geometry()
+    diagnosis, _, _ = load_recipe("diagnose_graph").main([str(tmp_path), "--pairs", "2", "--no-rollout"])
+    with (tmp_path / "metrics.csv").open() as file:
+        last = list(csv.DictReader(file))[-1]
+    assert diagnosis.metrics["graph/landmarks"] == int(last["graph/landmarks"])
+    assert diagnosis.metrics["diag/edges_crossing_walls"] == pytest.approx(float(last["diag/edges_crossing_walls"]))
+    report = load_recipe("diagnose_high_level").main([str(tmp_path), "--resolution", "0.5"])
+    assert 0.0 < report["walls_share"] < 1.0  # the U's inner wall lies inside the subgoal box
+    assert report["actor_in_wall"] == bool(walls.in_walls(report["actor_subgoal"][None])[0])
+    out, summary = load_recipe("diagnose_exploration").main([str(tmp_path), "--episodes", "3", "--rows", "1"])
+    farthest = walls.path_length(walls.start, walls.cell_centers[walls.free]).max().item()
+    assert 0.0 < summary["explored"] <= farthest + 1e-6 and len(out.episode_ids) >= 1

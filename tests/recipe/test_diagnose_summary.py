@@ -242,8 +242,8 @@ def test_bad_runs_are_refused_before_any_work(summary, pointmaze_run, tmp_path, 
 def test_a_gymnasium_maze_run_from_its_metrics(summary, tmp_path):
     """A gymnasium-robotics maze with a fixed start: the goal's progress G is the farthest test goal's path length from
     the start cell on the env's own map (independently: the test env's goals against the maze geometry), the frontier
-    and the graph figures come from its metrics; --ablations is refused naming why, and so is a run without a fixed
-    start."""
+    and the graph figures come from its metrics; --ablations re-evaluates its agent; a run without a fixed start is
+    refused."""
     pytest.importorskip("gymnasium_robotics")
     from torchrl_dhrl.envs import GymnasiumGoalEnv
 
@@ -263,8 +263,10 @@ def test_a_gymnasium_maze_run_from_its_metrics(summary, tmp_path):
     last = _last_row(tmp_path / "run")
     assert row["frontier"] == pytest.approx(float(last["train/frontier"]))
     assert row["tolerance"] == 0.45 and "findings" in row
-    with pytest.raises(SystemExit, match="--ablations takes the built-in mazes"):
-        summary.main([str(tmp_path / "run"), "--ablations"])
+    # --ablations: the saved agent re-evaluated, the oracle variants against the maze's own walls
+    (ablated,) = summary.main([str(tmp_path / "run"), "--ablations", "--repeats", "1"])
+    assert set(ablated["ablations"]) == {*summary.VARIANTS, "episodes"}
+    assert all(0.0 <= ablated["ablations"][name] <= 1.0 for name in summary.VARIANTS)
     # a run recorded with the ant mazes' 0.5 (0.4.0 and earlier): refused before any work, naming the option that
     # fixes it; with it, the same row as the run recorded with the derived margin
     old = tmp_path / "old"

@@ -9,6 +9,7 @@ import re
 import subprocess
 import sys
 
+import numpy as np
 import pytest
 import torch
 import yaml
@@ -261,3 +262,22 @@ def test_a_gymnasium_maze_run_measures_against_its_maze(tmp_path, capsys):
     recipe.train(recipe_config(*gym), run_dir=tmp_path / "anywhere")
     rows = metrics_rows(tmp_path / "anywhere", TIMING_COLUMNS)
     assert "train/frontier" not in rows[-1] and 0.0 <= float(rows[-1]["diag/subgoals_in_walls"]) <= 1.0
+
+
+def test_the_oracle_of_a_gymnasium_maze_is_blocked_by_its_walls():
+    """``planner.distance=oracle`` (and the diagnostics' oracle) on a gymnasium-robotics maze: straight steps at
+    ``planner.oracle_speed`` along a corridor, ``blocked`` through a wall cell of the env's own map (the U's inner
+    wall between cells (1, 1) and (3, 1)); it was a wall-less line of sight."""
+    pytest.importorskip("gymnasium_robotics")
+    from dhrl_utils import oracle_distance
+    from torchrl_dhrl.envs import GymnasiumGoalEnv
+
+    cfg = recipe_config("env=gymnasium", "env_name=gymnasium:PointMaze_UMaze-v3", "goal_indices=[0,1]",
+                        "planner.oracle_speed=0.05", "planner.oracle_margin=0.125")
+    env = GymnasiumGoalEnv("PointMaze_UMaze-v3")
+    maze = env._envs[0].unwrapped.maze
+    assert maze.maze_map[2][1] == 1 and maze.maze_map[1][2] == 0  # a wall below (1, 1), a corridor to its right
+    a, right, below = (torch.tensor(maze.cell_rowcol_to_xy(np.array(c)), dtype=torch.float32) for c in ((1, 1), (1, 2), (3, 1)))
+    oracle = oracle_distance(cfg)
+    d = oracle(torch.stack([a, a]), torch.stack([right, below]))
+    assert d[0].item() == pytest.approx((right - a).norm().item() / 0.05) and d[1].item() == oracle.blocked
