@@ -33,6 +33,7 @@ import yaml
 from dhrl_utils import agent_from_checkpoint, build_environment, seed_everything
 
 from torchrl_dhrl.recipe import (
+    ConfigError,
     agent_checkpoint_file,
     code_and_machine,
     load_checkpoint,
@@ -101,7 +102,10 @@ def main(argv: list[str] | None = None) -> dict:
     path = agent_checkpoint_file(args.path)
     cfg, agent = agent_from_checkpoint(path, device)
     # every variant built (and its keys checked) before the first episode
-    variant_agents = [agent_from_checkpoint(path, device, changes) for changes in variants]
+    try:
+        variant_agents = [agent_from_checkpoint(path, device, changes) for changes in variants]
+    except ConfigError as err:  # a key a trained agent cannot change: one line, as the recipe's errors
+        parser.error(f"--variant: {err}")
     counters = load_checkpoint(path, components=("counters",)).get("counters") or {}
     env = build_environment(cfg, device, eval=True, agent=agent)
     batches = math.ceil(args.episodes / env.batch_size.numel())

@@ -7,6 +7,7 @@ from __future__ import annotations
 
 import math
 import os
+import re
 import shutil
 import signal
 
@@ -279,15 +280,18 @@ def test_a_changed_edge_rule_redoes_the_loaded_graphs_edges(run_dir, monkeypatch
         (["high.critic_candidate=8"], r"`high\.critic_candidate` is not a key of the saved configuration"),
     ],
 )
-def test_evaluate_script_refuses_a_bad_variant_before_any_episode(run_dir, monkeypatch, variant, error):
+def test_evaluate_script_refuses_a_bad_variant_before_any_episode(run_dir, monkeypatch, capsys, variant, error):
+    """One line on stderr naming the key and what is accepted (exit status 2), before any episode."""
     evaluate_script = load_recipe("evaluate")
 
     def no_episodes(*args, **kwargs):
         raise AssertionError("an episode ran before the variants were checked")
 
     monkeypatch.setattr(evaluate_script, "episode_successes", no_episodes)
-    with pytest.raises(ConfigError, match=error):
+    with pytest.raises(SystemExit) as refused:
         evaluate_script.main([str(run_dir / AGENT_NAME), "--episodes", "10", "--variant", *variant])
+    message = capsys.readouterr().err.strip().splitlines()[-1]
+    assert refused.value.code == 2 and re.search(r"error: --variant: `?" + error.removeprefix("`"), message)
     with pytest.raises(SystemExit):  # not KEY=VALUE
         evaluate_script.main([str(run_dir / AGENT_NAME), "--variant", "high.critic_candidates"])
 
