@@ -17,6 +17,7 @@ from collections.abc import Sequence
 
 import torch
 from dhrl_utils import agent_from_checkpoint
+from torchrl_dhrl.envs import gymnasium_id
 
 from torchrl_dhrl.diagnostics import reach_test
 
@@ -44,6 +45,11 @@ def reach_test_from_checkpoint(
         path (str or Path): a checkpoint or the run directory holding it.
     """
     cfg, agent = agent_from_checkpoint(path, device)
+    if gymnasium_id(cfg["env_name"]) is not None:  # its resets draw their own goals: the test's would be ignored
+        raise ValueError(
+            f"diagnose_low_level takes the built-in envs; {path} is a {cfg['env_name']} run, whose resets do not take "
+            "the test's goals (use diagnose_summary.py --ablations: the goal as subgoal, the oracle graph)."
+        )
     planner = cfg["planner"]
     if radii is None:
         span = planner["cutoff"] * planner["oracle_speed"]
@@ -84,16 +90,19 @@ def main(argv: list[str] | None = None) -> list[dict]:
     parser.add_argument("--per-offset", action="store_true", help="one row per goal instead of per radius")
     parser.add_argument("--device", default="cpu")
     args = parser.parse_args(argv)
-    rows = reach_test_from_checkpoint(
-        args.checkpoint,
-        radii=args.radii,
-        num_directions=args.directions,
-        max_steps=args.steps,
-        device=args.device,
-        start=args.start,
-        repeats=args.repeats,
-        per_offset=args.per_offset,
-    )
+    try:
+        rows = reach_test_from_checkpoint(
+            args.checkpoint,
+            radii=args.radii,
+            num_directions=args.directions,
+            max_steps=args.steps,
+            device=args.device,
+            start=args.start,
+            repeats=args.repeats,
+            per_offset=args.per_offset,
+        )
+    except ValueError as err:  # the run, the start or the radii refused: one line
+        parser.error(str(err))
     offset = "offset".rjust(16) + " " if args.per_offset else ""
     print(
         f"{offset}{'radius':>8} {'goals':>6} {'reached':>8} {'median steps':>13} {'min dist':>9} {'final dist':>11}"

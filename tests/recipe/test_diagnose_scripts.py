@@ -380,3 +380,7 @@ def test_the_scripts_read_a_gymnasium_maze_run(tmp_path, capsys):
     out, summary = load_recipe("diagnose_exploration").main([str(tmp_path), "--episodes", "3", "--rows", "1"])
     farthest = walls.path_length(walls.start, walls.cell_centers[walls.free]).max().item()
     assert 0.0 < summary["explored"] <= farthest + 1e-6 and len(out.episode_ids) >= 1
+    capsys.readouterr()
+    with pytest.raises(SystemExit):  # the reach test's goals would be ignored by the env's resets: refused, one line
+        load_recipe("diagnose_low_level").main([str(tmp_path)])
+    assert "diagnose_low_level takes the built-in envs" in capsys.readouterr().err
