@@ -12,9 +12,16 @@ from __future__ import annotations
 import argparse
 
 import torch
-from dhrl_utils import agent_from_checkpoint, build_environment, oracle_distance
+from dhrl_utils import (
+    add_oracle_options,
+    agent_from_checkpoint,
+    build_environment,
+    oracle_distance,
+    oracle_overrides,
+)
 
 from torchrl_dhrl.diagnostics import planning_ablations
+from torchrl_dhrl.recipe.schema import ConfigError
 
 
 def main(argv: list[str] | None = None) -> list[dict]:
@@ -35,11 +42,18 @@ def main(argv: list[str] | None = None) -> list[dict]:
         help="add the variants with the graph rebuilt on the same landmarks with the oracle distance "
         "(planner.distance=oracle's line of sight; mazes and UR3Obstacle)",
     )
+    add_oracle_options(parser)
     parser.add_argument("--device", default="cpu")
     args = parser.parse_args(argv)
+    overrides = oracle_overrides(parser, args)
     device = torch.device(args.device)
     cfg, agent = agent_from_checkpoint(args.checkpoint, device)
+    cfg["planner"].update(overrides)
     env = build_environment(cfg, device, eval=True, agent=agent)
+    try:
+        oracle = oracle_distance(cfg, env) if args.oracle else None
+    except ConfigError as err:  # a recorded margin that closes the maze
+        parser.error(f"{err} Give the agent's radius with --oracle-margin.")
     rows = planning_ablations(
         agent,
         env,
@@ -47,7 +61,7 @@ def main(argv: list[str] | None = None) -> list[dict]:
         reach_radii=args.reach_radii,
         cutoffs=args.cutoffs,
         repeats=args.repeats,
-        oracle=oracle_distance(cfg) if args.oracle else None,
+        oracle=oracle,
     )
     print(
         f"{cfg['env_name']}: {agent.planner.num_landmarks} landmarks, reach_radius {agent.planner.reach_radius:g}, "

@@ -28,7 +28,15 @@ from pathlib import Path
 
 import torch
 import yaml
-from dhrl_utils import agent_from_checkpoint, build_environment, oracle_distance, print_table, run_maze
+from dhrl_utils import (
+    add_oracle_options,
+    agent_from_checkpoint,
+    build_environment,
+    oracle_distance,
+    oracle_overrides,
+    print_table,
+    run_maze,
+)
 from torchrl_dhrl.envs import ENVS, MAZE_NAMES, MazeSpec, get_maze_spec, gymnasium_id
 from torchrl_dhrl.envs.geometry import MazeGeometry
 
@@ -173,17 +181,26 @@ def gymnasium_goal_progress(cfg: dict) -> tuple[float, float]:
     cpu = torch.device("cpu")
     geometry = run_maze(cfg, build_environment(cfg, cpu))
     if geometry is None or geometry.start is None:
-        what = "no maze" if geometry is None else "no fixed start (`gymnasium.reset_options` without one `reset_cell`)"
-        raise SystemExit(f"env_name={cfg['env_name']}: {what}; the table measures progress along a maze from its start.")
+        what = (
+            "no maze"
+            if geometry is None
+            else "no fixed start (`gymnasium.reset_options` without one `reset_cell`)"
+        )
+        raise SystemExit(
+            f"env_name={cfg['env_name']}: {what}; the table measures progress along a maze from its start."
+        )
     goals = build_environment(cfg, cpu, eval=True).reset()["desired_goal"][..., :2]
     return geometry.path_length(geometry.start, goals).max().item(), float(cfg["low"]["reward_threshold"])
 
 
-def check_run(path, *, ablations: bool = False, oracle_margin: float | None = None):
+def check_run(
+    path, *, ablations: bool = False, oracle_margin: float | None = None, oracle_speed: float | None = None
+):
     """The run of directory ``path`` (:func:`~torchrl_dhrl.recipe.aggregate.read_run`), checked: a maze (built-in,
     or gymnasium-robotics' with a fixed start) whose geometry its ``planner.oracle_margin`` (or ``oracle_margin``, which
-    then replaces it in the record) leaves open, with an agent to re-evaluate for ``ablations``. Raises
-    ``SystemExit`` naming the run and what is missing."""
+    then replaces it in the record) leaves open, with an agent to re-evaluate for ``ablations``; ``oracle_speed``
+    replaces the record's ``planner.oracle_speed`` (the oracle's goal units per step). Raises ``SystemExit`` naming
+    the run and what is missing."""
     path = Path(path)
     if not (path / "metrics.csv").is_file():
         raise SystemExit(
@@ -200,6 +217,8 @@ def check_run(path, *, ablations: bool = False, oracle_margin: float | None = No
         raise SystemExit(f"{path}: --ablations needs the run's agent/ or checkpoint/; it has neither.")
     if oracle_margin is not None:
         run.config["planner.oracle_margin"] = oracle_margin
+    if oracle_speed is not None:
+        run.config["planner.oracle_speed"] = oracle_speed
     try:
         run_goal(run)
     except ValueError as err:  # a margin that closes the maze (ConfigError from run_maze)
@@ -238,6 +257,9 @@ def summarize_run(run, *, at: float | None = None, ablations: bool = False, repe
         at = agent_steps if agent_steps is not None else at
         cfg, agent = agent_from_checkpoint(checkpoint)
         cfg["planner"]["oracle_margin"] = margin  # the record's, or --oracle-margin
+        cfg["planner"]["oracle_speed"] = run.config.get(
+            "planner.oracle_speed", cfg["planner"]["oracle_speed"]
+        )
         env = build_environment(cfg, torch.device("cpu"), eval=True, agent=agent)
         maze = run_maze(cfg, env) if gymnasium_id(env_name) is not None else env_name
         diagnosis = graph_diagnosis(agent, env, maze, oracle_margin=margin, rollout=False)
@@ -324,20 +346,14 @@ def main(argv: list[str] | None = None) -> list[dict]:
     )
     parser.add_argument("--repeats", type=int, default=5, help="with --ablations: batches of test episodes")
     parser.add_argument("--out", default=None, help="also write the table to this file")
-    parser.add_argument(
-        "--oracle-margin",
-        type=float,
-        default=None,
-        help="the agent's radius in the maze geometry, instead of each run's planner.oracle_margin",
-    )
+    add_oracle_options(parser)
     args = parser.parse_args(argv)
     if args.repeats < 1:
         parser.error("--repeats must be at least 1")
-    if args.oracle_margin is not None and not args.oracle_margin >= 0:
-        parser.error(f"--oracle-margin must be >= 0, got {args.oracle_margin}")
-    runs = [  # every run before any work
-        check_run(path, ablations=args.ablations, oracle_margin=args.oracle_margin) for path in args.runs
-    ]
+    oracle = oracle_overrides(parser, args)
+    runs = [
+        check_run(path, ablations=args.ablations, **oracle) for path in args.runs
+    ]  # every run before any work
     rows = [summarize_run(run, at=args.at, ablations=args.ablations, repeats=args.repeats) for run in runs]
     print_table(markdown(rows), args.out)
     return rows

@@ -98,6 +98,51 @@ def test_cli_prints_a_row_per_variant(run_dir, capsys):
     )
 
 
+def test_planning_oracle_options_replace_the_recorded_geometry(tmp_path, monkeypatch, capsys):
+    """diagnose_planning.py --oracle on a gymnasium maze: a recorded margin that closes the maze (0.4.0's 0.5 on a
+    1-unit maze) is refused in one line naming --oracle-margin; --oracle-margin and --oracle-speed replace the
+    record's in the oracle's walls and speed."""
+    run = tmp_path / "run"
+    load_recipe().train(
+        recipe_config("env=gymnasium", "env_name=gymnasium:PointMaze_UMaze-v3", "preset=smoke", "logger.backend=none",
+                      "plots.every_epochs=0", "total_steps=160", "gymnasium.reset_options={reset_cell:[3,1]}"),
+        run_dir=run,
+    )
+    script = load_recipe("diagnose_planning")
+    real_load, real_ablations = script.agent_from_checkpoint, script.planning_ablations
+
+    def recorded_with(margin):
+        def load(path, device):
+            cfg, agent = real_load(path, device)
+            cfg["planner"]["oracle_margin"] = margin
+            return cfg, agent
+
+        return load
+
+    monkeypatch.setattr(script, "agent_from_checkpoint", recorded_with(0.5))
+    with pytest.raises(SystemExit) as refused:
+        script.main([str(run), "--oracle", "--repeats", "1"])
+    assert refused.value.code == 2
+    assert "planner.oracle_margin=0.5" in capsys.readouterr().err
+    oracles = []
+
+    def ablations(*args, oracle, **kwargs):
+        oracles.append(oracle)
+        return real_ablations(*args, oracle=oracle, **kwargs)
+
+    monkeypatch.setattr(script, "planning_ablations", ablations)
+    rows = script.main([str(run), "--oracle", "--oracle-margin", "0.125", "--oracle-speed", "0.04", "--repeats", "1"])
+    assert "oracle graph" in [row["variant"] for row in rows]
+    monkeypatch.setattr(script, "agent_from_checkpoint", recorded_with(0.125))
+    script.main([str(run), "--oracle", "--repeats", "1"])
+    assert oracles[0].speed == 0.04 and oracles[1].speed != 0.04
+    torch.testing.assert_close(oracles[0].boxes, oracles[1].boxes)  # --oracle-margin 0.125 = a record of 0.125
+    for bad in (["--oracle-margin", "-1"], ["--oracle-speed", "0"]):
+        with pytest.raises(SystemExit) as refused:
+            script.main([str(run), "--oracle", *bad])
+        assert refused.value.code == 2
+
+
 def test_bad_repeats(run_dir):
     dhrl_utils = load_recipe("dhrl_utils")
     cfg, agent = dhrl_utils.agent_from_checkpoint(run_dir)

@@ -239,7 +239,7 @@ def test_bad_runs_are_refused_before_any_work(summary, pointmaze_run, tmp_path, 
         summary.main([str(pointmaze_run), str(BOTTLENECK / "seed0"), "--ablations"])
 
 
-def test_a_gymnasium_maze_run_from_its_metrics(summary, tmp_path):
+def test_a_gymnasium_maze_run_from_its_metrics(summary, tmp_path, monkeypatch):
     """A gymnasium-robotics maze with a fixed start: the goal's progress G is the farthest test goal's path length from
     the start cell on the env's own map (independently: the test env's goals against the maze geometry), the frontier
     and the graph figures come from its metrics; --ablations re-evaluates its agent; a run without a fixed start is
@@ -278,6 +278,21 @@ def test_a_gymnasium_maze_run_from_its_metrics(summary, tmp_path):
         summary.main([str(tmp_path / "run"), str(old)])
     (again,) = summary.main([str(old), "--oracle-margin", "0.125"])
     assert again["goal"] == row["goal"] and again["frontier"] == row["frontier"]
+    # --oracle-speed: the oracle variants step at the given speed instead of the record's
+    oracles = []
+
+    def ablations(agent, env, steps, *, repeats, oracle):
+        oracles.append(oracle)
+        return [{"variant": name, "success": 0.0, "episodes": repeats} for name in summary.VARIANTS]
+
+    monkeypatch.setattr(summary, "planning_ablations", ablations)
+    summary.main([str(old), "--ablations", "--repeats", "1", "--oracle-margin", "0.125", "--oracle-speed", "0.04"])
+    summary.main([str(tmp_path / "run"), "--ablations", "--repeats", "1"])
+    assert [oracle.speed for oracle in oracles] == [0.04, cfg["planner"]["oracle_speed"]]
+    torch.testing.assert_close(oracles[0].boxes, oracles[1].boxes)  # the margin given = the one recorded
+    with pytest.raises(SystemExit) as bad:
+        summary.main([str(old), "--oracle-speed", "0"])
+    assert bad.value.code == 2
     load_recipe().train(recipe_config(*gym), run_dir=tmp_path / "anywhere")
     with pytest.raises(SystemExit, match="no fixed start"):
         summary.main([str(tmp_path / "anywhere")])
