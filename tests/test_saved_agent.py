@@ -268,6 +268,28 @@ def test_a_changed_edge_rule_redoes_the_loaded_graphs_edges(run_dir, monkeypatch
     assert graph.shortest_distances.isfinite().all() and not old.shortest_distances.isfinite().all()
 
 
+def test_the_unreachable_rule_reaches_the_graph_and_is_a_test_time_switch(run_dir, tmp_path):
+    """``planner.unreachable``: the recipe's graph takes it, a configuration saved before the key rebuilds the
+    reference's fallback, a saved agent takes another rule at load (the same graph state), and a bad value stops
+    the recipe before its run directory exists."""
+    from torchrl_dhrl.recipe import ConfigError
+
+    dhrl_utils = load_recipe("dhrl_utils")
+    cfg, saved = dhrl_utils.agent_from_checkpoint(run_dir / AGENT_NAME)
+    assert cfg["planner"]["unreachable"] == "nearest_landmark" == saved.planner.graph.unreachable
+    _, switched = dhrl_utils.agent_from_checkpoint(run_dir / AGENT_NAME, changes={"planner.unreachable": "subgoal"})
+    assert switched.planner.graph.unreachable == "subgoal"
+    for name in ("landmark_goals", "landmark_distances", "edge_weights", "shortest_distances", "next_hop"):
+        assert torch.equal(getattr(switched.planner.graph, name), getattr(saved.planner.graph, name)), name
+    del cfg["planner"]["unreachable"]
+    assert dhrl_utils.build_agent(cfg, torch.device("cpu")).planner.graph.unreachable == "nearest_landmark"
+    bad = recipe_config("env=PointMaze", "preset=smoke", "device=cpu", "planner.unreachable=nearest")
+    message = r"^`planner.unreachable` must be one of \('nearest_landmark', 'subgoal'\), got 'nearest'.$"
+    with pytest.raises(ConfigError, match=message):
+        load_recipe().train(bad, run_dir=tmp_path / "run")
+    assert not (tmp_path / "run").exists()
+
+
 @pytest.mark.parametrize(
     "variant, error",
     [

@@ -183,6 +183,26 @@ def test_unreachable_subgoal_falls_back_to_nearest_reachable_landmark():
     assert plan.length.item() == 0 and not plan.reachable.item()
 
 
+def test_unreachable_subgoal_rule_subgoal_goes_straight_for_it():
+    points = torch.tensor([[0.0, 0.0], [1.0, 0.0], [2.0, 0.0], [10.0, 0.0], [11.0, 0.0]])
+    graph = LandmarkGraph(cutoff=1.5, edge_rule=CutoffEdgeRule(nn_factor=1.0), unreachable="subgoal")
+    graph.set_landmarks(points, points.clone(), euclidean)
+    states, subgoals = torch.tensor([[0.0, 0.0], [0.0, 0.0]]), torch.tensor([[11.5, 0.0], [2.0, 0.0]])
+    plan = graph.plan(states, subgoals, euclidean, 8)
+    # the unreachable subgoal: no landmark, its one hop the state's own distance to it; the reachable one planned
+    assert plan.reachable.tolist() == [False, True] and plan.length.tolist() == [0, 2]
+    assert plan.path[0].tolist() == [-1] * 8 and plan.budgets[0, 0].item() == pytest.approx(11.5)
+    assert math.isinf(plan.cost[0].item()) and plan.path[1, :2].tolist() == [0, 1]
+    # an attribute read at every query: back to the reference's fallback, the same graph
+    graph.unreachable = "nearest_landmark"
+    assert graph.plan(states, subgoals, euclidean, 8).path[0, :3].tolist() == [0, 1, 2]
+    with pytest.raises(ValueError, match=r"`unreachable` must be one of \('nearest_landmark', 'subgoal'\), got 'x'"):
+        graph.unreachable = "x"
+    with pytest.raises(ValueError, match="unreachable"):
+        LandmarkGraph(unreachable="nearest")
+    assert "unreachable='nearest_landmark'" in repr(graph)
+
+
 def test_start_fallback_connects_to_near_landmarks_outside_the_cutoff():
     points = torch.tensor([[3.0, 0.0], [4.0, 0.0], [5.5, 0.0]])
     graph = LandmarkGraph(cutoff=1.5, start_fallback_factor=1.5)
@@ -459,6 +479,37 @@ def assert_same_plan(got, expected):
         a, b = getattr(got, field), getattr(expected, field)
         assert a.shape == b.shape and a.dtype == b.dtype, field
         assert torch.equal(a, b), field
+
+
+@pytest.mark.parametrize("name", sorted(DISTANCES))
+def test_unreachable_rule_changes_only_the_unreachable_rows(name):
+    """Over random graphs and queries (ties, islands, walls, capturable or not): with ``unreachable="subgoal"``
+    every reachable row's plan is the reference's, and every unreachable row is the subgoal alone (no landmark,
+    its budget the state's own distance to the subgoal)."""
+    distance = DISTANCES[name]
+    gen = torch.Generator().manual_seed(200 + len(name))
+    changed = 0
+    for trial in range(30):
+        graph = random_graph(distance, gen, lattice=trial % 2 == 1)
+        states, subgoals = random_queries(int(torch.randint(1, 24, (), generator=gen)), gen)
+        for capturable in (False, True):
+            graph.unreachable = "nearest_landmark"
+            reference = graph.plan(states, subgoals, distance, 5, capturable=capturable)
+            graph.unreachable = "subgoal"
+            plan = graph.plan(states, subgoals, distance, 5, capturable=capturable)
+            same = reference.reachable
+            assert torch.equal(plan.reachable, same) and torch.equal(plan.cost, reference.cost)
+            for field in ("path", "length", "budgets", "truncated"):
+                assert torch.equal(getattr(plan, field)[same], getattr(reference, field)[same]), field
+            unreachable = ~same
+            assert (plan.length[unreachable] == 0).all() and (plan.path[unreachable] == -1).all()
+            assert not plan.truncated[unreachable].any()
+            torch.testing.assert_close(
+                plan.budgets[unreachable, 0], distance(states[unreachable], subgoals[unreachable]), rtol=0, atol=0
+            )
+            assert torch.isinf(plan.budgets[unreachable, 1:]).all()
+            changed += int((unreachable & (reference.length > 0)).sum())
+    assert changed > 0  # some rows took the reference's fallback landmark
 
 
 @pytest.mark.parametrize("name", sorted(DISTANCES))

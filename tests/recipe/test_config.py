@@ -212,6 +212,7 @@ def test_a_checkpoint_older_than_a_key_is_compared_with_the_value_it_was_trained
         "reference_engine",
         "fork",
         "planner.edge_rule",
+        "planner.unreachable",
         "high.critic_candidates",
         "high.candidate_noise",
         "high.landmark_candidates",

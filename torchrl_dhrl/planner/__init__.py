@@ -15,7 +15,7 @@ from .distances import AutocastDistance, GoalDistance, LineOfSightDistance, Temp
 from .edges import ConnectedEdgeRule, CutoffEdgeRule, EdgeRule, make_edge_rule
 from .fgs import FrontierGoalShifting, GoalShiftOnReset
 from .fps import FarthestPointSamplingResult, farthest_point_sampling
-from .graph import GraphPlan, LandmarkGraph
+from .graph import UNREACHABLE_RULES, GraphPlan, LandmarkGraph
 from .graph_planner import GraphPlanner
 from .shortest_paths import ShortestPaths, count_hops, floyd_warshall, reconstruct_paths
 from .storage import DynamicStorage, FixedSizeStorage, GraphTensors
@@ -30,6 +30,7 @@ __all__ = [
     "GoalDistance",
     "GoalShiftOnReset",
     "GraphPlan",
+    "UNREACHABLE_RULES",
     "GraphTensors",
     "DynamicStorage",
     "FixedSizeStorage",

@@ -10,7 +10,7 @@ import torch
 from torch import Tensor, nn
 
 from torchrl_dhrl._unregistered import UnregisteredAttributes, callable_attribute
-from torchrl_dhrl.checks import checked, integer, number
+from torchrl_dhrl.checks import checked, choice, integer, number
 
 from ._distance import (
     DEFAULT_CHUNK_SIZE,
@@ -37,6 +37,10 @@ _GRAPH_BUFFERS = (
     "hop_counts",
 )
 
+#: Where :meth:`LandmarkGraph.plan` leads when a subgoal cannot be reached (the first is the reference's).
+UNREACHABLE_RULES = ("nearest_landmark", "subgoal")
+
+
 class GraphPlan(NamedTuple):
     """A batch of planned waypoint sequences, as returned by :meth:`LandmarkGraph.plan`.
 
@@ -53,8 +57,8 @@ class GraphPlan(NamedTuple):
         cost (Tensor): ``[B]`` float, estimated steps of the plan to the subgoal (``inf`` when the
             subgoal is unreachable).
         reachable (Tensor): ``[B]`` bool, the subgoal is reachable directly or through the graph;
-            ``False`` rows use the fallback (the reachable landmark nearest to the subgoal, then
-            the subgoal) or go straight for the subgoal.
+            ``False`` rows use the fallback of :attr:`LandmarkGraph.unreachable` (by default the
+            reachable landmark nearest to the subgoal, then the subgoal) or go straight for the subgoal.
     """
 
     path: Tensor
@@ -109,6 +113,11 @@ class LandmarkGraph(UnregisteredAttributes, nn.Module):
         start_fallback_factor (float): when no landmark is within ``cutoff`` of a query state, the
             state is connected to the landmarks within ``start_fallback_factor`` times its
             smallest landmark distance. Defaults to ``1.5``.
+        unreachable (str): where :meth:`plan` leads when the subgoal cannot be reached through the
+            graph. ``"nearest_landmark"`` (the reference): to the reachable landmark nearest to the
+            subgoal (by ``d(landmark_state -> subgoal)``), then to the subgoal. ``"subgoal"``: straight
+            to the subgoal, as without a graph (the low level chases it). A plain attribute (not in
+            ``state_dict()``), read at every query. Defaults to ``"nearest_landmark"``.
         chunk_size (int): maximum number of pairs per distance call. Defaults to ``65536``.
         fps_strategy (str): ``"lazy"`` or ``"dense"`` (same result, see
             :func:`~torchrl_dhrl.planner.farthest_point_sampling`). Defaults to ``"lazy"``.
@@ -163,6 +172,7 @@ class LandmarkGraph(UnregisteredAttributes, nn.Module):
         early_stop=number(0.0),
         min_landmarks=integer(0, optional=True),
         start_fallback_factor=number(1.0),
+        unreachable=choice(UNREACHABLE_RULES),
         fps_lazy_batch=integer(1),
     )
     def __init__(
@@ -174,6 +184,7 @@ class LandmarkGraph(UnregisteredAttributes, nn.Module):
         *,
         edge_rule: EdgeRule | None = None,
         start_fallback_factor: float = 1.5,
+        unreachable: str = "nearest_landmark",
         chunk_size: int = DEFAULT_CHUNK_SIZE,
         fps_strategy: str = "lazy",
         fps_proxy: str | ProxyFn | None = "goal",
@@ -188,6 +199,7 @@ class LandmarkGraph(UnregisteredAttributes, nn.Module):
         self.min_landmarks = max_landmarks // 10 if min_landmarks is None else min_landmarks
         self.edge_rule = CutoffEdgeRule() if edge_rule is None else edge_rule
         self.start_fallback_factor = float(start_fallback_factor)
+        self.unreachable = unreachable
         self.chunk_size = check_chunk_size(chunk_size)
         if fps_strategy not in FPS_STRATEGIES:
             raise ValueError(f"`fps_strategy` must be one of {FPS_STRATEGIES}, got {fps_strategy!r}.")
@@ -208,6 +220,18 @@ class LandmarkGraph(UnregisteredAttributes, nn.Module):
         self.fixed_size = fixed_size  # the planning storage: DynamicStorage or FixedSizeStorage
 
     # ------------------------------------------------------------------ properties
+    @property
+    def unreachable(self) -> str:
+        """Where :meth:`plan` leads when a subgoal cannot be reached (one of :data:`UNREACHABLE_RULES`); may be
+        set at any time, the next query reads it."""
+        return self.__dict__["_unreachable"]
+
+    @unreachable.setter
+    def unreachable(self, value: str) -> None:
+        if value not in UNREACHABLE_RULES:
+            raise ValueError(f"`unreachable` must be one of {UNREACHABLE_RULES}, got {value!r}.")
+        self.__dict__["_unreachable"] = value
+
     @property
     def fixed_size(self) -> bool:
         """Whether capture-safe queries read fixed-size copies of the graph (:attr:`storage` is a
@@ -703,10 +727,10 @@ class LandmarkGraph(UnregisteredAttributes, nn.Module):
         The state and the subgoal are temporarily added to the graph: state -> landmark edges as
         in :meth:`start_costs`, landmark -> subgoal edges within ``cutoff``, and a direct edge
         state -> subgoal within ``cutoff``. The cheapest route is chosen with the precomputed
-        all-pairs table. When the subgoal cannot be reached, the plan leads to the reachable
-        landmark nearest to the subgoal (by ``d(landmark_state -> subgoal)``) and then to the
-        subgoal; when no landmark is reachable (or there is no graph), the plan is the subgoal
-        alone. A plan is always returned.
+        all-pairs table. When the subgoal cannot be reached, the plan follows :attr:`unreachable`:
+        by default it leads to the reachable landmark nearest to the subgoal (by
+        ``d(landmark_state -> subgoal)``) and then to the subgoal; when no landmark is reachable (or
+        there is no graph), the plan is the subgoal alone. A plan is always returned.
 
         Args:
             states (Tensor): ``[B, obs_dim]`` current states.
@@ -791,7 +815,9 @@ class LandmarkGraph(UnregisteredAttributes, nn.Module):
         stuck = ~use_direct & ~use_graph
         use_fallback = torch.zeros_like(stuck)
         exits, entries = via_exit.clone(), via_entry.clone()
-        if capturable:  # the fallback of every row, kept where the row is stuck
+        if self.unreachable == "subgoal":
+            pass  # stuck rows go straight for the subgoal
+        elif capturable:  # the fallback of every row, kept where the row is stuck
             near_cost, near_exit, near_entry = self._fallback(
                 start_cost, from_landmarks, True, graph.shortest
             )
@@ -883,5 +909,6 @@ class LandmarkGraph(UnregisteredAttributes, nn.Module):
         return (
             f"num_landmarks={self.num_landmarks}, cutoff={self.cutoff}, max_landmarks={self.max_landmarks}, "
             f"early_stop={self.early_stop}, edge_rule={self.edge_rule!r}, "
-            f"start_fallback_factor={self.start_fallback_factor}, fixed_size={self.fixed_size}"
+            f"start_fallback_factor={self.start_fallback_factor}, unreachable={self.unreachable!r}, "
+            f"fixed_size={self.fixed_size}"
         )

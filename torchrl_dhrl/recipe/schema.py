@@ -93,6 +93,7 @@ KEY_ROLES = {
     "schedule.eval_every_epochs": "unsaved",
     "schedule.eval_flat": "unsaved",
     "planner.edge_rule": "unsaved",
+    "planner.unreachable": "unsaved",
     "high.critic_candidates": "unsaved",
     "high.candidate_noise": "unsaved",
     "high.landmark_candidates": "unsaved",
@@ -138,6 +139,7 @@ IMPLIED_WHEN_ABSENT = {
     "reference_engine": False,  # runs from before the switch: MuJoCo 3's margins and capsule inertias
     "fork": None,  # runs from before the key: started afresh
     "planner.edge_rule": "cutoff",  # runs from before the switch: the reference's edges
+    "planner.unreachable": "nearest_landmark",  # runs from before the switch: the reference's fallback
     "high.critic_candidates": 0,  # runs from before the switch: the actor's subgoal issued as it is
     "high.candidate_noise": None,
     "high.landmark_candidates": False,
