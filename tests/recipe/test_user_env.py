@@ -76,6 +76,8 @@ def test_a_registered_env_trains_with_derived_goal_units_and_its_length_on_a_wra
     assert saved["low"]["reward_threshold"] == 0.5 and saved["planner"]["reach_radius"] == 0.5
     low, high = saved["high"]["subgoal_low"], saved["high"]["subgoal_high"]
     assert all(-4.9 < v < -3.0 for v in low) and all(3.0 < v < 4.9 for v in high)  # the square, with a margin
+    extent = max(h - lo for lo, h in zip(low, high, strict=True))  # derived, as for env=gymnasium
+    assert saved["planner"]["oracle_margin"] == pytest.approx(extent / 48, rel=1e-3)
 
 
 @pytest.mark.recipe
@@ -208,9 +210,12 @@ def test_goal_units_the_env_cannot_tell_are_named(user_env):
     assert cfg["fgs"]["noise"] == pytest.approx(1.5 * cfg["high"]["subgoal_noise"], rel=1e-3)  # extent/8, /12
     assert [note.split("=")[0] for note in notes] == [
         "goal_indices", "high.subgoal_low", "high.subgoal_high", "high.subgoal_noise", "planner.reach_radius",
-        "fgs.noise", "planner.oracle_speed",
+        "fgs.noise", "planner.oracle_margin", "planner.oracle_speed",
     ]
     assert cfg["planner"]["oracle_speed"] == 0.2  # PointMaze's top speed, as its env file sets it
+    # no maze on the env: the agent's radius is a 48th of the subgoal box's largest side
+    extent = max(h - lo for lo, h in zip(cfg["high"]["subgoal_low"], cfg["high"]["subgoal_high"], strict=True))
+    assert cfg["planner"]["oracle_margin"] == pytest.approx(extent / 48, rel=1e-3)
 
 
 def test_a_resumed_run_writes_where_it_wrote(tmp_path):
