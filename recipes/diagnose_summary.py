@@ -47,7 +47,14 @@ from torchrl_dhrl.recipe.aggregate import read_run
 #: How much better (success, absolute) a planning variant must do than the agent as trained to name a part.
 MARGIN = 0.1
 #: The planning variants of the table (``planning_ablations``' names).
-VARIANTS = ("as trained", "goal as subgoal", "oracle graph", "oracle graph, goal", "no graph")
+VARIANTS = (
+    "as trained",
+    "goal as subgoal",
+    "unreachable=subgoal",
+    "oracle graph",
+    "oracle graph, goal",
+    "no graph",
+)
 
 
 def _finite(value) -> bool:
@@ -69,7 +76,8 @@ def findings(
     ``start_actor_q_gap``; ``goal`` is the farthest test goal's progress along the maze and ``tolerance`` that of
     every comparison along the maze (the recipe: the task's success radius, the distance at which a goal counts
     as reached); ``ablations`` the success of the planning
-    variants (``"as trained"``, ``"goal as subgoal"``, ``"oracle graph"``, ``"oracle graph, goal"``).
+    variants (``"as trained"``, ``"goal as subgoal"``, ``"unreachable=subgoal"``, ``"oracle graph"``,
+    ``"oracle graph, goal"``).
 
     * exploration: the training episodes' frontier more than ``tolerance`` short of the goal;
     * landmarks: no landmark within ``tolerance`` of how far the episodes (or the goal, if nearer) got;
@@ -79,6 +87,8 @@ def findings(
       above the agent as trained;
     * high level: its subgoal at the start in a wall (with the Q gap to its critic's best free subgoal), or the
       goal as subgoal at least ``margin`` above the agent as trained;
+    * graph fallback: going straight for the subgoals the graph cannot reach (``"unreachable=subgoal"``) at least
+      ``margin`` above the agent as trained with the reference's fallback (the reachable landmark nearest to them);
     * high-level critic: its best subgoal at the start in a wall;
     * low level: the oracle's graph with the goal as subgoal below ``margin`` although the landmarks reach the
       goal (within ``tolerance``).
@@ -133,6 +143,12 @@ def findings(
     to_goal = ablations.get("goal as subgoal", math.nan)
     if _finite(trained) and _finite(to_goal) and to_goal >= trained + margin:
         out.append(f"high level: the goal as subgoal {to_goal:.0%} vs {trained:.0%} as trained")
+    straight = ablations.get("unreachable=subgoal", math.nan)
+    if _finite(trained) and _finite(straight) and straight >= trained + margin:
+        out.append(
+            f"graph fallback: straight for the subgoals the graph cannot reach {straight:.0%} vs {trained:.0%} "
+            "as trained (planner.unreachable=subgoal)"
+        )
     if get("start_best_subgoal_in_wall") == 1:
         out.append("high-level critic: its best subgoal at the start lies in a wall")
     oracle_goal = ablations.get("oracle graph, goal", math.nan)

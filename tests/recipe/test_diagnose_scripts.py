@@ -41,7 +41,7 @@ def test_variants_are_paired_and_leave_the_agent_unchanged(run_dir, monkeypatch)
     landmarks = agent.planner.graph.landmark_goals.clone()
     radius = agent.planner.reach_radius
     state = env.base_env.state_dict()
-    goals, graph_seen, subgoal_is_goal = [], [], []
+    goals, graph_seen, subgoal_is_goal, rules = [], [], [], []
     real = evaluation.evaluate
 
     def recording(env_, policy, steps, **kwargs):
@@ -49,6 +49,7 @@ def test_variants_are_paired_and_leave_the_agent_unchanged(run_dir, monkeypatch)
         goals.append(result.rollout["desired_goal"][:, 0].clone())
         graph_seen.append(agent.planner.has_graph)
         subgoal_is_goal.append(torch.equal(result.rollout["subgoal"], result.rollout["desired_goal"]))
+        rules.append(agent.planner.graph.unreachable)
         return result
 
     module = sys.modules[
@@ -61,6 +62,7 @@ def test_variants_are_paired_and_leave_the_agent_unchanged(run_dir, monkeypatch)
         "reach_radius=0.5",
         "reach_radius=2",
         "goal as subgoal",
+        "unreachable=subgoal",
         "no graph",
         "flat",
     ]
@@ -68,17 +70,18 @@ def test_variants_are_paired_and_leave_the_agent_unchanged(run_dir, monkeypatch)
     for r in rows:
         assert 0.0 <= r["success"] <= r["any_success"] <= 1.0 and r["final_distance"] > 0
     # every variant meets the same two batches of goals (Reacher3D draws them at random per episode)
-    assert len(goals) == 12
-    for k in range(2, 12, 2):
+    assert len(goals) == 14
+    for k in range(2, 14, 2):
         torch.testing.assert_close(goals[k], goals[0], rtol=0, atol=0)
         torch.testing.assert_close(goals[k + 1], goals[1], rtol=0, atol=0)
     assert not torch.equal(goals[0], goals[1])
-    assert graph_seen == [True] * 8 + [False] * 2 + [True] * 2  # the graph is gone only for "no graph"
+    assert graph_seen == [True] * 10 + [False] * 2 + [True] * 2  # the graph is gone only for "no graph"
     # the planner is handed the real goal only in "goal as subgoal"
-    assert subgoal_is_goal == [False] * 6 + [True] * 2 + [False] * 4
+    assert subgoal_is_goal == [False] * 6 + [True] * 2 + [False] * 6
+    assert rules == ["nearest_landmark"] * 8 + ["subgoal"] * 2 + ["nearest_landmark"] * 4
     # left as it was
     torch.testing.assert_close(agent.planner.graph.landmark_goals, landmarks, rtol=0, atol=0)
-    assert agent.planner.reach_radius == radius
+    assert agent.planner.reach_radius == radius and agent.planner.graph.unreachable == "nearest_landmark"
     after = env.base_env.state_dict()
     assert set(after) == set(state)
 
@@ -89,8 +92,9 @@ def test_cli_prints_a_row_per_variant(run_dir, capsys):
     )
     out = capsys.readouterr().out
     assert (
-        len(rows) == 6
+        len(rows) == 7
         and "goal as subgoal" in out
+        and "unreachable=subgoal" in out
         and "no graph" in out
         and "flat" in out
         and "reach_radius=0.3" in out

@@ -110,6 +110,15 @@ def _findings(summary, changes=None, ablations=None):
         ),
         ({}, {"goal as subgoal": 0.61}, ["high level: the goal as subgoal 61% vs 50% as trained"]),
         (
+            {},
+            {"unreachable=subgoal": 0.6},
+            [
+                "graph fallback: straight for the subgoals the graph cannot reach 60% vs 50% as trained "
+                "(planner.unreachable=subgoal)"
+            ],
+        ),
+        ({}, {"unreachable=subgoal": 0.59}, []),  # below the margin
+        (
             {"start_best_subgoal_in_wall": 1.0},
             None,
             ["high-level critic: its best subgoal at the start lies in a wall"],
@@ -149,13 +158,20 @@ def test_several_checks_hold_together_in_a_fixed_order(summary):
             "start_actor_q_gap": 2.0,
             "start_best_subgoal_in_wall": 1.0,
         },
-        {"as trained": 0.0, "goal as subgoal": 0.3, "oracle graph": 0.4, "oracle graph, goal": 0.0},
+        {
+            "as trained": 0.0,
+            "goal as subgoal": 0.3,
+            "unreachable=subgoal": 0.5,
+            "oracle graph": 0.4,
+            "oracle graph, goal": 0.0,
+        },
     )
     assert [f.split(":")[0] for f in out] == [
         "exploration",
         "learned distances",
         "high level",
         "high level",
+        "graph fallback",
         "high-level critic",
         "low level",
     ]

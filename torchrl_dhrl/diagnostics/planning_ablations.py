@@ -40,6 +40,10 @@ def planning_ablations(
       merely too long for the cutoff, or missing;
     * ``"goal as subgoal"``: the high level bypassed, the graph planning to the real goal
       (:func:`goal_as_subgoal`; replans keep the high level's ``c_h`` cadence);
+    * ``"unreachable=<rule>"``: the graph's other rule for subgoals it cannot reach
+      (:attr:`~torchrl_dhrl.planner.LandmarkGraph.unreachable`: ``"subgoal"``, straight for them, for an agent
+      trained with the reference's ``"nearest_landmark"``, and the other way round): whether the fallback's
+      landmark leads the agent astray;
     * with ``oracle``: ``"oracle graph"`` and ``"oracle graph, goal"``, the agent as trained and the goal as
       subgoal with the graph rebuilt on the same landmarks with the oracle distance (FPS and edges redone,
       queries answered by the oracle): the learned distance's share of a failure;
@@ -49,7 +53,8 @@ def planning_ablations(
     A variant far better than ``"as trained"`` names the part that leads the agent astray (the graph's
     waypoints, the high level's subgoals); ``"goal as subgoal"`` failing too says that the graph cannot
     route to the goal either (e.g. a goal beyond the explored region: exploration, not the high level). The
-    agent and ``env`` are left as they were (graph, cutoff, distance, radius and the env's state restored).
+    agent and ``env`` are left as they were (graph, cutoff, distance, radius, unreachable rule and the env's state
+    restored).
 
     Args:
         agent (DHRLAgent): the agent (e.g. a checkpoint's, rebuilt by ``recipes/dhrl_utils.py``).
@@ -78,7 +83,7 @@ def planning_ablations(
         ...     agent=agent)
         >>> rows = planning_ablations(agent, env, 20, reach_radii=[1.0])
         >>> [row["variant"] for row in rows], rows[0]["episodes"]
-        (['as trained', 'reach_radius=1', 'goal as subgoal', 'no graph', 'flat'], 2)
+        (['as trained', 'reach_radius=1', 'goal as subgoal', 'unreachable=subgoal', 'no graph', 'flat'], 2)
     """
     if repeats < 1:
         raise ValueError(f"`repeats` must be >= 1, got {repeats}.")
@@ -92,7 +97,8 @@ def planning_ablations(
     base = env.base_env if hasattr(env, "base_env") else env
     start = base.state_dict()
     planner, graph = agent.planner, agent.planner.graph
-    radius, distance, cutoff = planner.reach_radius, planner.distance, graph.cutoff
+    radius, distance, cutoff, unreachable = planner.reach_radius, planner.distance, graph.cutoff, graph.unreachable
+    other_rule = "subgoal" if unreachable == "nearest_landmark" else "nearest_landmark"
     saved_graph = graph.state_dict()
     to_goal = goal_as_subgoal(agent.policy, planner)
 
@@ -114,14 +120,18 @@ def planning_ablations(
 
         return setup
 
+    def set_unreachable() -> None:
+        graph.unreachable = other_rule
+
     def restore() -> None:
         planner.reach_radius, planner.distance, graph.cutoff = radius, distance, cutoff
+        graph.unreachable = unreachable
         graph.load_state_dict(saved_graph)
 
     variants = [("as trained", agent.policy, None)]
     variants += [(f"reach_radius={r:g}", agent.policy, set_radius(float(r))) for r in reach_radii]
     variants += [(f"cutoff={c:g}", agent.policy, set_cutoff(float(c))) for c in cutoffs]
-    variants += [("goal as subgoal", to_goal, None)]
+    variants += [("goal as subgoal", to_goal, None), (f"unreachable={other_rule}", agent.policy, set_unreachable)]
     if oracle is not None:
         variants += [
             ("oracle graph", agent.policy, oracle_graph),
