@@ -59,16 +59,17 @@ def test_oracle_variants_plan_with_the_oracle_on_the_same_landmarks_and_restore(
     assert names == [
         "as trained",
         "goal as subgoal",
+        "unreachable=subgoal",
         "oracle graph",
         "oracle graph, goal",
         "no graph",
         "flat",
     ]
     distances = [d for d, _ in seen]
-    assert distances == [learned, learned, oracle, oracle, learned, learned]
+    assert distances == [learned, learned, learned, oracle, oracle, learned, learned]
     # the oracle graph is rebuilt on the trained graph's landmarks (FPS keeps a subset of them)
     trained = saved["landmark_goals"]
-    for _, landmarks in seen[2:4]:
+    for _, landmarks in seen[3:5]:
         assert len(landmarks) >= 2 and (torch.cdist(landmarks, trained).min(-1).values == 0).all()
     assert agent.planner.distance is learned
     for key, value in agent.planner.graph.state_dict().items():
@@ -106,6 +107,7 @@ def test_cutoff_variants_redo_the_edges_of_the_same_landmarks_and_restore(monkey
         "cutoff=10",
         "cutoff=60.5",
         "goal as subgoal",
+        "unreachable=subgoal",
         "no graph",
         "flat",
     ]

@@ -108,6 +108,7 @@ def test_every_forkable_hyperparameter_is_in_effect(parent, tmp_path, monkeypatc
         "schedule.eval_every_epochs": 2,
         "schedule.eval_flat": False,
         "planner.edge_rule": "connected",
+        "planner.unreachable": "subgoal",
         "high.critic_candidates": 4,
         "high.candidate_noise": 0.5,
         "high.landmark_candidates": True,
@@ -121,6 +122,7 @@ def test_every_forkable_hyperparameter_is_in_effect(parent, tmp_path, monkeypatc
     _train(tmp_path, "total_steps=480", f"fork={parent}", *(f"{k}={str(v).lower()}" for k, v in new.items()))
     agent = built["parts"].agent
     assert isinstance(agent.planner.graph.edge_rule, ConnectedEdgeRule)  # used from the fork's next build on
+    assert agent.planner.graph.unreachable == "subgoal"  # read at every query
     selector = agent.high_policy.selector
     assert selector.num_candidates == 4 and selector.landmark_candidates is True
     assert selector.sigma.eq(0.5).all()

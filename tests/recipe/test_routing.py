@@ -64,7 +64,12 @@ def test_the_routed_values_are_the_configuration_values():
     assert args["sqgc_loss"]["target_noise_std"] == 0.05 and args["sqgc_loss"]["sqgc"] is True
     assert args["low_buffer"]["batch_size"] == 1024 and args["high_buffer"]["her_window"] == 15
     assert args["low_optimizers"] == {"actor_lr": 1e-4, "critic_lr": 1e-3}
-    assert args["graph"] == {"cutoff": 30.0, "max_landmarks": 300, "early_stop": 10.0}
+    assert args["graph"] == {
+        "cutoff": 30.0,
+        "max_landmarks": 300,
+        "early_stop": 10.0,
+        "unreachable": "nearest_landmark",
+    }
     assert args["planner"] == {"reach_radius": 0.5} and args["distance"] == {"twin": "optimistic"}
     assert args["oracle"] == {
         "speed": cfg["planner"]["oracle_speed"],
