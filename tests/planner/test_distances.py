@@ -1,6 +1,8 @@
 """Temporal distances: the ``TemporalDistance`` protocol, ``GoalDistance``'s speed options (reduced-precision
 autocast, the CPU chunk default, the actor fast path) and the oracle ``LineOfSightDistance``."""
 
+import math
+
 import pytest
 import torch
 from tensordict import TensorDict
@@ -305,9 +307,9 @@ def test_line_of_sight_matches_dense_sampling():
     free = ~blocked
     torch.testing.assert_close(d[free], (end - start)[free].norm(dim=-1) / 0.5)
     # dense sampling can miss a corner clip but never reports a false block
-    assert (d[blocked] == 1e4).all()
-    assert (d == 1e4).float().mean() >= blocked.float().mean()
-    assert ((d == 1e4) & free).float().mean() < 0.01
+    assert torch.isinf(d[blocked]).all()
+    assert torch.isinf(d).float().mean() >= blocked.float().mean()
+    assert (torch.isinf(d) & free).float().mean() < 0.01
 
 
 def test_line_of_sight_axis_parallel_and_broadcast():
@@ -318,11 +320,39 @@ def test_line_of_sight_axis_parallel_and_broadcast():
     d = oracle(states[:, None], goals[None])
     assert d.shape == (2, 3)
     # (0,0)->(3,0) crosses the wall; (0,6)->(3,6) passes 1 above it but inside the 0.5 margin? no: 6 > 5.5
-    assert d[0, 0] == 1e4 and d[1, 1] == pytest.approx(3.0) and d[0, 2] == pytest.approx(3.0)
+    assert math.isinf(d[0, 0]) and d[1, 1] == pytest.approx(3.0) and d[0, 2] == pytest.approx(3.0)
+    finite = LineOfSightDistance(1.0, boxes=wall, margin=0.5, goal_indices=(0, 1), blocked=1e4)
+    assert finite(states[0], goals[0]) == 1e4
     with pytest.raises(ValueError, match="boxes"):
         LineOfSightDistance(1.0, boxes=torch.zeros(2, 2), goal_indices=(0, 1))
     with pytest.raises(ValueError, match="speed"):
         LineOfSightDistance(0.0, goal_indices=(0, 1))
+
+
+def test_a_blind_landmark_or_state_gets_no_edge_through_the_walls():
+    """Landmarks in three rooms with no line of sight between them except inside a room: with the default (blocked
+    = inf) the graph's edges stay inside the rooms and a state that sees no landmark plans the subgoal alone; with a
+    finite ``blocked`` (0.4.0's 1e4) the nearest-neighbour rule joins the lone landmark to every other through the
+    walls and the start fallback joins the blind state to every landmark."""
+    from torchrl_dhrl.planner import LandmarkGraph
+
+    walls = torch.tensor([[[1.0, -10.0], [2.0, 10.0]], [[4.0, -10.0], [5.0, 10.0]]])
+    points = torch.tensor([[0.0, 0.0], [0.0, 1.0], [3.0, 0.0], [3.0, 1.0], [6.0, 0.0]])  # room 3 holds one landmark
+    same_room = torch.tensor([0, 0, 1, 1, 2])
+    inside = (same_room[:, None] == same_room[None]) & ~torch.eye(5, dtype=torch.bool)
+    blind, subgoal = torch.tensor([[1.5, 0.0]]), torch.tensor([[6.0, 1.0]])  # a state inside a wall: sees nothing
+    for blocked in (math.inf, 1e4):
+        oracle = LineOfSightDistance(1.0, boxes=walls, goal_indices=(0, 1), blocked=blocked)
+        graph = LandmarkGraph(cutoff=5.0, max_landmarks=8)
+        graph.set_landmarks(points, points.clone(), oracle)
+        plan = graph.plan(blind, subgoal, oracle, 4)
+        if math.isinf(blocked):
+            assert torch.equal(graph.edge_mask, inside)
+            assert plan.length.item() == 0 and not plan.reachable.item()  # the subgoal alone
+        else:  # the lone landmark joined to all four it cannot see; the blind state "reaches" it through two walls
+            assert graph.edge_mask[4, :4].all() and not graph.edge_mask[4, 4]
+            assert plan.reachable.item() and plan.path[0, : plan.length[0]].tolist() == [4]
+            assert plan.cost.item() == pytest.approx(1e4 + 1.0)
 
 
 def test_line_of_sight_builds_the_same_graph_under_reduced_precision_building():

@@ -426,7 +426,11 @@ class LineOfSightDistance:
         margin (float): inflation of every box (e.g. the agent's radius). Defaults to ``0.0``.
         goal_indices (sequence of int): where the achieved goal sits in the state (e.g. ``(0, 1)`` for the
             mazes' ``(x, y)``; :func:`~torchrl_dhrl.envs.goal_indices_of` reads it from an env). Required.
-        blocked (float): the distance of a blocked pair. Defaults to ``1e4``.
+        blocked (float): the distance of a blocked pair. Defaults to ``inf``: unreachable, so a blocked pair is
+            never an edge, a start connection or an exit of :class:`~torchrl_dhrl.planner.LandmarkGraph`. A finite
+            value (``1e4`` in 0.4.0 and before) is a very long but usable distance: a landmark or a state that sees no
+            other within the cutoff is then joined to every one it cannot see by the nearest-neighbour edge rule
+            and the start fallback (which compare distances with the nearest one, ``1e4`` against ``1e4``).
         chunk_size (int): pairs per evaluation chunk. Defaults to ``65536``.
 
     Examples:
@@ -434,7 +438,7 @@ class LineOfSightDistance:
         >>> wall = torch.tensor([[[1.0, -5.0], [2.0, 5.0]]])  # a wall between x=1 and x=2
         >>> d = LineOfSightDistance(0.5, boxes=wall, goal_indices=[0, 1])
         >>> d(torch.zeros(2, 2), torch.tensor([[0.0, 3.0], [3.0, 0.0]])).tolist()
-        [6.0, 10000.0]
+        [6.0, inf]
     """
 
     @checked(speed=number(0.0, low_open=True), margin=number(0.0), blocked=number(0.0, low_open=True))
@@ -445,7 +449,7 @@ class LineOfSightDistance:
         boxes: Tensor | Sequence | None = None,
         margin: float = 0.0,
         goal_indices: Sequence[int],
-        blocked: float = 1e4,
+        blocked: float = math.inf,
         chunk_size: int = 65536,
     ) -> None:
         self.speed = float(speed)
