@@ -109,9 +109,7 @@ def start_up(cfg: DictConfig | dict, run_dir: str | Path | None = None, *, write
     cfg = to_dict(cfg)
     check_known_keys(cfg, config_schema(), source="recipes/config/config.yaml", complete=True)
     cfg = resolve_goal_units(cfg)
-    return start_run(
-        cfg, run_dir, schema=config_schema(), schema_source="recipes/config/config.yaml", write=write
-    )
+    return start_run(cfg, run_dir, schema=config_schema(), schema_source="recipes/config/config.yaml", write=write)
 
 
 def resolve_goal_units(cfg: dict) -> dict:
@@ -143,10 +141,7 @@ def resolve_goal_units(cfg: dict) -> dict:
     cfg = copy.deepcopy(cfg)
     try:
         env = make_environment(
-            name,
-            num_envs=1,
-            seed=cfg["seed"],
-            max_episode_steps=cfg["episode_length"],
+            name, num_envs=1, seed=cfg["seed"], max_episode_steps=cfg["episode_length"],
             env_kwargs=gymnasium_kwargs(cfg),
         )
     except (GoalEnvError, ValueError) as err:  # the adapter's arguments named as the `gymnasium` keys
@@ -154,10 +149,7 @@ def resolve_goal_units(cfg: dict) -> dict:
         raise ConfigError(f"env_name={name}: {message}") from err
     base = getattr(env, "base_env", env)
     if getattr(base, "achieved_goal_in_observation", False):
-        size, goal = (
-            base.observation_spec["observation"].shape[-1],
-            base.observation_spec["achieved_goal"].shape[-1],
-        )
+        size, goal = base.observation_spec["observation"].shape[-1], base.observation_spec["achieved_goal"].shape[-1]
         print(
             f"{name}: its observation leaves out the achieved goal, so GymnasiumGoalEnv puts it first: "
             f"observation[0:{goal}] = achieved_goal ({size} entries, the env's {size - goal} after it)."
@@ -355,9 +347,7 @@ def build_agent(cfg: dict, device: torch.device) -> DHRLAgent:
     group that are its arguments (:mod:`torchrl_dhrl.recipe.routing`); sizes from the env's specs."""
     env = build_environment(cfg, device)
     # a registered env's goal size is known only now: the subgoal box is checked against it, naming the keys
-    check_components(
-        cfg, goal_dim=env.observation_spec["achieved_goal"].shape[-1], device=device, error=ConfigError
-    )
+    check_components(cfg, goal_dim=env.observation_spec["achieved_goal"].shape[-1], device=device, error=ConfigError)
     args = component_arguments(cfg)
     return make_agent(
         env,
@@ -396,9 +386,7 @@ def oracle_distance(cfg: dict, env=None) -> LineOfSightDistance:
     if boxes is None and gymnasium_id(cfg["env_name"]) is not None:
         maze = run_maze(cfg, env if env is not None else build_environment(cfg, torch.device("cpu")))
         boxes = None if maze is None else maze.boxes
-    return LineOfSightDistance(
-        **component_arguments(cfg)["oracle"], boxes=boxes, goal_indices=goal_indices(cfg)
-    )
+    return LineOfSightDistance(**component_arguments(cfg)["oracle"], boxes=boxes, goal_indices=goal_indices(cfg))
 
 
 def build_replay_buffers(cfg: dict, agent: DHRLAgent, device: torch.device):
@@ -459,9 +447,7 @@ def build_run(cfg: dict, device: torch.device) -> RunParts:
     args = component_arguments(cfg)
     collector = make_collector(train_env, agent, train_env.max_episode_steps, **args["collector"])
     eval_policy = make_eval_policy(agent, **args["eval_policy"])
-    return RunParts(
-        agent, train_env, eval_env, low_rb, high_rb, low_updater, high_updater, collector, eval_policy
-    )
+    return RunParts(agent, train_env, eval_env, low_rb, high_rb, low_updater, high_updater, collector, eval_policy)
 
 
 def build_logger(cfg: dict, run_dir: Path):
@@ -528,14 +514,9 @@ def add_oracle_options(parser) -> None:
     ``planner.oracle_speed`` (runs of 0.4.0 and earlier recorded the configuration's values for gymnasium mazes,
     e.g. 0.5 and 0.15 on PointMaze_Large-v3, whose derived values are 0.125 and 0.0523)."""
     parser.add_argument(
-        "--oracle-margin",
-        type=float,
-        default=None,
-        help="the agent's radius in the maze geometry (goal units)",
+        "--oracle-margin", type=float, default=None, help="the agent's radius in the maze geometry (goal units)"
     )
-    parser.add_argument(
-        "--oracle-speed", type=float, default=None, help="the oracle's goal units per env step"
-    )
+    parser.add_argument("--oracle-speed", type=float, default=None, help="the oracle's goal units per env step")
 
 
 def oracle_overrides(parser, args) -> dict[str, float]:

@@ -197,14 +197,8 @@ def gymnasium_goal_progress(cfg: dict) -> tuple[float, float]:
     cpu = torch.device("cpu")
     geometry = run_maze(cfg, build_environment(cfg, cpu))
     if geometry is None or geometry.start is None:
-        what = (
-            "no maze"
-            if geometry is None
-            else "no fixed start (`gymnasium.reset_options` without one `reset_cell`)"
-        )
-        raise SystemExit(
-            f"env_name={cfg['env_name']}: {what}; the table measures progress along a maze from its start."
-        )
+        what = "no maze" if geometry is None else "no fixed start (`gymnasium.reset_options` without one `reset_cell`)"
+        raise SystemExit(f"env_name={cfg['env_name']}: {what}; the table measures progress along a maze from its start.")
     goals = build_environment(cfg, cpu, eval=True).reset()["desired_goal"][..., :2]
     return geometry.path_length(geometry.start, goals).max().item(), float(cfg["low"]["reward_threshold"])
 
@@ -273,9 +267,7 @@ def summarize_run(run, *, at: float | None = None, ablations: bool = False, repe
         at = agent_steps if agent_steps is not None else at
         cfg, agent = agent_from_checkpoint(checkpoint)
         cfg["planner"]["oracle_margin"] = margin  # the record's, or --oracle-margin
-        cfg["planner"]["oracle_speed"] = run.config.get(
-            "planner.oracle_speed", cfg["planner"]["oracle_speed"]
-        )
+        cfg["planner"]["oracle_speed"] = run.config.get("planner.oracle_speed", cfg["planner"]["oracle_speed"])
         env = build_environment(cfg, torch.device("cpu"), eval=True, agent=agent)
         maze = run_maze(cfg, env) if gymnasium_id(env_name) is not None else env_name
         diagnosis = graph_diagnosis(agent, env, maze, oracle_margin=margin, rollout=False)
@@ -367,9 +359,7 @@ def main(argv: list[str] | None = None) -> list[dict]:
     if args.repeats < 1:
         parser.error("--repeats must be at least 1")
     oracle = oracle_overrides(parser, args)
-    runs = [
-        check_run(path, ablations=args.ablations, **oracle) for path in args.runs
-    ]  # every run before any work
+    runs = [check_run(path, ablations=args.ablations, **oracle) for path in args.runs]  # every run before any work
     rows = [summarize_run(run, at=args.at, ablations=args.ablations, repeats=args.repeats) for run in runs]
     print_table(markdown(rows), args.out)
     return rows
