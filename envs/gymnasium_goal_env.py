@@ -162,6 +162,11 @@ class GymnasiumGoalEnv(EnvBase):
     observation leaves out the achieved goal (gymnasium-robotics' ant mazes observe the torso without its x, y),
     the adapter puts it first: ``observation[..., :goal_dim] == achieved_goal`` (``achieved_goal_in_observation``).
 
+    Resets honour the ``"_reset"`` mask and, as the built-in envs', a ``"desired_goal"`` entry (``[num_envs,
+    goal_dim]``): the goals of the envs being reset, set where ``goals`` sets its fixed goals (e.g. a reach test's
+    goals around the start); TorchRL's automatic resets never pass it. A ``"start"`` entry is refused: a Gymnasium
+    env starts where its reset options put it.
+
     An env that ends an episode itself (``terminated``) is refused: the recipe's collector needs episodes of one
     length (most goal envs have a continuing mode, e.g. the mazes' ``continuing_task=True``, their default). An
     env that says so beforehand (its unwrapped env's ``continuing_task`` is ``False``) is refused at construction.
@@ -320,16 +325,15 @@ class GymnasiumGoalEnv(EnvBase):
     def _set_seed(self, seed: int | None) -> None:
         self._seeds = [None if seed is None else int(seed) + i for i in range(self.batch_size[0])]
 
-    def _reset_one(self, i: int) -> None:
+    def _reset_one(self, i: int, goal: np.ndarray | None = None) -> None:
         options = None
         if self.reset_options:
             options = self.reset_options[int(self._episodes[i]) % len(self.reset_options)]
         env = self._envs[i].unwrapped
         obs, info = env.reset(seed=self._seeds[i], options=options)
-        if self.goals is not None:  # a fixed goal: where the env reads it, and in what it observed
-            if not hasattr(env, "goal"):
-                raise GoalEnvError(f"{self.env_id} keeps no `goal` attribute to set fixed goals on.")
+        if goal is None and self.goals is not None:
             goal = self.goals[int(self._episodes[i]) % len(self.goals)]
+        if goal is not None:  # a fixed goal: where the env reads it, and in what it observed
             env.goal = goal.astype(np.asarray(env.goal).dtype).reshape(np.shape(env.goal))
             obs = {**obs, "desired_goal": env.goal.copy()}
             radius = self.success_radius()  # the env's info was about its own goal
@@ -341,6 +345,23 @@ class GymnasiumGoalEnv(EnvBase):
         self._held[i] = False
         self._last[i] = obs
         self._success[i] = self._is_success(obs, info)
+
+    def _reset_goals(self, tensordict: TensorDictBase) -> np.ndarray | None:
+        """The ``"desired_goal"`` entry of a reset tensordict as ``[num_envs, goal_dim]`` float64, checked."""
+        if "start" in tensordict.keys():
+            raise GoalEnvError(
+                f"{self.env_id}: a 'start' entry passed to reset moves the built-in mazes' agents only; a Gymnasium "
+                "env starts where its reset options put it (the mazes' `reset_cell`)."
+            )
+        value = tensordict.get("desired_goal", None)
+        if value is None:
+            return None
+        expected = (*self.batch_size, self.observation_spec["desired_goal"].shape[-1])
+        if tuple(value.shape) != expected:
+            raise GoalEnvError(f"A 'desired_goal' passed to reset must have shape {expected}, got {tuple(value.shape)}.")
+        if not hasattr(self._envs[0].unwrapped, "goal"):
+            raise GoalEnvError(f"{self.env_id} keeps no `goal` attribute to set the goals passed to reset on.")
+        return value.detach().cpu().double().numpy()
 
     def _is_success(self, obs: Mapping[str, np.ndarray], info: Mapping[str, Any]) -> bool:
         if self.success_threshold is not None:
@@ -370,12 +391,14 @@ class GymnasiumGoalEnv(EnvBase):
         )
 
     def _reset(self, tensordict: TensorDictBase | None = None, **kwargs) -> TensorDictBase:
-        mask = None
-        if tensordict is not None and "_reset" in tensordict.keys():
-            mask = tensordict.get("_reset").reshape(-1).cpu().numpy()
+        mask = goals = None
+        if tensordict is not None:
+            if "_reset" in tensordict.keys():
+                mask = tensordict.get("_reset").reshape(-1).cpu().numpy()
+            goals = self._reset_goals(tensordict)
         for i in range(self.batch_size[0]):
             if mask is None or mask[i] or self._last[i] is None:
-                self._reset_one(i)
+                self._reset_one(i, None if goals is None else goals[i])
         out = self._output()
         false = torch.zeros(*self.batch_size, 1, dtype=torch.bool, device=self.device)
         return out.update({"done": false, "terminated": false.clone(), "truncated": false.clone()})
@@ -430,6 +453,24 @@ class GymnasiumGoalEnv(EnvBase):
         cells = {tuple(np.asarray(o["reset_cell"]).tolist()) if "reset_cell" in o else None for o in self.reset_options or [{}]}
         start_cell = next(iter(cells)) if len(cells) == 1 else None
         return MazeGeometry.from_gymnasium_maze(maze, start_cell=start_cell, margin=margin, resolution=resolution)
+
+    def reset_cell_at(self, point: Sequence[float]) -> tuple[int, int]:
+        """The ``(row, col)`` of the free maze cell holding ``point`` (goal units), for the ``reset_cell`` of
+        reset options (a gymnasium-robotics maze starts its agent at a cell's centre, with reset noise).
+
+        Raises:
+            ValueError: for an env without a gymnasium-robotics maze, or a point in a wall or outside the maze.
+        """
+        maze = getattr(self._envs[0].unwrapped, "maze", None)
+        if maze is None or not hasattr(maze, "maze_map") or not hasattr(maze, "cell_xy_to_rowcol"):
+            raise ValueError(f"{self.env_id} has no gymnasium-robotics maze to start from a point of.")
+        row, col = (int(v) for v in maze.cell_xy_to_rowcol(np.asarray(point, dtype=np.float64)))
+        cells = np.asarray(maze.maze_map)
+        inside = 0 <= row < cells.shape[0] and 0 <= col < cells.shape[1]
+        if not inside or cells[row, col] == 1:
+            where = f"in cell ({row}, {col}), a wall," if inside else "outside the maze"
+            raise ValueError(f"The start {list(point)} lies {where} of {self.env_id}; accepted: a point in a free cell.")
+        return row, col
 
     def success_radius(self, *, tolerance: float = 1e-6) -> float | None:
         """The distance within which the env counts a goal as reached: ``success_threshold`` if given, else

@@ -8,6 +8,8 @@ the start, in straight-line-reachable directions, with exploration off.
     python recipes/diagnose_low_level.py run/checkpoint --radii 1 2 4 --steps 120
     # can it pass AntMazeBottleneck's gap? From below it, ten tries per goal, one row per goal
     python recipes/diagnose_low_level.py run --start 16 4.5 --radii 3 6 --directions 4 --repeats 10 --per-offset
+    # a gymnasium-robotics maze's run: from its test start cell, or from the cell holding (x, y)
+    python recipes/diagnose_low_level.py pml_run --oracle-speed 0.0523 --oracle-margin 0.125 --start 3 1
 """
 
 from __future__ import annotations
@@ -16,8 +18,7 @@ import argparse
 from collections.abc import Sequence
 
 import torch
-from dhrl_utils import agent_from_checkpoint
-from torchrl_dhrl.envs import gymnasium_id
+from dhrl_utils import add_oracle_options, agent_from_checkpoint, gymnasium_kwargs, oracle_overrides
 
 from torchrl_dhrl.diagnostics import reach_test
 
@@ -33,24 +34,25 @@ def reach_test_from_checkpoint(
     start: Sequence[float] | None = None,
     repeats: int = 1,
     per_offset: bool = False,
+    planner_overrides: dict | None = None,
 ) -> list[dict]:
     """:func:`~torchrl_dhrl.diagnostics.reach_test` for the low-level actor of a recipe checkpoint.
 
     Defaults follow the run's config: radii ``(0.25, 0.5, 1, 1.5) x cutoff x oracle_speed`` (the goal-space
     span of a graph edge, at the env's nominal speed), ``max_steps = 3 x cutoff``, the planner's
-    ``reach_radius`` and ``oracle_margin``, the run's ``angle_features``. ``start``, ``repeats`` and
-    ``per_offset`` as in :func:`~torchrl_dhrl.diagnostics.reach_test`.
+    ``reach_radius`` and ``oracle_margin``, the run's ``angle_features``; a ``gymnasium:<id>`` run's env with its
+    ``gymnasium`` options, reset as its test episodes (as its training episodes where the tests start anywhere). ``start``, ``repeats`` and ``per_offset`` as in
+    :func:`~torchrl_dhrl.diagnostics.reach_test`; ``planner_overrides`` replace the run's ``planner`` values
+    (``oracle_margin``, ``oracle_speed``).
 
     Args:
         path (str or Path): a checkpoint or the run directory holding it.
     """
     cfg, agent = agent_from_checkpoint(path, device)
-    if gymnasium_id(cfg["env_name"]) is not None:  # its resets draw their own goals: the test's would be ignored
-        raise ValueError(
-            f"diagnose_low_level takes the built-in envs; {path} is a {cfg['env_name']} run, whose resets do not take "
-            "the test's goals (use diagnose_summary.py --ablations: the goal as subgoal, the oracle graph)."
-        )
-    planner = cfg["planner"]
+    planner = {**cfg["planner"], **(planner_overrides or {})}
+    env_kwargs = gymnasium_kwargs(cfg, eval=True)
+    if env_kwargs is not None and env_kwargs["reset_options"] is None:  # tests start anywhere: the training start
+        env_kwargs["reset_options"] = cfg["gymnasium"]["reset_options"]
     if radii is None:
         span = planner["cutoff"] * planner["oracle_speed"]
         radii = [f * span for f in (0.25, 0.5, 1.0, 1.5)]
@@ -68,6 +70,7 @@ def reach_test_from_checkpoint(
         start=start,
         repeats=repeats,
         per_offset=per_offset,
+        env_kwargs=env_kwargs,
     )
 
 
@@ -82,14 +85,16 @@ def main(argv: list[str] | None = None) -> list[dict]:
         type=float,
         nargs="+",
         default=None,
-        help="start here instead of the task's start (mazes: x y)",
+        help="start here instead of the task's start (mazes: x y; a gymnasium-robotics maze: the cell holding it)",
     )
     parser.add_argument(
         "--repeats", type=int, default=1, help="tries per goal, each with its own reset noise"
     )
     parser.add_argument("--per-offset", action="store_true", help="one row per goal instead of per radius")
+    add_oracle_options(parser)
     parser.add_argument("--device", default="cpu")
     args = parser.parse_args(argv)
+    overrides = oracle_overrides(parser, args)
     try:
         rows = reach_test_from_checkpoint(
             args.checkpoint,
@@ -100,6 +105,7 @@ def main(argv: list[str] | None = None) -> list[dict]:
             start=args.start,
             repeats=args.repeats,
             per_offset=args.per_offset,
+            planner_overrides=overrides,
         )
     except ValueError as err:  # the run, the start or the radii refused: one line
         parser.error(str(err))

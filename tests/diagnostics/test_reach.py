@@ -125,3 +125,40 @@ def test_a_still_actor_reaches_nothing_and_bad_batch_is_refused():
         low_level_reach_test(
             make_env("PointMaze", num_envs=3), still, offsets, max_steps=10, reach_radius=0.5
         )
+
+
+def _pd_controller():
+    """A gymnasium-robotics point (observation x, y, vx, vy; action a force): push towards the waypoint, damped."""
+    return TensorDictModule(
+        lambda o, w: (5.0 * (w - o[..., :2]) - o[..., 2:4]).clamp(-1, 1),
+        in_keys=["observation", "waypoint"],
+        out_keys=["action"],
+    )
+
+
+def test_reach_test_in_a_gymnasium_maze_from_its_reset_cell_or_the_cell_of_a_start():
+    """PointMaze_UMaze-v3 (1-unit cells; free: row 1 and row 3 of columns 1-3, and column 3): from the centre of its
+    reset cell (3, 1), (-1, -1), only the goal along the corridor (+x) is visible at 1 and 1.8 units; all four at 0.3
+    (the walls 0.5 away, inflated by 0.125). From the cell holding (1, 1), (1, 3), the corridor runs -x and -y."""
+    pytest.importorskip("gymnasium_robotics")
+    corridor = {"reset_options": {"reset_cell": [3, 1]}}
+    kwargs = dict(max_steps=100, reach_radius=0.2, num_directions=4, oracle_margin=0.125, env_kwargs=corridor)
+    rows = reach_test(_pd_controller(), "gymnasium:PointMaze_UMaze-v3", radii=[0.3, 1.0, 1.8], **kwargs)
+    assert [(round(row["radius"], 3), row["goals"]) for row in rows] == [(0.3, 4), (1.0, 1), (1.8, 1)]
+    assert all(row["reach_rate"] == 1.0 for row in rows)
+    rows = reach_test(
+        _pd_controller(), "gymnasium:PointMaze_UMaze-v3", radii=[1.0], start=(1.0, 1.0), per_offset=True, **kwargs
+    )
+    assert sorted(tuple(round(v) for v in row["offset"]) for row in rows) == [(-1, 0), (0, -1)]
+    assert all(row["reach_rate"] == 1.0 for row in rows)
+    # the env takes the test's goals at reset: each starts about its radius from its goal (the goals are offsets from
+    # a first reset's position, the episode starts from a second: two draws of noise within 0.25 a side)
+    env = make_env("gymnasium:PointMaze_UMaze-v3", num_envs=3, seed=0, env_kwargs=corridor)
+    offsets = torch.tensor([[0.3, 0.0], [1.0, 0.0], [1.8, 0.0]])
+    result = low_level_reach_test(env, _pd_controller(), offsets, max_steps=100, reach_radius=0.2)
+    torch.testing.assert_close(result.start_distance, result.radius, atol=0.5 * 2**0.5, rtol=0)
+    assert result.reached.all()
+    with pytest.raises(ValueError, match="resets start anywhere"):
+        reach_test(_pd_controller(), "gymnasium:PointMaze_UMaze-v3", radii=[1.0], max_steps=5, reach_radius=0.2)
+    with pytest.raises(ValueError, match=r"lies in cell \(2, 1\), a wall"):
+        reach_test(_pd_controller(), "gymnasium:PointMaze_UMaze-v3", radii=[1.0], start=(-1.0, 0.0), **kwargs)

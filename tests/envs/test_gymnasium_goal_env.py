@@ -10,6 +10,7 @@ import gymnasium as gym
 import numpy as np
 import pytest
 import torch
+from tensordict import TensorDict
 from torchrl.envs import TransformedEnv
 from torchrl.envs.utils import check_env_specs
 from torchrl_dhrl.envs import (
@@ -245,6 +246,31 @@ def test_fixed_goals_replace_the_env_goals_in_turn_for_rewards_and_success():
     assert torch.equal(td["is_success"], distance <= 0.45) and td["desired_goal"].tolist() == [[-1.0, -1.0]] * 2
     with pytest.raises(ValueError, match="`goals` must be None or a goal"):
         GymnasiumGoalEnv(UMAZE, goals="north")
+
+
+def test_a_desired_goal_passed_to_reset_sets_the_goals_of_the_envs_being_reset_only():
+    env = GymnasiumGoalEnv(UMAZE, 3, seed=0, goals=[[1.0, 1.0]], reset_options={"reset_cell": [3, 1]})
+    first = env.reset()
+    goals = torch.tensor([[-1.0, -1.0], [0.5, -1.0], [2.0, 2.0]])
+    mask = torch.tensor([[True], [False], [True]])
+    td = env.reset(TensorDict({"desired_goal": goals, "_reset": mask}, batch_size=[3]))
+    # envs 0 and 2 take the passed goals (over the fixed ones), env 1 is not reset and keeps its goal and state
+    assert td["desired_goal"][[0, 2]].tolist() == [[-1.0, -1.0], [2.0, 2.0]]
+    assert [e.unwrapped.goal.tolist() for e in env._envs] == [[-1.0, -1.0], [1.0, 1.0], [2.0, 2.0]]
+    # the env rewards and judges the passed goals (the same within 0.45 as the env itself)
+    step = env.step(td.set("action", torch.zeros(3, 2)))["next"]
+    goals[1] = torch.tensor([1.0, 1.0])
+    torch.testing.assert_close(step["achieved_goal"][1], first["achieved_goal"][1])  # still at its first start
+    assert step["desired_goal"].tolist() == goals.tolist()
+    distance = (step["achieved_goal"] - goals).norm(dim=-1, keepdim=True)
+    assert torch.equal(step["is_success"], distance <= 0.45)
+    assert torch.equal(step["reward"], (distance <= 0.45).float())  # the maze's sparse reward: 1 at its goal
+    # the next automatic reset draws the fixed goal again
+    assert env.reset()["desired_goal"].tolist() == [[1.0, 1.0]] * 3
+    with pytest.raises(GoalEnvError, match=r"'desired_goal' passed to reset must have shape \(3, 2\), got \(3, 3\)"):
+        env.reset(TensorDict({"desired_goal": torch.zeros(3, 3)}, batch_size=[3]))
+    with pytest.raises(GoalEnvError, match="'start' entry passed to reset moves the built-in mazes' agents only"):
+        env.reset(TensorDict({"start": torch.zeros(3, 2)}, batch_size=[3]))
 
 
 def test_the_recipe_names_a_bad_test_goal_key():

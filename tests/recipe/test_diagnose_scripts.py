@@ -430,6 +430,13 @@ def test_the_scripts_read_a_gymnasium_maze_run(tmp_path, capsys):
     farthest = walls.path_length(walls.start, walls.cell_centers[walls.free]).max().item()
     assert 0.0 < summary["explored"] <= farthest + 1e-6 and len(out.episode_ids) >= 1
     capsys.readouterr()
-    with pytest.raises(SystemExit):  # the reach test's goals would be ignored by the env's resets: refused, one line
-        load_recipe("diagnose_low_level").main([str(tmp_path)])
-    assert "diagnose_low_level takes the built-in envs" in capsys.readouterr().err
+    # the reach test from the run's test start cell (3, 1), walls of the map: all four directions at 0.3, only the
+    # corridor's (+x) at 1.0
+    rows = load_recipe("diagnose_low_level").main(
+        [str(tmp_path), "--radii", "0.3", "1.0", "--directions", "4", "--steps", "5", "--oracle-margin", "0.125"]
+    )
+    assert [(round(row["radius"], 3), row["goals"]) for row in rows] == [(0.3, 4), (1.0, 1)]
+    assert "radius  goals  reached" in capsys.readouterr().out
+    with pytest.raises(SystemExit):  # a start in a wall: one line
+        load_recipe("diagnose_low_level").main([str(tmp_path), "--start", "-1", "0"])
+    assert "lies in cell (2, 1), a wall, of PointMaze_UMaze-v3" in capsys.readouterr().err

@@ -3,8 +3,8 @@
 from __future__ import annotations
 
 import math
-from collections.abc import Sequence
-from typing import NamedTuple
+from collections.abc import Mapping, Sequence
+from typing import Any, NamedTuple
 
 import torch
 from tensordict import TensorDict
@@ -13,7 +13,7 @@ from torch import Tensor
 from torchrl.envs import Compose, EnvBase, TransformedEnv
 from torchrl.envs.utils import ExplorationType, set_exploration_type
 
-from torchrl_dhrl.envs import make_env
+from torchrl_dhrl.envs import gymnasium_id, make_env
 from torchrl_dhrl.envs.geometry import obstacle_boxes
 from torchrl_dhrl.envs.transforms import AngleFeatures
 from torchrl_dhrl.planner import LineOfSightDistance
@@ -121,7 +121,7 @@ def low_level_reach_test(
     Examples:
         >>> import torch
         >>> from tensordict.nn import TensorDictModule
-        >>> from torchrl_dhrl.envs import make_env
+        >>> from torchrl_dhrl.envs import gymnasium_id, make_env
         >>> offsets = reach_offsets(2, [1.0], 4)
         >>> env = make_env("PointMaze", num_envs=4, seed=0)
         >>> still = TensorDictModule(lambda o, w: torch.zeros(*o.shape[:-1], 2),
@@ -207,6 +207,7 @@ def reach_test(
     start: Sequence[float] | None = None,
     repeats: int = 1,
     per_offset: bool = False,
+    env_kwargs: Mapping[str, Any] | None = None,
 ) -> list[dict]:
     """:func:`low_level_reach_test` of a low-level actor around ``env_name``'s start, summarised per radius.
 
@@ -219,12 +220,17 @@ def reach_test(
     A start below a narrow passage with a radius across it asks whether the low level can pass it (e.g.
     AntMazeBottleneck's gap: ``start=(16, 4.5)``, ``radii=[6]``: the goal straight up lies past the gap).
 
+    A ``"gymnasium:<id>"`` env is built with ``env_kwargs`` (the arguments of
+    :class:`~torchrl_dhrl.envs.GymnasiumGoalEnv`, e.g. a run's test reset options): a gymnasium-robotics maze
+    starts at the centre of its resets' one ``reset_cell`` (``start`` picks the cell holding that point instead)
+    and its walls are those of its map; another env starts where its reset puts it.
+
     Returns:
         one row per radius, or per offset with ``per_offset=True`` (:func:`summarize_reach`).
 
     Raises:
         ValueError: when no goal lies inside the goal box; on a ``start`` outside the mazes' free space or for
-            an arm; on ``repeats < 1``.
+            an arm; for a gymnasium-robotics maze whose resets start in more than one cell; on ``repeats < 1``.
 
     Examples:
         >>> from torchrl_dhrl.modules import LowLevelActor
@@ -236,28 +242,31 @@ def reach_test(
     if repeats < 1:
         raise ValueError(f"repeats must be >= 1, got {repeats}.")
     device = torch.device(device)
-    probe = make_env(env_name, num_envs=1, seed=seed, device=device)
-    reset = None
-    if start is not None:  # validated by the env (free space, mazes only) before any rollout
-        reset = TensorDict(start=torch.tensor([list(start)], dtype=torch.float32), batch_size=[1]).to(device)
-    achieved = probe.reset(reset)["achieved_goal"][0]
-    start = achieved if reset is None else reset["start"][0]
+    reset, gymnasium = None, gymnasium_id(env_name) is not None
+    if gymnasium:
+        env_kwargs, start, boxes = _gymnasium_start(env_name, env_kwargs, start, seed)
+    else:
+        probe = make_env(env_name, num_envs=1, seed=seed, device=device)
+        if start is not None:  # validated by the env (free space, mazes only) before any rollout
+            reset = TensorDict(start=torch.tensor([list(start)], dtype=torch.float32), batch_size=[1]).to(device)
+        achieved = probe.reset(reset)["achieved_goal"][0]
+        start = achieved if reset is None else reset["start"][0]
+        boxes = obstacle_boxes(env_name)
     offsets = reach_offsets(start.shape[-1], radii, num_directions, seed=seed)
-    boxes = obstacle_boxes(env_name)
     if boxes is not None:
         walls = LineOfSightDistance(
             1.0, boxes=boxes, margin=oracle_margin, goal_indices=range(start.shape[-1])
         )
         offsets = visible_offsets(start.cpu(), offsets, walls)
-    # goals must stay inside the env's goal box (the Reacher3D fingertip starts 2 cm from its edge)
-    spec = probe.observation_spec["desired_goal"].space
-    low, high = spec.low.reshape(-1).cpu(), spec.high.reshape(-1).cpu()
-    goals = start.cpu() + offsets
-    offsets = offsets[((goals >= low) & (goals <= high)).all(-1)]
+    if not gymnasium:  # goals stay inside the env's goal box (the Reacher3D fingertip starts 2 cm from its edge)
+        spec = probe.observation_spec["desired_goal"].space
+        low, high = spec.low.reshape(-1).cpu(), spec.high.reshape(-1).cpu()
+        goals = start.cpu() + offsets
+        offsets = offsets[((goals >= low) & (goals <= high)).all(-1)]
     if offsets.shape[0] == 0:
         raise ValueError(f"No reach-test goal around the start {start.tolist()} lies inside the goal box.")
     offsets = offsets.repeat(repeats, 1)
-    env = make_env(env_name, num_envs=offsets.shape[0], seed=seed, device=device)
+    env = make_env(env_name, num_envs=offsets.shape[0], seed=seed, device=device, env_kwargs=env_kwargs)
     features = [AngleFeatures(angle_features)] if angle_features else []  # the observation the actor was trained on
     if features:
         env = TransformedEnv(env, Compose(*features))
@@ -270,3 +279,26 @@ def reach_test(
         start=None if reset is None else start,
     )
     return summarize_reach(result, per_offset=per_offset)
+
+
+def _gymnasium_start(
+    env_name: str, env_kwargs: Mapping[str, Any] | None, start: Sequence[float] | None, seed: int
+) -> tuple[dict[str, Any], Tensor, Tensor | None]:
+    """A ``"gymnasium:<id>"`` env's reach-test start: the env arguments (a ``start`` turned into the ``reset_cell``
+    holding it), the start (a maze's start cell centre, else the achieved goal after a reset) and the maze's wall
+    boxes (``None`` for an env without a gymnasium-robotics maze)."""
+    env_kwargs = dict(env_kwargs or {})
+    probe = make_env(env_name, num_envs=1, seed=seed, env_kwargs=env_kwargs)
+    if start is not None:  # a gymnasium-robotics maze starts its agent at a cell's centre
+        env_kwargs["reset_options"] = {"reset_cell": list(probe.reset_cell_at(start))}
+        probe = make_env(env_name, num_envs=1, seed=seed, env_kwargs=env_kwargs)
+    maze = probe.maze_geometry()
+    if maze is None:
+        return env_kwargs, probe.reset()["achieved_goal"][0], None
+    if maze.start is None:
+        raise ValueError(
+            f"{env_name}'s resets start anywhere (reset options {env_kwargs.get('reset_options')}): the reach test "
+            "needs one start, given by reset options with one `reset_cell` (a run's `gymnasium.eval_reset_options`) "
+            "or by `start`."
+        )
+    return env_kwargs, torch.as_tensor(maze.start, dtype=torch.float32), maze.boxes
