@@ -8,6 +8,8 @@ the start, in straight-line-reachable directions, with exploration off.
     python recipes/diagnose_low_level.py run/checkpoint --radii 1 2 4 --steps 120
     # can it pass AntMazeBottleneck's gap? From below it, ten tries per goal, one row per goal
     python recipes/diagnose_low_level.py run --start 16 4.5 --radii 3 6 --directions 4 --repeats 10 --per-offset
+    # from points 10, 20, ... units of path along the maze from its start: where does the low level stop walking?
+    python recipes/diagnose_low_level.py run --progress 10 20 30 40 60 80 100 --radii 1.5 3 --directions 8
     # a gymnasium-robotics maze's run: from its test start cell, or from the cell holding (x, y)
     python recipes/diagnose_low_level.py pml_run --oracle-speed 0.0523 --oracle-margin 0.125 --start 3 1
 """
@@ -18,9 +20,13 @@ import argparse
 from collections.abc import Sequence
 
 import torch
-from dhrl_utils import add_oracle_options, agent_from_checkpoint, gymnasium_kwargs, oracle_overrides
+from dhrl_utils import add_oracle_options, agent_from_checkpoint, gymnasium_kwargs, oracle_overrides, run_maze
+from torchrl_dhrl.envs import make_env
 
 from torchrl_dhrl.diagnostics import reach_test
+
+#: ``--progress`` starts lie this many agent radii (``planner.oracle_margin``) clear of the walls: room for its body
+CLEARANCE_RADII = 3.0
 
 
 def reach_test_from_checkpoint(
@@ -35,6 +41,7 @@ def reach_test_from_checkpoint(
     repeats: int = 1,
     per_offset: bool = False,
     planner_overrides: dict | None = None,
+    progress: Sequence[float] | None = None,
 ) -> list[dict]:
     """:func:`~torchrl_dhrl.diagnostics.reach_test` for the low-level actor of a recipe checkpoint.
 
@@ -43,7 +50,10 @@ def reach_test_from_checkpoint(
     ``reach_radius`` and ``oracle_margin``, the run's ``angle_features``; a ``gymnasium:<id>`` run's env with its
     ``gymnasium`` options, reset as its test episodes (as its training episodes where the tests start anywhere). ``start``, ``repeats`` and ``per_offset`` as in
     :func:`~torchrl_dhrl.diagnostics.reach_test`; ``planner_overrides`` replace the run's ``planner`` values
-    (``oracle_margin``, ``oracle_speed``).
+    (``oracle_margin``, ``oracle_speed``). ``progress`` (mazes with a start): one test from each point along the
+    maze that far from the start (:meth:`~torchrl_dhrl.envs.geometry.MazeGeometry.points_along`, at least
+    ``CLEARANCE_RADII`` agent radii from the walls), its rows with the point's ``"progress"`` and ``"start"`` (a
+    gymnasium-robotics maze's test starts at the centre of the cell holding the point).
 
     Args:
         path (str or Path): a checkpoint or the run directory holding it.
@@ -53,6 +63,22 @@ def reach_test_from_checkpoint(
     env_kwargs = gymnasium_kwargs(cfg, eval=True)
     if env_kwargs is not None and env_kwargs["reset_options"] is None:  # tests start anywhere: the training start
         env_kwargs["reset_options"] = cfg["gymnasium"]["reset_options"]
+    if progress is not None:
+        if start is not None:
+            raise ValueError("Give a start or progress along the maze, not both.")
+        env = None if env_kwargs is None else make_env(cfg["env_name"], env_kwargs=env_kwargs)
+        geometry = run_maze({**cfg, "planner": planner}, env)
+        if geometry is None:
+            raise ValueError(f"Progress along the maze needs a maze; {cfg['env_name']} has none.")
+        points, lengths = geometry.points_along(progress, clearance=CLEARANCE_RADII * planner["oracle_margin"])
+        rows = []
+        for point, length in zip(points.tolist(), lengths.tolist(), strict=True):
+            kwargs = dict(radii=radii, num_directions=num_directions, max_steps=max_steps, device=device, seed=seed)
+            found = reach_test_from_checkpoint(
+                path, **kwargs, start=point, repeats=repeats, per_offset=per_offset, planner_overrides=planner_overrides
+            )
+            rows += [{"progress": length, "start": point, **row} for row in found]
+        return rows
     if radii is None:
         span = planner["cutoff"] * planner["oracle_speed"]
         radii = [f * span for f in (0.25, 0.5, 1.0, 1.5)]
@@ -88,6 +114,13 @@ def main(argv: list[str] | None = None) -> list[dict]:
         help="start here instead of the task's start (mazes: x y; a gymnasium-robotics maze: the cell holding it)",
     )
     parser.add_argument(
+        "--progress",
+        type=float,
+        nargs="+",
+        default=None,
+        help="test from points this far along the maze from its start (path length, goal units), one block each",
+    )
+    parser.add_argument(
         "--repeats", type=int, default=1, help="tries per goal, each with its own reset noise"
     )
     parser.add_argument("--per-offset", action="store_true", help="one row per goal instead of per radius")
@@ -106,17 +139,21 @@ def main(argv: list[str] | None = None) -> list[dict]:
             repeats=args.repeats,
             per_offset=args.per_offset,
             planner_overrides=overrides,
+            progress=args.progress,
         )
-    except ValueError as err:  # the run, the start or the radii refused: one line
+    except ValueError as err:  # the run, the start, the progress or the radii refused: one line
         parser.error(str(err))
+    where = f"{'progress':>8} {'start':>14} " if args.progress else ""
     offset = "offset".rjust(16) + " " if args.per_offset else ""
     print(
-        f"{offset}{'radius':>8} {'goals':>6} {'reached':>8} {'median steps':>13} {'min dist':>9} {'final dist':>11}"
+        f"{where}{offset}{'radius':>8} {'goals':>6} {'reached':>8} {'median steps':>13} {'min dist':>9} "
+        f"{'final dist':>11}"
     )
     for row in rows:
+        where = f"{row['progress']:8.1f} {'(' + ', '.join(f'{v:.1f}' for v in row['start']) + ')':>14} " if args.progress else ""
         offset = f"{'(' + ', '.join(f'{v:.2f}' for v in row['offset']) + ')':>16} " if args.per_offset else ""
         print(
-            f"{offset}{row['radius']:8.2f} {row['goals']:6d} {row['reach_rate']:8.0%} {row['median_steps']:13.1f} "
+            f"{where}{offset}{row['radius']:8.2f} {row['goals']:6d} {row['reach_rate']:8.0%} {row['median_steps']:13.1f} "
             f"{row['mean_min_distance']:9.2f} {row['mean_final_distance']:11.2f}"
         )
     return rows

@@ -179,3 +179,41 @@ def test_a_margin_that_leaves_no_free_cell_is_refused():
     boxes = torch.tensor([[[0.0, 0.0], [1.0, 1.0]]])  # one wall box filling the arena
     with pytest.raises(ValueError, match=r"^margin=0 leaves no free cell: the walls grown by it cover the whole arena\.$"):
         MazeGeometry(boxes, [0.0, 0.0], [1.0, 1.0], margin=0.0, resolution=0.25)
+
+
+def test_points_along_a_corridor_are_the_cells_nearest_each_progress():
+    """A straight corridor [0, 10] x [0, 2] between two walls (y < 0, y > 2), start (0.25, 1), 0.5 cells: the path
+    length to a cell centre (x, y) is the straight distance; with 0.6 clearance only the centre rows y = 0.75, 1.25
+    remain, and the nearest to progress p is the first (row-major: y = 0.75) of the cells whose distance is nearest."""
+    boxes = torch.tensor([[[0.0, -1.0], [10.0, 0.0]], [[0.0, 2.0], [10.0, 3.0]]])
+    geometry = MazeGeometry(boxes, [0.0, 0.0], [10.0, 2.0], resolution=0.5, start=(0.25, 1.0))
+    progress = [0.0, 2.3, 5.0, 7.6, 50.0]
+    points, length = geometry.points_along(progress, clearance=0.6)
+    assert not geometry.in_walls(points, margin=0.6).any()
+    # independent: every candidate's straight distance, the nearest to each target by brute force
+    xs, ys = torch.meshgrid(torch.arange(0.25, 10, 0.5), torch.tensor([0.75, 1.25]), indexing="xy")
+    candidates = torch.stack([xs, ys], -1).reshape(-1, 2)
+    distance = (candidates - torch.tensor([0.25, 1.0])).norm(dim=-1)
+    for p, point, d in zip(progress, points, length, strict=True):
+        best = (distance - p).abs().min()
+        assert abs(d.item() - p) == pytest.approx(best.item(), abs=1e-5)
+        assert d.item() == pytest.approx((point - torch.tensor([0.25, 1.0])).norm().item(), abs=1e-5)
+    assert points[-1, 0].item() == 9.75  # past the end: the farthest cell
+    # ties broken towards the first cell in row-major order: (0.25, 0.75) and (0.25, 1.25) both lie 0.25 away
+    assert points[0].tolist() == [0.25, 0.75]
+    with pytest.raises(ValueError, match="clearance=1.1 leaves no free cell connected to the start"):
+        geometry.points_along([1.0], clearance=1.1)
+    with pytest.raises(ValueError, match="no start"):
+        MazeGeometry(boxes, [0.0, 0.0], [10.0, 2.0], resolution=0.5, start=None).points_along([1.0])
+
+
+def test_points_along_the_u_maze_follow_its_route():
+    """PointMaze's U: progress along the route past its turn lands in the corridor the route is in (analytic: the
+    bottom corridor up to x = 8 (8 units), then up the right one, then back along the top), never across the wall."""
+    geometry = MazeGeometry.from_maze("PointMaze", margin=0.5)
+    points, length = geometry.points_along([2.0, 6.0, 12.0, 18.0], clearance=1.0)
+    bottom, right, top = points[:2], points[2], points[3]
+    assert (bottom[:, 1].abs() <= 1.0).all() and (bottom[:, 0] - torch.tensor([2.0, 6.0])).abs().max() <= 0.5
+    assert right[0] >= 6.0 and 2.0 <= right[1] <= 8.0
+    assert top[1] >= 6.0 and top[0] <= 2.0
+    torch.testing.assert_close(length, torch.tensor([2.0, 6.0, 12.0, 18.0]), atol=0.35, rtol=0.0)

@@ -211,6 +211,20 @@ def test_reach_test_from_a_recipe_checkpoint_and_cli(tmp_path, capsys):
     assert sorted(row["offset"][1] for row in cli_rows) == [-2.0, 2.0]  # up and down the right-hand corridor
     assert all(row["goals"] == 2 for row in cli_rows)
     assert "(0.00, 2.00)" in capsys.readouterr().out
+    # from points along the U (path length from the start, checked on a finer independent grid), clear of the walls
+    # by three agent radii (1.5)
+    argv = ["--radii", "1", "--directions", "4", "--steps", "5", "--progress", "4", "12", "18"]
+    cli_rows = cli.main([str(tmp_path), *argv])
+    assert [round(row["progress"]) for row in cli_rows] == [4, 12, 18]
+    fine = MazeGeometry.from_maze("PointMaze", margin=0.5, resolution=0.1)
+    starts = torch.tensor([row["start"] for row in cli_rows])
+    torch.testing.assert_close(fine.path_length(torch.zeros(2), starts), torch.tensor([4.0, 12.0, 18.0]), atol=0.8, rtol=0)
+    assert not fine.in_walls(starts, margin=1.5).any()
+    out = capsys.readouterr().out
+    assert "progress          start" in out and "(7.5, 6.2)" in out
+    with pytest.raises(SystemExit):  # a start and progress: one line
+        cli.main([str(tmp_path), *argv, "--start", "8", "4"])
+    assert "Give a start or progress along the maze, not both" in capsys.readouterr().err
 
 
 @pytest.mark.parametrize("angles", ["null", "[4,6]"])
@@ -437,6 +451,14 @@ def test_the_scripts_read_a_gymnasium_maze_run(tmp_path, capsys):
     )
     assert [(round(row["radius"], 3), row["goals"]) for row in rows] == [(0.3, 4), (1.0, 1)]
     assert "radius  goals  reached" in capsys.readouterr().out
+    # along the U from the start cell: 2 units of path reach the cell (3, 3), (1, -1), from whose centre the test runs
+    rows = load_recipe("diagnose_low_level").main(
+        [str(tmp_path), "--radii", "0.3", "--directions", "4", "--steps", "5", "--oracle-margin", "0.125"]
+        + ["--progress", "2"]
+    )
+    assert len(rows) == 1 and rows[0]["progress"] == pytest.approx(2.0, abs=0.1) and rows[0]["goals"] == 4
+    assert GymnasiumGoalEnv("PointMaze_UMaze-v3").reset_cell_at(rows[0]["start"]) == (3, 3)
+    capsys.readouterr()
     with pytest.raises(SystemExit):  # a start in a wall: one line
         load_recipe("diagnose_low_level").main([str(tmp_path), "--start", "-1", "0"])
     assert "lies in cell (2, 1), a wall, of PointMaze_UMaze-v3" in capsys.readouterr().err
