@@ -46,6 +46,8 @@ from torchrl_dhrl.recipe.aggregate import read_run
 
 #: How much better (success, absolute) a planning variant must do than the agent as trained to name a part.
 MARGIN = 0.1
+#: The share of the training steps an ant may spend upside down before the check "flipped ant" holds.
+UPSIDE_DOWN = 0.1
 #: The planning variants of the table (``planning_ablations``' names).
 VARIANTS = (
     "as trained",
@@ -72,14 +74,16 @@ def findings(
 ) -> list[str]:
     """Every check that holds for one run, each with its figures (a check whose inputs are missing or ``NaN`` is
     skipped). ``m`` holds the run's ``frontier``, ``landmark_progress``, ``reachable_progress``,
-    ``reachable_landmarks``, ``bridge_distance``, ``start_subgoal_feasible``, ``start_best_subgoal_in_wall`` and
-    ``start_actor_q_gap``; ``goal`` is the farthest test goal's progress along the maze and ``tolerance`` that of
+    ``reachable_landmarks``, ``bridge_distance``, ``start_subgoal_feasible``, ``start_best_subgoal_in_wall``,
+    ``start_actor_q_gap``, ``upside_down`` and ``ended_upside_down``; ``goal`` is the farthest test goal's progress along the maze and ``tolerance`` that of
     every comparison along the maze (the recipe: the task's success radius, the distance at which a goal counts
     as reached); ``ablations`` the success of the planning
     variants (``"as trained"``, ``"goal as subgoal"``, ``"unreachable=subgoal"``, ``"oracle graph"``,
     ``"oracle graph, goal"``).
 
     * exploration: the training episodes' frontier more than ``tolerance`` short of the goal;
+    * flipped ant: at least ``UPSIDE_DOWN`` of the training steps (of the last evaluation interval) spent upside
+      down, the episodes that end so stopped exploring where the ant fell (``right_flipped_after``);
     * landmarks: no landmark within ``tolerance`` of how far the episodes (or the goal, if nearer) got;
     * graph cut: part of the landmarks unreachable from the start and the reachable ones more than ``tolerance``
       short of the farthest landmark (with the bridge, the shortest learned edge across, against the cutoff);
@@ -106,6 +110,10 @@ def findings(
     frontier, landmarks, reachable = get("frontier"), get("landmark_progress"), get("reachable_progress")
     if _finite(frontier) and frontier < goal - tolerance:
         out.append(f"exploration: training episodes reach {frontier:.1f} of {goal:.1f}")
+    upside_down, ended = get("upside_down"), get("ended_upside_down")
+    if _finite(upside_down) and upside_down >= UPSIDE_DOWN:
+        episodes = f", {ended:.0%} of the episodes end so" if _finite(ended) else ""
+        out.append(f"flipped ant: {upside_down:.0%} of the training steps upside down{episodes} (right_flipped_after)")
     if _finite(landmarks):
         explored = min(frontier, goal) if _finite(frontier) else goal
         if landmarks < explored - tolerance:
@@ -166,6 +174,8 @@ COLUMNS = {
     "start_subgoal_feasible": "diag/start_subgoal_feasible",
     "start_best_subgoal_in_wall": "diag/start_best_subgoal_in_wall",
     "start_actor_q_gap": "diag/start_actor_q_gap",
+    "upside_down": "train/upside_down",
+    "ended_upside_down": "train/ended_upside_down",
 }
 
 

@@ -58,6 +58,13 @@ def _findings(summary, changes=None, ablations=None):
     [
         ({"frontier": 34.9}, None, ["exploration: training episodes reach 34.9 of 40.0"]),
         (
+            {"upside_down": 0.358, "ended_upside_down": 0.6},
+            None,
+            ["flipped ant: 36% of the training steps upside down, 60% of the episodes end so (right_flipped_after)"],
+        ),
+        ({"upside_down": 0.0999, "ended_upside_down": 0.2}, None, []),  # below a tenth of the steps
+        ({"upside_down": 0.1}, None, ["flipped ant: 10% of the training steps upside down (right_flipped_after)"]),
+        (
             {"frontier": 35.0, "landmark_progress": 35.0, "reachable_progress": 35.0},
             None,
             [],
@@ -154,6 +161,7 @@ def test_several_checks_hold_together_in_a_fixed_order(summary):
         summary,
         {
             "frontier": 30.0,
+            "upside_down": 0.2,
             "start_subgoal_feasible": 0.0,
             "start_actor_q_gap": 2.0,
             "start_best_subgoal_in_wall": 1.0,
@@ -168,6 +176,7 @@ def test_several_checks_hold_together_in_a_fixed_order(summary):
     )
     assert [f.split(":")[0] for f in out] == [
         "exploration",
+        "flipped ant",
         "learned distances",
         "high level",
         "high level",
@@ -201,7 +210,12 @@ def test_the_committed_bottleneck_runs(summary, capsys, tmp_path):
         )
         assert math.isnan(row["reachable_progress"])  # these runs predate the column: no graph-cut check
         assert row["ablations"] == {}
-    assert rows[0]["findings"] == []  # 36.1 of 40.1: within the success radius of the goal
+    # 36.1 of 40.1: within the success radius of the goal; the ant on its back for a fifth of the training steps
+    upside_down, ended = (float(_last_row(BOTTLENECK / "seed0")[k]) for k in ("train/upside_down", "train/ended_upside_down"))
+    assert upside_down >= 0.1 and rows[0]["findings"] == [
+        f"flipped ant: {upside_down:.0%} of the training steps upside down, {ended:.0%} of the episodes end so "
+        "(right_flipped_after)"
+    ]
     assert rows[2]["findings"][0] == "exploration: training episodes reach 26.1 of 40.1"
     assert all(
         any(f.startswith("high level: its subgoal at the start lies in a wall") for f in r["findings"])
