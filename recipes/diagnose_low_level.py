@@ -52,8 +52,9 @@ def reach_test_from_checkpoint(
     :func:`~torchrl_dhrl.diagnostics.reach_test`; ``planner_overrides`` replace the run's ``planner`` values
     (``oracle_margin``, ``oracle_speed``). ``progress`` (mazes with a start): one test from each point along the
     maze that far from the start (:meth:`~torchrl_dhrl.envs.geometry.MazeGeometry.points_along`, at least
-    ``CLEARANCE_RADII`` agent radii from the walls), its rows with the point's ``"progress"`` and ``"start"`` (a
-    gymnasium-robotics maze's test starts at the centre of the cell holding the point).
+    ``CLEARANCE_RADII`` agent radii from the walls; progress past the maze's farthest point tests that point once),
+    its rows with the point's ``"progress"`` and ``"start"`` (a gymnasium-robotics maze's test starts at the centre of
+    the cell holding the point).
 
     Args:
         path (str or Path): a checkpoint or the run directory holding it.
@@ -71,8 +72,11 @@ def reach_test_from_checkpoint(
         if geometry is None:
             raise ValueError(f"Progress along the maze needs a maze; {cfg['env_name']} has none.")
         points, lengths = geometry.points_along(progress, clearance=CLEARANCE_RADII * planner["oracle_margin"])
-        rows = []
+        rows, seen = [], set()
         for point, length in zip(points.tolist(), lengths.tolist(), strict=True):
+            if tuple(point) in seen:  # progress past the maze's farthest point: that point, once
+                continue
+            seen.add(tuple(point))
             kwargs = dict(radii=radii, num_directions=num_directions, max_steps=max_steps, device=device, seed=seed)
             found = reach_test_from_checkpoint(
                 path, **kwargs, start=point, repeats=repeats, per_offset=per_offset, planner_overrides=planner_overrides

@@ -213,9 +213,11 @@ def test_reach_test_from_a_recipe_checkpoint_and_cli(tmp_path, capsys):
     assert "(0.00, 2.00)" in capsys.readouterr().out
     # from points along the U (path length from the start, checked on a finer independent grid), clear of the walls
     # by three agent radii (1.5)
-    argv = ["--radii", "1", "--directions", "4", "--steps", "5", "--progress", "4", "12", "18"]
+    argv = ["--radii", "1", "--directions", "4", "--steps", "5", "--progress", "4", "12", "18", "90", "95"]
     cli_rows = cli.main([str(tmp_path), *argv])
-    assert [round(row["progress"]) for row in cli_rows] == [4, 12, 18]
+    assert [round(row["progress"]) for row in cli_rows[:3]] == [4, 12, 18]
+    assert len(cli_rows) == 4 and 18 < cli_rows[3]["progress"] < 21  # past the U's end: its farthest point, once
+    cli_rows = cli_rows[:3]
     fine = MazeGeometry.from_maze("PointMaze", margin=0.5, resolution=0.1)
     starts = torch.tensor([row["start"] for row in cli_rows])
     torch.testing.assert_close(fine.path_length(torch.zeros(2), starts), torch.tensor([4.0, 12.0, 18.0]), atol=0.8, rtol=0)
