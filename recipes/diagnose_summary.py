@@ -22,6 +22,7 @@ with the figures behind it: a run can be held back by more than one part.
 from __future__ import annotations
 
 import argparse
+import functools
 import math
 from collections.abc import Mapping, Sequence
 from pathlib import Path
@@ -251,14 +252,19 @@ def check_run(
 
 def run_goal(run) -> tuple[float, float]:
     """The run's :func:`goal_progress` (a built-in maze) or :func:`gymnasium_goal_progress`, walls inflated by its
-    record's ``planner.oracle_margin``."""
-    margin = float(run.config.get("planner.oracle_margin", 0.5))
-    if gymnasium_id(run.env) is None:
+    record's ``planner.oracle_margin`` (computed once per run and margin: :func:`check_run` and
+    :func:`summarize_run` both ask)."""
+    return _run_goal(run.path, run.env, float(run.config.get("planner.oracle_margin", 0.5)))
+
+
+@functools.cache
+def _run_goal(path: Path, env_name: str, margin: float) -> tuple[float, float]:
+    if gymnasium_id(env_name) is None:
         try:
-            return goal_progress(run.env, margin)
+            return goal_progress(env_name, margin)
         except ValueError as err:
-            raise ValueError(f"planner.oracle_margin={margin:g} on env_name={run.env}: {err}") from err
-    cfg = yaml.safe_load((run.path / "config.yaml").read_text())
+            raise ValueError(f"planner.oracle_margin={margin:g} on env_name={env_name}: {err}") from err
+    cfg = yaml.safe_load((path / "config.yaml").read_text())
     cfg["planner"]["oracle_margin"] = margin
     return gymnasium_goal_progress(cfg)
 
