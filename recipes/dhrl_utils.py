@@ -505,7 +505,19 @@ def evaluation_kwargs(cfg: dict) -> dict[str, Any]:
         "far_from_graph_threshold": far_from_graph_threshold(cfg),
         "oracle_margin": cfg["planner"]["oracle_margin"],
         "flat": cfg["schedule"]["eval_flat"],
+        "upside_down": upside_down_test(cfg),
     }
+
+
+def upside_down_test(cfg: dict):
+    """The built-in ant mazes' :meth:`~torchrl_dhrl.envs.AntAgent.is_upside_down` (the ant can flip over, and only
+    ``right_flipped_after`` rights it: the recipe logs how much of the training and test episodes it spends so),
+    ``None`` for any other env."""
+    from torchrl_dhrl.envs import MAZE_NAMES, get_maze_spec
+
+    if cfg["env_name"] not in MAZE_NAMES:
+        return None
+    return getattr(get_maze_spec(cfg["env_name"]).agent, "is_upside_down", None)
 
 
 def add_oracle_options(parser) -> None:
@@ -551,15 +563,9 @@ def build_episode_log(cfg: dict, state: dict | None = None, maze=None) -> Traini
     checkpointed counters, so a run stopped in the middle of an epoch resumes its counts). ``maze``: the run's
     :func:`run_maze` (defaults to a built-in maze's); progress is logged where it has a start.
     """
-    from torchrl_dhrl.envs import MAZE_NAMES, get_maze_spec
-
     maze = run_maze(cfg) if maze is None else maze
-    upside_down = None
-    if cfg["env_name"] in MAZE_NAMES:
-        # The ant can flip over (righted only with `right_flipped_after`): log how much of the training it spends so.
-        upside_down = getattr(get_maze_spec(cfg["env_name"]).agent, "is_upside_down", None)
     geometry = maze if maze is not None and maze.start is not None else None
-    log = TrainingEpisodeLog(geometry, upside_down=upside_down)
+    log = TrainingEpisodeLog(geometry, upside_down=upside_down_test(cfg))
     if state:
         log.load_state_dict(state)
     return log

@@ -8,6 +8,7 @@ logs and :func:`plot_epoch` draws the graph with a test episode.
 from __future__ import annotations
 
 import time
+from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
@@ -110,6 +111,7 @@ def evaluate_epoch(
     flat: bool = True,
     policy: TensorDictModuleBase | None = None,
     maze: MazeGeometry | None = None,
+    upside_down: Callable[[torch.Tensor], torch.Tensor] | None = None,
 ) -> tuple[dict[str, Any], EvaluationResult]:
     """The evaluation of an epoch: the test episodes with the agent's policy, and what the recipe logs of it.
 
@@ -117,6 +119,8 @@ def evaluate_epoch(
 
     * ``eval/success`` (final state, the paper's), ``eval/any_success``, ``eval/final_distance``,
       ``eval/last10_success``, ``eval/final_speed`` and ``time/eval_s``;
+    * with ``upside_down``, ``eval/upside_down`` (the share of the test steps the agent spent upside down) and
+      ``eval/ended_upside_down`` (the share of the test episodes that ended so);
     * ``graph/mean_path_landmarks`` (planned path length) and ``graph/learned_distance_start_goal`` (the
       planner's distance from the first episode's start to its goal);
     * on the mazes, the subgoals and the graph against the true geometry
@@ -143,6 +147,9 @@ def evaluate_epoch(
         maze (MazeGeometry, optional): the geometry of an env's maze that is not built in (a gymnasium-robotics
             maze's, :meth:`~torchrl_dhrl.envs.GymnasiumGoalEnv.maze_geometry`). Defaults to the built-in maze of
             ``env_name`` (none for the arms and other envs).
+        upside_down (callable, optional): maps the observations ``[..., obs_dim]`` after each test step to a bool
+            tensor ``[...]`` (the ant's :meth:`~torchrl_dhrl.envs.AntAgent.is_upside_down`). Defaults to ``None``
+            (not measured).
 
     Returns:
         ``(metrics, result)``: the metrics and the main evaluation's
@@ -175,6 +182,10 @@ def evaluate_epoch(
     metrics["eval/last10_success"] = result.last_steps_success
     metrics["eval/final_speed"] = result.final_speed
     rollout = result.rollout
+    if upside_down is not None:
+        flipped = torch.as_tensor(upside_down(rollout["next", "observation"])).reshape(rollout.shape)
+        metrics["eval/upside_down"] = flipped.float().mean().item()
+        metrics["eval/ended_upside_down"] = flipped[..., -1].float().mean().item()
     metrics["graph/mean_path_landmarks"] = rollout["planner", "path_length"].float().mean().item()
     start_state, goal = rollout[0, 0]["observation"], rollout[0, 0]["desired_goal"]
     metrics["graph/learned_distance_start_goal"] = planner.distance(start_state, goal).item()
