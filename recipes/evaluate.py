@@ -8,7 +8,8 @@ success counted in whole episodes (final state, as the recipe's ``eval/success``
         --variant high.critic_candidates=8 high.landmark_candidates=true     # test-time switches, paired
 
 The episodes run in batches of the run's ``schedule.eval_episodes`` envs (the recipe's evaluation env), batch k
-seeded with ``seed + k`` (the envs' streams and the global ones): the same seed gives the same episodes.
+seeded with ``seed + k`` (the envs' streams and the global ones): the same seed gives the same episodes. On the
+built-in ant mazes the record also counts the episodes that ended with the ant upside down (``ended_upside_down``).
 
 ``--variant KEY=VALUE ...`` (repeatable) re-evaluates the same trained agent with keys no checkpointed state holds
 changed (role ``unsaved`` in docs/training.md's key roles: ``planner.edge_rule``, ``high.critic_candidates``, ...;
@@ -30,7 +31,7 @@ from pathlib import Path
 
 import torch
 import yaml
-from dhrl_utils import agent_from_checkpoint, build_environment, seed_everything
+from dhrl_utils import agent_from_checkpoint, build_environment, seed_everything, upside_down_test
 
 from torchrl_dhrl.recipe import (
     ConfigError,
@@ -38,6 +39,7 @@ from torchrl_dhrl.recipe import (
     code_and_machine,
     load_checkpoint,
     paired_comparison,
+    upside_down_steps,
     write_yaml,
 )
 from torchrl_dhrl.training import evaluate, goal_as_waypoint
@@ -48,16 +50,19 @@ FINAL_EVAL_NAME = "final_eval.yaml"
 VARIANTS_EVAL_NAME = "variants_eval.yaml"
 
 
-def episode_successes(env, policy, batches: int, seed: int) -> torch.Tensor:
+def episode_successes(env, policy, batches: int, seed: int, upside_down=None) -> torch.Tensor:
     """Final-state success of each of ``batches`` batches of deterministic episodes (bool, batch after batch),
-    batch k seeded with ``seed + k``."""
+    batch k seeded with ``seed + k``. With an ``upside_down`` test (:func:`upside_down_test`): ``[2, N]``, the
+    successes and whether each episode ended with the agent upside down."""
     out = []
     for k in range(batches):
         seed_everything(seed + k, env)
         rollout = evaluate(env, policy, env.max_episode_steps).rollout
-        success = rollout["next", "is_success"].reshape(*rollout.shape, -1).any(-1)
-        out.append(success[..., -1].reshape(-1).cpu())
-    return torch.cat(out)
+        success = rollout["next", "is_success"].reshape(*rollout.shape, -1).any(-1)[..., -1].reshape(-1).cpu()
+        if upside_down is not None:
+            success = torch.stack([success, upside_down_steps(rollout, upside_down)[..., -1].reshape(-1).cpu()])
+        out.append(success)
+    return torch.cat(out, -1)
 
 
 def parse_changes(items: list[str]) -> dict:
@@ -111,7 +116,11 @@ def main(argv: list[str] | None = None) -> dict:
     batches = math.ceil(args.episodes / env.batch_size.numel())
     episodes = batches * env.batch_size.numel()
     start = time.perf_counter()
-    trained = episode_successes(env, agent.policy, batches, args.seed)
+    upside_down = upside_down_test(cfg)
+    trained = episode_successes(env, agent.policy, batches, args.seed, upside_down)
+    flipped = None
+    if upside_down is not None:
+        trained, flipped = trained
     successes = int(trained.sum())
     record = {
         "env_name": cfg["env_name"],
@@ -121,6 +130,8 @@ def main(argv: list[str] | None = None) -> dict:
         "successes": successes,
         "success": successes / episodes,
     }
+    if flipped is not None:  # the ant mazes: test episodes that ended with the ant on its back
+        record["ended_upside_down"] = int(flipped.sum())
     if args.flat:  # the same episodes (the same seeds), the low level alone
         flat = int(episode_successes(env, goal_as_waypoint(agent.low_actor), batches, args.seed).sum())
         record |= {"flat_successes": flat, "flat_success": flat / episodes}
@@ -153,6 +164,8 @@ def main(argv: list[str] | None = None) -> dict:
     out.parent.mkdir(parents=True, exist_ok=True)
     write_yaml(record, out)
     flat_note = f", flat {record['flat_successes']}/{episodes}" if args.flat else ""
+    if flipped is not None:
+        flat_note += f", {record['ended_upside_down']} ended upside down"
     print(
         f"{cfg['env_name']} at {record['env_steps']} env steps: {successes}/{episodes} test episodes succeeded "
         f"({record['success']:.1%}, seed {args.seed}){flat_note}; written to {out}"

@@ -45,6 +45,7 @@ from .epoch import (
     graph_metrics,
     plot_epoch,
     rebuild_graph,
+    upside_down_steps,
 )
 from .loop import GracefulStop, LoopTimer, RunCounters, frozen_gc, log_metrics, make_logger, write_metrics_csv
 from .plots import (
@@ -204,6 +205,7 @@ __all__ = [
     "success_curve_series",
     "validate_config",
     "with_changes",
+    "upside_down_steps",
     "validate_env_name",
     "with_implied_keys",
     "write_aggregate_csv",

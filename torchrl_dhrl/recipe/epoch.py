@@ -24,7 +24,7 @@ from torchrl_dhrl.training import EvaluationResult, evaluate, goal_as_waypoint
 
 from .plots import plot_episode
 
-__all__ = ["epoch_of", "evaluate_epoch", "graph_metrics", "plot_epoch", "rebuild_graph"]
+__all__ = ["epoch_of", "evaluate_epoch", "graph_metrics", "plot_epoch", "rebuild_graph", "upside_down_steps"]
 
 
 def epoch_of(episodes: int, warmup_episodes: int, epoch_episodes: int) -> int:
@@ -183,7 +183,7 @@ def evaluate_epoch(
     metrics["eval/final_speed"] = result.final_speed
     rollout = result.rollout
     if upside_down is not None:
-        flipped = torch.as_tensor(upside_down(rollout["next", "observation"])).reshape(rollout.shape)
+        flipped = upside_down_steps(rollout, upside_down)
         metrics["eval/upside_down"] = flipped.float().mean().item()
         metrics["eval/ended_upside_down"] = flipped[..., -1].float().mean().item()
     metrics["graph/mean_path_landmarks"] = rollout["planner", "path_length"].float().mean().item()
@@ -218,6 +218,20 @@ def evaluate_epoch(
         metrics["eval/flat_any_success"] = flat_result.any_success
         metrics["eval/flat_final_distance"] = flat_result.final_distance
     return metrics, result
+
+
+def upside_down_steps(rollout, upside_down: Callable[[torch.Tensor], torch.Tensor]) -> torch.Tensor:
+    """Whether the agent is upside down after each step of ``rollout`` (``[*B, T]`` bool), by ``upside_down`` on
+    its ``("next", "observation")`` (the ant's :meth:`~torchrl_dhrl.envs.AntAgent.is_upside_down`); ``[..., -1]``
+    says which episodes ended so.
+
+    Examples:
+        >>> from tensordict import TensorDict
+        >>> rollout = TensorDict({"next": {"observation": torch.tensor([[[0.0], [2.0]], [[3.0], [0.5]]])}}, [2, 2])
+        >>> upside_down_steps(rollout, lambda obs: obs[..., 0] > 1.0).tolist()
+        [[False, True], [True, False]]
+    """
+    return torch.as_tensor(upside_down(rollout["next", "observation"])).reshape(rollout.shape).bool()
 
 
 def plot_epoch(
