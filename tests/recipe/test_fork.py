@@ -113,8 +113,9 @@ def test_every_forkable_hyperparameter_is_in_effect(parent, tmp_path, monkeypatc
         "high.candidate_noise": 0.5,
         "high.landmark_candidates": True,
     }
-    # every experiment key a fork may change is checked here (a key added to the tuple needs its check)
-    assert set(new) | {"fork", "seed"} == set(FORK_MUTABLE_KEYS) - set(RESUME_MUTABLE_KEYS)
+    # every experiment key a fork may change is checked here (a key added to the tuple needs its check; the ant
+    # mazes' right_flipped_after in the test below)
+    assert set(new) | {"fork", "seed", "right_flipped_after"} == set(FORK_MUTABLE_KEYS) - set(RESUME_MUTABLE_KEYS)
     saved = load_checkpoint(parent / "checkpoint", components=("config",))["config"]
     for key, value in new.items():
         section, name = key.split(".")
@@ -139,6 +140,33 @@ def test_every_forkable_hyperparameter_is_in_effect(parent, tmp_path, monkeypatc
     assert all(r["eval/success"] != "" and r["eval/flat_success"] != "" for r in before)
     assert [r["eval/success"] != "" for r in after] == [int(r["epoch"]) % 2 == 0 for r in after]
     assert all(r.get("eval/flat_success", "") == "" for r in after)
+
+
+def test_a_fork_or_a_test_time_variant_rights_the_flipped_ant(tmp_path, monkeypatch):
+    """``right_flipped_after`` on an ant maze: a fork's training and test envs right a flipped ant (the parent's did
+    not), and a saved agent re-evaluated with it as a variant gets an env that does."""
+    ant = ("env=AntMazeSmall", *BASE[1:])
+    parent, fork = tmp_path / "parent", tmp_path / "fork"
+    recipe.train(recipe_config(*ant, "total_steps=160"), run_dir=parent)
+    built = {}
+    build_run = recipe.build_run
+
+    def capture(cfg, device):
+        built["parts"] = parts = build_run(cfg, device)
+        return parts
+
+    monkeypatch.setattr(recipe, "build_run", capture)
+    recipe.train(recipe_config(*ant, "total_steps=240", f"fork={parent}", "right_flipped_after=5"), run_dir=fork)
+    parts = built["parts"]
+    assert [env.base_env._sim.right_flipped_after for env in (parts.train_env, parts.eval_env)] == [5, 5]
+    saved = load_checkpoint(fork / "checkpoint", components=("config", "counters"))
+    assert saved["config"]["right_flipped_after"] == 5 and saved["counters"]["env_steps"] == 240
+    parent_config = load_checkpoint(parent / "checkpoint", components=("config",))["config"]
+    assert parent_config["right_flipped_after"] is None
+    dhrl_utils = load_recipe("dhrl_utils")
+    cfg, agent = dhrl_utils.agent_from_checkpoint(parent / "checkpoint", changes={"right_flipped_after": 10})
+    env = dhrl_utils.build_environment(cfg, torch.device("cpu"), eval=True, agent=agent)
+    assert cfg["right_flipped_after"] == 10 and env.base_env._sim.right_flipped_after == 10
 
 
 def test_a_new_seed_reseeds_the_training_streams_not_the_test_episodes(parent, fork_resumed, tmp_path):

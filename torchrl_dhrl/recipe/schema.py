@@ -59,7 +59,8 @@ SEED_MAX = 2**32 - 1
 #: - ``origin``: the checkpoint a fork starts from: set in a fork.
 #: - ``unsaved``: a hyperparameter that no checkpointed state holds, read by the objects built for a fork (the high
 #:   level's subgoal testing and gradual penalty, when and how the test episodes run, the edge rule, the
-#:   critic-guided subgoals): may change in a fork, not on resume; tells runs apart. Not the learning rates, noise
+#:   critic-guided subgoals, whether the env rights a flipped ant): may change in a fork, not on resume; tells runs
+#:   apart. Not the learning rates, noise
 #:   scales or network shapes, which the restored optimiser, module and buffer states would silently overwrite.
 #: - ``outside``: not a key of the recipe (Hydra's own section): never tells runs apart.
 KEY_ROLES = {
@@ -97,6 +98,7 @@ KEY_ROLES = {
     "high.critic_candidates": "unsaved",
     "high.candidate_noise": "unsaved",
     "high.landmark_candidates": "unsaved",
+    "right_flipped_after": "unsaved",
     "hydra.*": "outside",
 }
 #: The roles of :data:`KEY_ROLES`.
