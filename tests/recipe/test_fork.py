@@ -46,6 +46,19 @@ def _train(run_dir, *overrides):
     return recipe.train(recipe_config(*BASE, *overrides), run_dir=run_dir)
 
 
+def _capture_build_run(monkeypatch) -> dict:
+    """``built["parts"]``: the parts the next run trains with (the recipe's ``build_run``, recorded)."""
+    built = {}
+    build_run = recipe.build_run
+
+    def capture(cfg, device):
+        built["parts"] = parts = build_run(cfg, device)
+        return parts
+
+    monkeypatch.setattr(recipe, "build_run", capture)
+    return built
+
+
 @pytest.fixture(scope="module")
 def parent(tmp_path_factory):
     """A 240-step run: the state every test forks from."""
@@ -91,14 +104,7 @@ def test_a_fork_without_changes_goes_on_exactly_and_resumes_exactly(parent, fork
 def test_every_forkable_hyperparameter_is_in_effect(parent, tmp_path, monkeypatch):
     """Each experiment key of FORK_MUTABLE_KEYS, changed at once, holds its new value in the objects the fork
     trains with after the checkpoint was restored into them (none is overwritten by a restored state)."""
-    built = {}
-    build_run = recipe.build_run
-
-    def capture(cfg, device):
-        built["parts"] = parts = build_run(cfg, device)
-        return parts
-
-    monkeypatch.setattr(recipe, "build_run", capture)
+    built = _capture_build_run(monkeypatch)
     new = {
         "high.subgoal_test_ratio": 0.5,
         "high.subgoal_test_threshold": 2.5,
@@ -148,14 +154,7 @@ def test_a_fork_or_a_test_time_variant_rights_the_flipped_ant(tmp_path, monkeypa
     ant = ("env=AntMazeSmall", *BASE[1:])
     parent, fork = tmp_path / "parent", tmp_path / "fork"
     recipe.train(recipe_config(*ant, "total_steps=160"), run_dir=parent)
-    built = {}
-    build_run = recipe.build_run
-
-    def capture(cfg, device):
-        built["parts"] = parts = build_run(cfg, device)
-        return parts
-
-    monkeypatch.setattr(recipe, "build_run", capture)
+    built = _capture_build_run(monkeypatch)
     recipe.train(recipe_config(*ant, "total_steps=240", f"fork={parent}", "right_flipped_after=5"), run_dir=fork)
     parts = built["parts"]
     assert [env.base_env._sim.right_flipped_after for env in (parts.train_env, parts.eval_env)] == [5, 5]
