@@ -9,7 +9,8 @@ success counted in whole episodes (final state, as the recipe's ``eval/success``
 
 The episodes run in batches of the run's ``schedule.eval_episodes`` envs (the recipe's evaluation env), batch k
 seeded with ``seed + k`` (the envs' streams and the global ones): the same seed gives the same episodes. On the
-built-in ant mazes the record also counts the episodes that ended with the ant upside down (``ended_upside_down``).
+built-in ant mazes the record also counts the episodes that ended with the ant upside down (``ended_upside_down``,
+each variant's too).
 
 ``--variant KEY=VALUE ...`` (repeatable) re-evaluates the same trained agent with keys no checkpointed state holds
 changed (role ``unsaved`` in docs/training.md's key roles: ``planner.edge_rule``, ``high.critic_candidates``, ...;
@@ -139,18 +140,22 @@ def main(argv: list[str] | None = None) -> dict:
         record["variants"] = []
         for changes, (variant_cfg, variant_agent) in zip(variants, variant_agents, strict=True):
             variant_env = build_environment(variant_cfg, device, eval=True, agent=variant_agent)
-            outcome = episode_successes(variant_env, variant_agent.policy, batches, args.seed)
+            outcome = episode_successes(variant_env, variant_agent.policy, batches, args.seed, upside_down)
+            variant_flipped = None
+            if upside_down is not None:
+                outcome, variant_flipped = outcome
             paired = paired_comparison(trained.numpy(), outcome.numpy())
-            record["variants"].append(
-                {
-                    "changes": changes,
-                    "successes": paired.variant,
-                    "success": paired.variant / episodes,
-                    "only_variant": paired.only_variant,
-                    "only_reference": paired.only_reference,
-                    "p_value": paired.p_value,
-                }
-            )
+            row = {
+                "changes": changes,
+                "successes": paired.variant,
+                "success": paired.variant / episodes,
+                "only_variant": paired.only_variant,
+                "only_reference": paired.only_reference,
+                "p_value": paired.p_value,
+            }
+            if variant_flipped is not None:
+                row["ended_upside_down"] = int(variant_flipped.sum())
+            record["variants"].append(row)
     record |= {
         "seed": args.seed,
         "batch_envs": env.batch_size.numel(),
@@ -175,6 +180,7 @@ def main(argv: list[str] | None = None) -> dict:
         print(
             f"  {name}: {row['successes']}/{episodes} ({row['success']:.1%}); only this variant "
             f"{row['only_variant']}, only as trained {row['only_reference']}, McNemar p={row['p_value']:.3g}"
+            + (f"; {row['ended_upside_down']} ended upside down" if "ended_upside_down" in row else "")
         )
     return record
 

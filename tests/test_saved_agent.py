@@ -139,23 +139,35 @@ def test_evaluate_script_counts_whole_episodes_as_a_direct_evaluation(run_dir, t
     assert yaml.safe_load(out.read_text()) == flat
 
 
-def test_evaluate_script_counts_the_test_episodes_that_end_upside_down(run_dir, tmp_path, monkeypatch):
-    """On the ant mazes the record counts the test episodes that ended with the ant on its back: here with a stand-in
-    test on this Reacher3D run (its first observation entry past the median of the episodes' final ones), against
-    the final observations of the same episodes computed independently; other envs record no count."""
+def _final_first_entries(run_dir, changes=None) -> torch.Tensor:
+    """Independently of the script: the first observation entry at the end of each of 20 test episodes of the run's
+    agent (with ``changes``), two batches of the recipe's test env seeded with 5 and 6."""
     dhrl_utils = load_recipe("dhrl_utils")
-    cfg, agent = dhrl_utils.agent_from_checkpoint(run_dir / CHECKPOINT_NAME)
+    cfg, agent = dhrl_utils.agent_from_checkpoint(run_dir / CHECKPOINT_NAME, changes=changes)
     env = dhrl_utils.build_environment(cfg, torch.device("cpu"), eval=True, agent=agent)
     final = []
     for k in range(2):
         dhrl_utils.seed_everything(5 + k, env)
         final.append(evaluate(env, agent.policy, env.max_episode_steps).rollout["next", "observation"][:, -1, 0])
-    final = torch.cat(final)
+    return torch.cat(final)
+
+
+def test_evaluate_script_counts_the_test_episodes_that_end_upside_down(run_dir, tmp_path, monkeypatch):
+    """On the ant mazes the record counts the test episodes that ended with the ant on its back: here with a stand-in
+    test on this Reacher3D run (its first observation entry past the median of the episodes' final ones), against
+    the final observations of the same episodes computed independently; other envs record no count."""
+    final = _final_first_entries(run_dir)
     threshold = final.median()
     script = load_recipe("evaluate")
     monkeypatch.setattr(script, "upside_down_test", lambda cfg: lambda obs: obs[..., 0] > threshold)
     record = script.main([str(run_dir / AGENT_NAME), "--episodes", "20", "--seed", "5", "--out", str(tmp_path / "a.yaml")])
     assert record["ended_upside_down"] == int((final > threshold).sum()) and 0 < record["ended_upside_down"] < 20
+    # a variant's episodes counted the same way: the same agent acting otherwise ends elsewhere
+    argv = [str(run_dir / AGENT_NAME), "--episodes", "20", "--seed", "5", "--out", str(tmp_path / "v.yaml")]
+    varied = script.main([*argv, "--variant", "high.critic_candidates=4"])
+    assert varied["ended_upside_down"] == record["ended_upside_down"]
+    final = _final_first_entries(run_dir, {"high.critic_candidates": 4})
+    assert varied["variants"][0]["ended_upside_down"] == int((final > threshold).sum())
     monkeypatch.setattr(script, "upside_down_test", lambda cfg: None)
     record = script.main([str(run_dir / AGENT_NAME), "--episodes", "1", "--out", str(tmp_path / "b.yaml")])
     assert "ended_upside_down" not in record
