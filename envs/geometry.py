@@ -434,7 +434,9 @@ class MazeGeometry:
         length = self.path_length(self.start, cells)
         connected = torch.isfinite(length)
         if not connected.any():
-            raise ValueError(f"clearance={clearance:g} leaves no free cell connected to the start {self.start.tolist()}.")
+            raise ValueError(
+                f"clearance={clearance:g} leaves no free cell connected to the start {self.start.tolist()}."
+            )
         cells, length = cells[connected], length[connected]
         target = torch.as_tensor(list(progress), dtype=length.dtype).reshape(-1, 1)
         index = (length - target).abs().argmin(-1)

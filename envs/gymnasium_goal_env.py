@@ -358,7 +358,9 @@ class GymnasiumGoalEnv(EnvBase):
             return None
         expected = (*self.batch_size, self.observation_spec["desired_goal"].shape[-1])
         if tuple(value.shape) != expected:
-            raise GoalEnvError(f"A 'desired_goal' passed to reset must have shape {expected}, got {tuple(value.shape)}.")
+            raise GoalEnvError(
+                f"A 'desired_goal' passed to reset must have shape {expected}, got {tuple(value.shape)}."
+            )
         if not hasattr(self._envs[0].unwrapped, "goal"):
             raise GoalEnvError(f"{self.env_id} keeps no `goal` attribute to set the goals passed to reset on.")
         return value.detach().cpu().double().numpy()
@@ -469,7 +471,9 @@ class GymnasiumGoalEnv(EnvBase):
         inside = 0 <= row < cells.shape[0] and 0 <= col < cells.shape[1]
         if not inside or cells[row, col] == 1:
             where = f"in cell ({row}, {col}), a wall," if inside else "outside the maze"
-            raise ValueError(f"The start {list(point)} lies {where} of {self.env_id}; accepted: a point in a free cell.")
+            raise ValueError(
+                f"The start {list(point)} lies {where} of {self.env_id}; accepted: a point in a free cell."
+            )
         return row, col
 
     def success_radius(self, *, tolerance: float = 1e-6) -> float | None:

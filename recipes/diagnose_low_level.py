@@ -48,13 +48,14 @@ def reach_test_from_checkpoint(
     Defaults follow the run's config: radii ``(0.25, 0.5, 1, 1.5) x cutoff x oracle_speed`` (the goal-space
     span of a graph edge, at the env's nominal speed), ``max_steps = 3 x cutoff``, the planner's
     ``reach_radius`` and ``oracle_margin``, the run's ``angle_features``; a ``gymnasium:<id>`` run's env with its
-    ``gymnasium`` options, reset as its test episodes (as its training episodes where the tests start anywhere). ``start``, ``repeats`` and ``per_offset`` as in
-    :func:`~torchrl_dhrl.diagnostics.reach_test`; ``planner_overrides`` replace the run's ``planner`` values
-    (``oracle_margin``, ``oracle_speed``). ``progress`` (mazes with a start): one test from each point along the
-    maze that far from the start (:meth:`~torchrl_dhrl.envs.geometry.MazeGeometry.points_along`, at least
-    ``CLEARANCE_RADII`` agent radii from the walls; progress past the maze's farthest point tests that point once),
-    its rows with the point's ``"progress"`` and ``"start"`` (a gymnasium-robotics maze's test starts at the centre of
-    the cell holding the point).
+    ``gymnasium`` options, reset as its test episodes (as its training episodes where the tests start anywhere).
+    ``start``, ``repeats`` and ``per_offset`` as in :func:`~torchrl_dhrl.diagnostics.reach_test`;
+    ``planner_overrides`` replace the run's ``planner`` values (``oracle_margin``, ``oracle_speed``). ``progress``
+    (mazes with a start): one test from each point along the maze that far from the start
+    (:meth:`~torchrl_dhrl.envs.geometry.MazeGeometry.points_along`, at least ``CLEARANCE_RADII`` agent radii from
+    the walls; progress past the maze's farthest point tests that point once), its rows with the point's
+    ``"progress"`` and ``"start"`` (a gymnasium-robotics maze's test starts at the centre of the cell holding the
+    point).
 
     Args:
         path (str or Path): a checkpoint or the run directory holding it.
@@ -64,44 +65,44 @@ def reach_test_from_checkpoint(
     env_kwargs = gymnasium_kwargs(cfg, eval=True)
     if env_kwargs is not None and env_kwargs["reset_options"] is None:  # tests start anywhere: the training start
         env_kwargs["reset_options"] = cfg["gymnasium"]["reset_options"]
-    if progress is not None:
-        if start is not None:
-            raise ValueError("Give a start or progress along the maze, not both.")
-        env = None if env_kwargs is None else make_env(cfg["env_name"], env_kwargs=env_kwargs)
-        geometry = run_maze({**cfg, "planner": planner}, env)
-        if geometry is None:
-            raise ValueError(f"Progress along the maze needs a maze; {cfg['env_name']} has none.")
-        points, lengths = geometry.points_along(progress, clearance=CLEARANCE_RADII * planner["oracle_margin"])
-        rows, seen = [], set()
-        for point, length in zip(points.tolist(), lengths.tolist(), strict=True):
-            if tuple(point) in seen:  # progress past the maze's farthest point: that point, once
-                continue
-            seen.add(tuple(point))
-            kwargs = dict(radii=radii, num_directions=num_directions, max_steps=max_steps, device=device, seed=seed)
-            found = reach_test_from_checkpoint(
-                path, **kwargs, start=point, repeats=repeats, per_offset=per_offset, planner_overrides=planner_overrides
-            )
-            rows += [{"progress": length, "start": point, **row} for row in found]
-        return rows
     if radii is None:
         span = planner["cutoff"] * planner["oracle_speed"]
         radii = [f * span for f in (0.25, 0.5, 1.0, 1.5)]
-    return reach_test(
-        agent.low_actor,
-        cfg["env_name"],
-        radii=radii,
-        max_steps=int(max_steps or 3 * planner["cutoff"]),
-        reach_radius=planner["reach_radius"],
-        num_directions=num_directions,
-        oracle_margin=planner["oracle_margin"],
-        angle_features=cfg.get("angle_features"),
-        device=device,
-        seed=seed,
-        start=start,
-        repeats=repeats,
-        per_offset=per_offset,
-        env_kwargs=env_kwargs,
-    )
+
+    def test_from(point: Sequence[float] | None) -> list[dict]:
+        return reach_test(
+            agent.low_actor,
+            cfg["env_name"],
+            radii=radii,
+            max_steps=int(max_steps or 3 * planner["cutoff"]),
+            reach_radius=planner["reach_radius"],
+            num_directions=num_directions,
+            oracle_margin=planner["oracle_margin"],
+            angle_features=cfg.get("angle_features"),
+            device=device,
+            seed=seed,
+            start=point,
+            repeats=repeats,
+            per_offset=per_offset,
+            env_kwargs=env_kwargs,
+        )
+
+    if progress is None:
+        return test_from(start)
+    if start is not None:
+        raise ValueError("Give a start or progress along the maze, not both.")
+    env = None if env_kwargs is None else make_env(cfg["env_name"], env_kwargs=env_kwargs)
+    geometry = run_maze({**cfg, "planner": planner}, env)
+    if geometry is None:
+        raise ValueError(f"Progress along the maze needs a maze; {cfg['env_name']} has none.")
+    points, lengths = geometry.points_along(progress, clearance=CLEARANCE_RADII * planner["oracle_margin"])
+    rows, seen = [], set()
+    for point, length in zip(points.tolist(), lengths.tolist(), strict=True):
+        if tuple(point) in seen:  # progress past the maze's farthest point: that point, once
+            continue
+        seen.add(tuple(point))
+        rows += [{"progress": length, "start": point, **row} for row in test_from(point)]
+    return rows
 
 
 def main(argv: list[str] | None = None) -> list[dict]:
@@ -154,11 +155,13 @@ def main(argv: list[str] | None = None) -> list[dict]:
         f"{'final dist':>11}"
     )
     for row in rows:
-        where = f"{row['progress']:8.1f} {'(' + ', '.join(f'{v:.1f}' for v in row['start']) + ')':>14} " if args.progress else ""
+        where = ""
+        if args.progress:
+            where = f"{row['progress']:8.1f} {'(' + ', '.join(f'{v:.1f}' for v in row['start']) + ')':>14} "
         offset = f"{'(' + ', '.join(f'{v:.2f}' for v in row['offset']) + ')':>16} " if args.per_offset else ""
         print(
-            f"{where}{offset}{row['radius']:8.2f} {row['goals']:6d} {row['reach_rate']:8.0%} {row['median_steps']:13.1f} "
-            f"{row['mean_min_distance']:9.2f} {row['mean_final_distance']:11.2f}"
+            f"{where}{offset}{row['radius']:8.2f} {row['goals']:6d} {row['reach_rate']:8.0%} "
+            f"{row['median_steps']:13.1f} {row['mean_min_distance']:9.2f} {row['mean_final_distance']:11.2f}"
         )
     return rows
 

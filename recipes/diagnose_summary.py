@@ -76,11 +76,10 @@ def findings(
     """Every check that holds for one run, each with its figures (a check whose inputs are missing or ``NaN`` is
     skipped). ``m`` holds the run's ``frontier``, ``landmark_progress``, ``reachable_progress``,
     ``reachable_landmarks``, ``bridge_distance``, ``start_subgoal_feasible``, ``start_best_subgoal_in_wall``,
-    ``start_actor_q_gap``, ``upside_down`` and ``ended_upside_down``; ``goal`` is the farthest test goal's progress along the maze and ``tolerance`` that of
-    every comparison along the maze (the recipe: the task's success radius, the distance at which a goal counts
-    as reached); ``ablations`` the success of the planning
-    variants (``"as trained"``, ``"goal as subgoal"``, ``"unreachable=subgoal"``, ``"oracle graph"``,
-    ``"oracle graph, goal"``).
+    ``start_actor_q_gap``, ``upside_down`` and ``ended_upside_down``; ``goal`` is the farthest test goal's progress
+    along the maze and ``tolerance`` that of every comparison along the maze (the recipe: the task's success radius,
+    the distance at which a goal counts as reached); ``ablations`` the success of the planning variants
+    (``"as trained"``, ``"goal as subgoal"``, ``"unreachable=subgoal"``, ``"oracle graph"``, ``"oracle graph, goal"``).
 
     * exploration: the training episodes' frontier more than ``tolerance`` short of the goal;
     * flipped ant: at least ``UPSIDE_DOWN`` of the training steps (of the last evaluation interval) spent upside

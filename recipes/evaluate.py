@@ -51,19 +51,20 @@ FINAL_EVAL_NAME = "final_eval.yaml"
 VARIANTS_EVAL_NAME = "variants_eval.yaml"
 
 
-def episode_successes(env, policy, batches: int, seed: int, upside_down=None) -> torch.Tensor:
+def episode_outcomes(
+    env, policy, batches: int, seed: int, upside_down=None
+) -> tuple[torch.Tensor, torch.Tensor | None]:
     """Final-state success of each of ``batches`` batches of deterministic episodes (bool, batch after batch),
-    batch k seeded with ``seed + k``. With an ``upside_down`` test (:func:`upside_down_test`): ``[2, N]``, the
-    successes and whether each episode ended with the agent upside down."""
-    out = []
+    batch k seeded with ``seed + k``, and, with an ``upside_down`` test (:func:`upside_down_test`), whether each
+    ended with the agent upside down (else ``None``)."""
+    successes, flipped = [], []
     for k in range(batches):
         seed_everything(seed + k, env)
         rollout = evaluate(env, policy, env.max_episode_steps).rollout
-        success = rollout["next", "is_success"].reshape(*rollout.shape, -1).any(-1)[..., -1].reshape(-1).cpu()
+        successes.append(rollout["next", "is_success"].reshape(*rollout.shape, -1).any(-1)[..., -1].reshape(-1).cpu())
         if upside_down is not None:
-            success = torch.stack([success, upside_down_steps(rollout, upside_down)[..., -1].reshape(-1).cpu()])
-        out.append(success)
-    return torch.cat(out, -1)
+            flipped.append(upside_down_steps(rollout, upside_down)[..., -1].reshape(-1).cpu())
+    return torch.cat(successes), torch.cat(flipped) if flipped else None
 
 
 def parse_changes(items: list[str]) -> dict:
@@ -118,10 +119,7 @@ def main(argv: list[str] | None = None) -> dict:
     episodes = batches * env.batch_size.numel()
     start = time.perf_counter()
     upside_down = upside_down_test(cfg)
-    trained = episode_successes(env, agent.policy, batches, args.seed, upside_down)
-    flipped = None
-    if upside_down is not None:
-        trained, flipped = trained
+    trained, flipped = episode_outcomes(env, agent.policy, batches, args.seed, upside_down)
     successes = int(trained.sum())
     record = {
         "env_name": cfg["env_name"],
@@ -134,16 +132,15 @@ def main(argv: list[str] | None = None) -> dict:
     if flipped is not None:  # the ant mazes: test episodes that ended with the ant on its back
         record["ended_upside_down"] = int(flipped.sum())
     if args.flat:  # the same episodes (the same seeds), the low level alone
-        flat = int(episode_successes(env, goal_as_waypoint(agent.low_actor), batches, args.seed).sum())
+        flat = int(episode_outcomes(env, goal_as_waypoint(agent.low_actor), batches, args.seed)[0].sum())
         record |= {"flat_successes": flat, "flat_success": flat / episodes}
     if variants:
         record["variants"] = []
         for changes, (variant_cfg, variant_agent) in zip(variants, variant_agents, strict=True):
             variant_env = build_environment(variant_cfg, device, eval=True, agent=variant_agent)
-            outcome = episode_successes(variant_env, variant_agent.policy, batches, args.seed, upside_down)
-            variant_flipped = None
-            if upside_down is not None:
-                outcome, variant_flipped = outcome
+            outcome, variant_flipped = episode_outcomes(
+                variant_env, variant_agent.policy, batches, args.seed, upside_down
+            )
             paired = paired_comparison(trained.numpy(), outcome.numpy())
             row = {
                 "changes": changes,

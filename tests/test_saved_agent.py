@@ -343,7 +343,7 @@ def test_evaluate_script_refuses_a_bad_variant_before_any_episode(run_dir, monke
     def no_episodes(*args, **kwargs):
         raise AssertionError("an episode ran before the variants were checked")
 
-    monkeypatch.setattr(evaluate_script, "episode_successes", no_episodes)
+    monkeypatch.setattr(evaluate_script, "episode_outcomes", no_episodes)
     with pytest.raises(SystemExit) as refused:
         evaluate_script.main([str(run_dir / AGENT_NAME), "--episodes", "10", "--variant", *variant])
     message = capsys.readouterr().err.strip().splitlines()[-1]
