@@ -14,6 +14,7 @@ comes from a run's ``metrics.csv``, ``config.yaml``, ``provenance.yaml`` and, wh
 from __future__ import annotations
 
 import argparse
+import math
 import os
 import re
 import sys
@@ -27,6 +28,7 @@ from torchrl_dhrl.recipe.aggregate import RunRecord, plot_aggregate, read_run
 from torchrl_dhrl.recipe.protocol import (
     Protocol,
     ReportPoint,
+    eval_episodes,
     evaluation_steps,
     first_at_least,
     report_points,
@@ -68,6 +70,12 @@ class Entry:
         if not budgets:
             raise ValueError(f"{INDEX}: {self.task} has no paper budgets; give `budgets:` in its entry.")
         self.protocol = Protocol(tuple(budgets), spec.get("window"))
+        self.first_at = float(spec.get("first_at", 0.9))
+        if not 0 < self.first_at <= 1:
+            raise ValueError(
+                f"{INDEX}: {self.task} ({spec['folder']}): first_at {spec.get('first_at')!r}: must be a fraction "
+                "of an evaluation's test episodes in (0, 1] (0.9: 9 of 10)."
+            )
         self.runs = [read_run(self.folder / name) for name in spec["runs"]]
         baseline = spec.get("baseline") or {}
         self.baseline_name = baseline.get("name")
@@ -201,14 +209,17 @@ def folder_report(entry: Entry) -> str:
     if entry.baseline:
         lines += ["", f"Baseline, {entry.baseline_name}, evaluated the same way:", ""]
         lines += _points_table(entry, entry.baseline, entry.spec["baseline"]["runs"])
+    episodes = eval_episodes(entry.runs[0])
+    at_least = math.ceil(entry.first_at * episodes - 1e-9)  # whole episodes: 0.8 of 10 is 8
     lines += [
         "",
-        "| run | last evaluation | first evaluation with >= 9 of 10 | final agent re-evaluated | code | machine | provenance |",
+        f"| run | last evaluation | first evaluation with >= {at_least} of {episodes} | final agent re-evaluated | "
+        "code | machine | provenance |",
         "|---|---|---|---|---|---|---|",
     ]
     for name, run in entry.named_runs():
         prov = provenance_rows(run)
-        first = first_at_least(run, 9)
+        first = first_at_least(run, math.ceil(entry.first_at * eval_episodes(run) - 1e-9))
         lines.append(
             f"| [{name}]({name}) | {steps_text(last_step(run))} | {steps_text(first) if first is not None else 'never'} | "
             f"{final_eval_text(run)} | {prov['code']} | {prov['machine']} | {prov['provenance']} |"

@@ -118,3 +118,36 @@ def test_the_readme_sets_each_baseline_beside_dhrl_at_every_reporting_point(tmp_
             else:
                 assert agent_cell.endswith("-"), row
         assert "| not kept; 88.5% (2 of 3 runs, 100 episodes each) |" in row
+
+
+def _first_reaching(run_dir: Path, successes: int) -> str:
+    """The first evaluation's env steps with at least ``successes`` of 10, read off metrics.csv directly."""
+    import csv
+
+    with open(run_dir / "metrics.csv", newline="") as file:
+        rows = [r for r in csv.DictReader(file) if r.get("eval/success") not in (None, "", "nan")]
+    steps = [float(r["env_steps"]) for r in rows if round(10 * float(r["eval/success"])) >= successes]
+    return report.steps_text(min(steps)) if steps else "never"
+
+
+@pytest.mark.parametrize("first_at, successes", [(None, 9), (0.8, 8), (0.25, 3)])
+def test_an_entry_names_the_success_its_runs_first_reach(tmp_path, first_at, successes):
+    """report.md lists per run the first evaluation with at least ``first_at`` of its test episodes (0.9 unless the
+    entry says), counted in whole episodes; a value outside (0, 1] is refused in one line naming the entry."""
+    shutil.copytree(ROOT / "results", tmp_path / "results")
+    index = tmp_path / "results" / "index.yaml"
+    entries = yaml.safe_load(index.read_text())
+    spec = next(e for e in entries if e["folder"] == "pointmaze_umaze_dhrl_vs_sac")
+    if first_at is not None:
+        spec["first_at"] = first_at
+    index.write_text(yaml.safe_dump(entries))
+    entry = next(e for e in report.read_entries(tmp_path) if e.spec["folder"] == spec["folder"])
+    text = report.folder_report(entry)
+    assert f"| first evaluation with >= {successes} of 10 |" in text
+    for name in [*spec["runs"], *spec["baseline"]["runs"]]:
+        row = next(line for line in text.splitlines() if line.startswith(f"| [{name}]({name}) |"))
+        assert row.split(" | ")[2] == _first_reaching(entry.folder / name, successes), row
+    spec["first_at"] = 1.5
+    index.write_text(yaml.safe_dump(entries))
+    with pytest.raises(ValueError, match="pointmaze_umaze_dhrl_vs_sac.*first_at 1.5"):
+        report.read_entries(tmp_path)
