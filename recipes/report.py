@@ -31,6 +31,7 @@ from torchrl_dhrl.recipe.protocol import (
     eval_episodes,
     evaluation_steps,
     first_at_least,
+    paired_windows,
     report_points,
     summarize_point,
 )
@@ -80,6 +81,7 @@ class Entry:
         baseline = spec.get("baseline") or {}
         self.baseline_name = baseline.get("name")
         self.baseline = [read_run(self.folder / name) for name in baseline.get("runs", [])]
+        self.compared: Entry | None = None  # the entry its `compare_to` names, set by read_entries
 
     def named_runs(self) -> list[tuple[str, RunRecord]]:
         """Every run of the entry, the baseline's after, with its folder's name."""
@@ -209,6 +211,8 @@ def folder_report(entry: Entry) -> str:
     if entry.baseline:
         lines += ["", f"Baseline, {entry.baseline_name}, evaluated the same way:", ""]
         lines += _points_table(entry, entry.baseline, entry.spec["baseline"]["runs"])
+    if entry.compared is not None:
+        lines += ["", *comparison_lines(entry, entry.compared)]
     episodes = eval_episodes(entry.runs[0])
     at_least = math.ceil(entry.first_at * episodes - 1e-9)  # whole episodes: 0.8 of 10 is 8
     lines += [
@@ -225,6 +229,40 @@ def folder_report(entry: Entry) -> str:
             f"{final_eval_text(run)} | {prov['code']} | {prov['machine']} | {prov['provenance']} |"
         )
     return "\n".join(lines) + "\n"
+
+
+def comparison_lines(entry: Entry, other: Entry) -> list[str]:
+    """``entry``'s runs against ``other``'s seed by seed (:func:`paired_windows`, ``entry``'s windows): per seed the
+    successes of each over the same window, the difference in points, and over the paired seeds the mean of each and
+    the mean ± std of the differences."""
+    link = f"[{other.spec['folder']}]({_rel(entry.folder, other.folder / 'report.md')})"
+    points = paired_windows(entry.runs, other.runs, entry.protocol)
+    lines = [
+        f"Seed by seed against {link} (`{other.spec['configuration']}`): each seed's runs over the same window, at "
+        "each budget both reached.",
+        "",
+    ]
+    if not points:
+        return [*lines, "No seed of both has reached a budget yet."]
+    lines += [
+        f"| env steps | seed | this folder: successes / episodes | {other.spec['folder']} | difference (points) |",
+        "|---|---|---|---|---|",
+    ]
+    for point in points:
+        label = steps_text(point.steps)
+        for seed, ours, theirs, diff in zip(
+            point.seeds, point.windows, point.other_windows, point.differences, strict=True
+        ):
+            lines.append(
+                f"| {label} | {seed} | {ours.successes}/{ours.episodes} ({pct(ours.rate)}) | "
+                f"{theirs.successes}/{theirs.episodes} ({pct(theirs.rate)}) | {100 * diff:+.1f} |"
+            )
+        lines.append(
+            f"| {label} | mean over {len(point.seeds)} seed{'s' if len(point.seeds) > 1 else ''} | "
+            f"{pct(point.mean)} | {pct(point.other_mean)} | "
+            f"{100 * point.mean_difference:+.1f} ± {100 * point.std_difference:.1f} |"
+        )
+    return lines
 
 
 def _points_table(entry: Entry, runs: Sequence[RunRecord], names: Sequence[str]) -> list[str]:
@@ -423,7 +461,22 @@ def replace_block(text: str, name: str, body: str, path: Path) -> str:
 
 
 def read_entries(root: Path = ROOT) -> list[Entry]:
-    return [Entry(spec, root) for spec in yaml.safe_load((root / INDEX).read_text())]
+    """The entries of ``results/index.yaml``, each ``compare_to`` resolved to the entry of that folder (same task)."""
+    entries = [Entry(spec, root) for spec in yaml.safe_load((root / INDEX).read_text())]
+    by_folder = {str(e.spec["folder"]): e for e in entries}
+    for entry in entries:
+        target = entry.spec.get("compare_to")
+        if target is None:
+            continue
+        other = by_folder.get(str(target))
+        if other is None or other is entry or other.task != entry.task:
+            raise ValueError(
+                f"{INDEX}: {entry.spec['folder']}: compare_to {target!r}: must name another entry's folder of the same "
+                f"task ({entry.task}): "
+                + (", ".join(f for f, e in by_folder.items() if e.task == entry.task and e is not entry) or "none")
+            )
+        entry.compared = other
+    return entries
 
 
 def render(root: Path = ROOT) -> dict[Path, str]:

@@ -11,6 +11,8 @@ import pytest
 import yaml
 from _recipe import load_recipe
 
+import torchrl_dhrl.recipe.protocol as protocol_module
+
 ROOT = Path(__file__).resolve().parents[1]
 report = load_recipe("report")
 
@@ -151,3 +153,41 @@ def test_an_entry_names_the_success_its_runs_first_reach(tmp_path, first_at, suc
     index.write_text(yaml.safe_dump(entries))
     with pytest.raises(ValueError, match="pointmaze_umaze_dhrl_vs_sac.*first_at 1.5"):
         report.read_entries(tmp_path)
+
+
+def test_an_entry_compared_to_another_sets_its_seeds_beside_theirs(tmp_path):
+    """``compare_to``: report.md holds each seed both entries ran, its two windows and their difference, with the
+    means; a folder that is not another entry of the same task is refused in one line naming the choices."""
+    shutil.copytree(ROOT / "results", tmp_path / "results")
+    index = tmp_path / "results" / "index.yaml"
+    entries = yaml.safe_load(index.read_text())
+    spec = next(e for e in entries if e.get("compare_to"))
+    entry = next(e for e in report.read_entries(tmp_path) if e.spec["folder"] == spec["folder"])
+    other = entry.compared
+    assert other is not None and other.spec["folder"] == spec["compare_to"]
+    text = report.folder_report(entry)
+    protocol = entry.protocol
+    others = {r.seed: r for r in other.runs}
+    rows = [line for line in text.splitlines() if line.startswith("| ") and " | mean over " not in line]
+    paired = 0
+    for run in entry.runs:
+        if run.seed not in others:
+            continue
+        for budget in protocol.budgets:
+            if not (protocol_module.reached(run, budget) and protocol_module.reached(others[run.seed], budget)):
+                continue
+            ours = protocol_module.window_success(run, budget, protocol.window)
+            theirs = protocol_module.window_success(others[run.seed], budget, protocol.window)
+            expected = (
+                f"| {report.steps_text(budget)} | {run.seed} | {ours.successes}/{ours.episodes} "
+                f"({report.pct(ours.rate)}) | {theirs.successes}/{theirs.episodes} ({report.pct(theirs.rate)}) | "
+                f"{100 * (ours.rate - theirs.rate):+.1f} |"
+            )
+            assert expected in rows, (expected, rows)
+            paired += 1
+    assert paired and sum(" | mean over " in line for line in text.splitlines()) >= 1
+    for bad in (spec["folder"], "antmaze_cpu", "no_such_folder"):
+        spec["compare_to"] = bad
+        index.write_text(yaml.safe_dump(entries))
+        with pytest.raises(ValueError, match=f"compare_to '{bad}': must name another entry's folder of the same task"):
+            report.read_entries(tmp_path)

@@ -15,6 +15,7 @@ from torchrl_dhrl.recipe.protocol import (
     ReportPoint,
     episodes_succeeded,
     first_at_least,
+    paired_windows,
     report_points,
     summarize_point,
     window_success,
@@ -143,3 +144,65 @@ def test_first_at_least_counts_whole_episodes():
     assert first_at_least(run, 9) == 2000  # stored 0.8999999761, which `>= 0.9` would have skipped
     assert first_at_least(run, 10) == 3000
     assert first_at_least(_run([1000], [3]), 9) is None
+
+
+def _seeded(seed, steps, successes, name):
+    run = _run(steps, successes, name=name)
+    run.config["seed"] = seed
+    return run
+
+
+@pytest.mark.parametrize("trial", range(25))
+def test_paired_windows_against_a_direct_count(trial):
+    """Random runs of two configurations, some seeds in one only, some stopping short of a budget, ties in the
+    rates: each budget pairs exactly the seeds whose two runs reached it, over the same window, counted directly."""
+    rng = np.random.default_rng(trial)
+    budgets, window, interval = (60, 120), 30, 10
+
+    def make(seeds, prefix):
+        runs = []
+        for seed in seeds:
+            last = int(rng.choice([40, 60, 90, 120]))  # some stop short of a budget
+            steps = list(range(interval, last + 1, interval))
+            runs.append(_seeded(seed, steps, rng.integers(0, 11, len(steps)).tolist(), f"{prefix}{seed}"))
+        return runs
+
+    ours = make(rng.permutation(5)[: rng.integers(1, 6)].tolist(), "a")
+    theirs = make(rng.permutation(5)[: rng.integers(1, 6)].tolist(), "b")
+    points = paired_windows(ours, theirs, Protocol(budgets, window=window))
+
+    def direct(run, budget):  # successes over (budget - window, budget], read off the stored rates
+        return sum(round(10 * r["eval/success"]) for r in run.rows if budget - window < r["env_steps"] <= budget)
+
+    def last(run):
+        return max(r["env_steps"] for r in run.rows)
+
+    expected = {}
+    for budget in budgets:
+        pairs = [
+            (a, b)
+            for a in ours
+            for b in theirs
+            if a.seed == b.seed and last(a) > budget - interval and last(b) > budget - interval
+        ]
+        if pairs:
+            expected[budget] = pairs
+    assert [p.steps for p in points] == list(expected)
+    for point in points:
+        pairs = expected[point.steps]
+        assert point.seeds == tuple(a.seed for a, _ in pairs)
+        rates = [(direct(a, point.steps) / 30, direct(b, point.steps) / 30) for a, b in pairs]
+        assert [w.successes for w in point.windows] == [direct(a, point.steps) for a, _ in pairs]
+        assert [w.successes for w in point.other_windows] == [direct(b, point.steps) for _, b in pairs]
+        assert all(w.episodes == 30 for w in (*point.windows, *point.other_windows))
+        diffs = np.array([x - y for x, y in rates])
+        assert point.mean_difference == pytest.approx(diffs.mean())
+        assert point.std_difference == pytest.approx(diffs.std(ddof=1) if len(diffs) > 1 else 0.0)
+        assert point.mean - point.other_mean == pytest.approx(diffs.mean())
+
+
+def test_paired_windows_refuses_a_seed_twice():
+    a, b = _seeded(0, [10, 20], [5, 5], "a"), _seeded(0, [10, 20], [1, 2], "b")
+    with pytest.raises(ValueError, match="`others` holds more than one run of seed 0"):
+        paired_windows([a], [b, b], Protocol((20,), window=20))
+    assert paired_windows([a], [_seeded(1, [10, 20], [1, 2], "c")], Protocol((20,), window=20)) == []

@@ -58,9 +58,11 @@ from .plots import (
 )
 from .protocol import (
     PairedComparison,
+    PairedWindows,
     Protocol,
     episodes_succeeded,
     paired_comparison,
+    paired_windows,
     pooled_comparison,
     report_points,
     summarize_point,
@@ -192,9 +194,11 @@ __all__ = [
     "write_yaml",
     "PROVENANCE_NAME",
     "PairedComparison",
+    "PairedWindows",
     "Protocol",
     "episodes_succeeded",
     "paired_comparison",
+    "paired_windows",
     "pooled_comparison",
     "report_points",
     "summarize_point",

@@ -16,7 +16,9 @@ last evaluation every seed reached is reported too, labelled as such, so that no
 is chosen after seeing the curves.
 
 Two variants of one agent (as trained, and with a test-time switch) are compared on the same test episodes
-(:func:`paired_comparison`): the episodes only one of them succeeded in, and the exact McNemar test on those.
+(:func:`paired_comparison`): the episodes only one of them succeeded in, and the exact McNemar test on those. Two
+configurations trained from the same seeds (without and with a switch) are compared seed by seed over the same
+windows (:func:`paired_windows`).
 """
 
 from __future__ import annotations
@@ -31,6 +33,7 @@ from .aggregate import RunRecord, bootstrap_iqm_ci, iqm
 
 __all__ = [
     "PairedComparison",
+    "PairedWindows",
     "Protocol",
     "ReportPoint",
     "WindowSuccess",
@@ -39,6 +42,7 @@ __all__ = [
     "evaluation_steps",
     "first_at_least",
     "paired_comparison",
+    "paired_windows",
     "pooled_comparison",
     "report_points",
     "summarize_point",
@@ -287,3 +291,80 @@ def first_at_least(run: RunRecord, successes: int) -> int | None:
     """The env steps of ``run``'s first evaluation with at least ``successes`` successful test episodes."""
     n = eval_episodes(run)
     return next((s for s, r in _evaluations(run) if episodes_succeeded(r, n) >= successes), None)
+
+
+@dataclass(frozen=True)
+class PairedWindows:
+    """Two configurations' runs of the same seeds at one budget: per seed (in the first's order) its window in each,
+    and over those seeds the mean rate of each and the mean and sample standard deviation of the differences
+    (first minus second; ``ddof=1``, 0 for one seed)."""
+
+    steps: int
+    seeds: tuple
+    windows: tuple[WindowSuccess, ...]
+    other_windows: tuple[WindowSuccess, ...]
+
+    @property
+    def differences(self) -> np.ndarray:
+        return np.array([a.rate - b.rate for a, b in zip(self.windows, self.other_windows, strict=True)])
+
+    @property
+    def mean(self) -> float:
+        return float(np.mean([w.rate for w in self.windows]))
+
+    @property
+    def other_mean(self) -> float:
+        return float(np.mean([w.rate for w in self.other_windows]))
+
+    @property
+    def mean_difference(self) -> float:
+        return float(self.differences.mean())
+
+    @property
+    def std_difference(self) -> float:
+        d = self.differences
+        return float(d.std(ddof=1)) if d.size > 1 else 0.0
+
+
+def paired_windows(
+    runs: Sequence[RunRecord], others: Sequence[RunRecord], protocol: Protocol
+) -> list[PairedWindows]:
+    """``runs`` against ``others`` seed by seed (runs paired by their configuration's ``seed``): at each budget of
+    ``protocol``, over the seeds whose runs both reached it, each run's success over the same window.
+
+    Budgets no seed's pair reached are left out. A seed that appears twice among ``runs`` or among ``others`` is
+    refused: a pairing must be one to one.
+
+    Examples:
+        >>> from pathlib import Path
+        >>> def run(seed, rates):
+        ...     rows = [{"env_steps": float(s), "eval/success": r} for s, r in zip((100, 200), rates)]
+        ...     return RunRecord(Path(f"s{seed}"), {"seed": seed}, rows)
+        >>> [point] = paired_windows([run(0, (1.0, 1.0))], [run(0, (0.5, 0.0)), run(1, (1.0, 1.0))],
+        ...                          Protocol((200,), window=200))
+        >>> point.seeds, point.windows[0].successes, point.other_windows[0].successes, point.mean_difference
+        ((0,), 20, 5, 0.75)
+    """
+    for name, group in (("runs", runs), ("others", others)):
+        seeds = [repr(r.seed) for r in group]
+        repeated = sorted({s for s in seeds if seeds.count(s) > 1})
+        if repeated:
+            raise ValueError(f"`{name}` holds more than one run of seed {', '.join(repeated)}; pairs must be one to one.")
+    by_seed = {repr(r.seed): r for r in others}
+    points = []
+    for budget in protocol.budgets:
+        pairs = [
+            (run, by_seed[repr(run.seed)])
+            for run in runs
+            if repr(run.seed) in by_seed and reached(run, budget) and reached(by_seed[repr(run.seed)], budget)
+        ]
+        if pairs:
+            points.append(
+                PairedWindows(
+                    steps=int(budget),
+                    seeds=tuple(run.seed for run, _ in pairs),
+                    windows=tuple(window_success(run, budget, protocol.window) for run, _ in pairs),
+                    other_windows=tuple(window_success(other, budget, protocol.window) for _, other in pairs),
+                )
+            )
+    return points
