@@ -191,3 +191,14 @@ def test_an_entry_compared_to_another_sets_its_seeds_beside_theirs(tmp_path):
         index.write_text(yaml.safe_dump(entries))
         with pytest.raises(ValueError, match=f"compare_to '{bad}': must name another entry's folder of the same task"):
             report.read_entries(tmp_path)
+
+
+def test_the_machine_column_says_whether_the_cpu_has_native_bfloat16():
+    """What `update_dtype=auto` resolved by: recorded with the machine, shown unless the CPU's name already says it."""
+    recorded = {"machine": {"cpu": "AMD EPYC", "cores": 2, "native_bfloat16": False}}
+    assert report.machine_text(recorded) == "AMD EPYC (no native bfloat16), 2 cores"
+    recorded["machine"]["native_bfloat16"] = True
+    assert report.machine_text(recorded) == "AMD EPYC (native bfloat16), 2 cores"
+    named = {"machine": {"cpu": "AMD EPYC (AVX2, no AVX512)", "cores": 2, "native_bfloat16": False}}
+    assert report.machine_text(named) == "AMD EPYC (AVX2, no AVX512), 2 cores"
+    assert report.machine_text({"machine": {"cpu": "Intel Xeon"}, "device": "cuda"}) == "Intel Xeon, cuda"
