@@ -14,6 +14,10 @@ many episodes reached the frontier.
 corridor past it::
 
     python recipes/diagnose_exploration.py <run> --rows 0 --box gap 15.4 17 7 9 --box past 12 20 9 16 --per 100
+
+``--oracle-margin`` replaces the run's recorded ``planner.oracle_margin`` (the agent's radius, by which the walls grow
+in the path lengths), e.g. for a gymnasium-robotics maze trained by 0.4.0 or earlier, which recorded the
+configuration's value.
 """
 
 from __future__ import annotations
@@ -21,16 +25,25 @@ from __future__ import annotations
 import argparse
 
 import torch
-from dhrl_utils import agent_from_checkpoint, build_environment, build_replay_buffers, run_maze
+from dhrl_utils import (
+    add_oracle_options,
+    agent_from_checkpoint,
+    build_environment,
+    build_replay_buffers,
+    oracle_overrides,
+    run_maze,
+)
 from tensordict import TensorDictBase
 
 from torchrl_dhrl.diagnostics import EpisodeProgress, episode_progress, episodes_in_boxes
-from torchrl_dhrl.recipe import load_checkpoint
+from torchrl_dhrl.recipe import ConfigError, load_checkpoint
 
 
-def stored_records(path, buffer: str) -> tuple[dict, TensorDictBase]:
-    """The configuration of a maze run's checkpoint and every record of its ``"low_rb"`` or ``"high_rb"`` buffer."""
+def stored_records(path, buffer: str, oracle: dict | None = None) -> tuple[dict, TensorDictBase]:
+    """The configuration of a maze run's checkpoint (``oracle``'s ``planner`` keys in place of its recorded ones) and
+    every record of its ``"low_rb"`` or ``"high_rb"`` buffer."""
     cfg, agent = agent_from_checkpoint(path)
+    cfg["planner"].update(oracle or {})
     if run_maze(cfg, build_environment(cfg, torch.device("cpu"))) is None:
         raise ValueError(f"diagnose_exploration needs a maze run; {path} is a {cfg['env_name']} run.")
     low_rb, high_rb = build_replay_buffers(cfg, agent, torch.device("cpu"))
@@ -40,7 +53,7 @@ def stored_records(path, buffer: str) -> tuple[dict, TensorDictBase]:
 
 
 def exploration_from_checkpoint(
-    path, *, episodes: int = 60, near: float = 0.9
+    path, *, episodes: int = 60, near: float = 0.9, oracle: dict | None = None
 ) -> tuple[EpisodeProgress, dict]:
     """:func:`~torchrl_dhrl.diagnostics.episode_progress` of a recipe checkpoint's last ``episodes`` training episodes.
 
@@ -48,7 +61,7 @@ def exploration_from_checkpoint(
     ``beyond_mean_progress`` (how far those episodes got), ``reached_frontier`` (episodes that got to ``near``
     times the frontier's progress or further), ``episodes``.
     """
-    cfg, records = stored_records(path, "high_rb")
+    cfg, records = stored_records(path, "high_rb", oracle)
     first = records["segment_index"].reshape(-1) == 0
     start = records["achieved_goal"][first].float().mean(0)  # where the episodes start
     geometry = run_maze(cfg, build_environment(cfg, torch.device("cpu")))  # walls grown by planner.oracle_margin
@@ -64,12 +77,12 @@ def exploration_from_checkpoint(
     return out, summary
 
 
-def boxes_from_checkpoint(path, boxes) -> tuple[torch.Tensor, torch.Tensor]:
+def boxes_from_checkpoint(path, boxes, oracle: dict | None = None) -> tuple[torch.Tensor, torch.Tensor]:
     """:func:`~torchrl_dhrl.diagnostics.episodes_in_boxes` over every step of a checkpoint's low-level buffer.
 
     The position is the stored ``achieved_goal`` (x, y in the mazes), the episode the collector's ``traj_ids``.
     """
-    _, steps = stored_records(path, "low_rb")
+    _, steps = stored_records(path, "low_rb", oracle)
     return episodes_in_boxes(steps["achieved_goal"][..., :2], steps["collector", "traj_ids"], boxes)
 
 
@@ -102,7 +115,10 @@ def main(argv: list[str] | None = None) -> tuple[EpisodeProgress, dict]:
         help="count the training episodes whose agent entered this box (repeatable; reads the low-level buffer)",
     )
     parser.add_argument("--per", type=int, default=100, help="with --box: episodes per row")
+    add_oracle_options(parser)
     args = parser.parse_args(argv)
+    oracle = oracle_overrides(parser, args)
+    bounds = None
     if args.box:
         try:
             bounds = torch.tensor([[float(v) for v in box[1:]] for box in args.box])
@@ -110,9 +126,17 @@ def main(argv: list[str] | None = None) -> tuple[EpisodeProgress, dict]:
             parser.error(f"--box NAME X0 X1 Y0 Y1: the bounds must be numbers ({err})")
         if args.per < 1:
             parser.error(f"--per must be >= 1, got {args.per}")
-        ids, inside = boxes_from_checkpoint(args.checkpoint, bounds)
+    try:
+        return _report(args, oracle, bounds)
+    except ConfigError as err:  # a recorded margin that closes the maze
+        parser.error(f"{err} Give the agent's radius with --oracle-margin.")
+
+
+def _report(args, oracle: dict, bounds: torch.Tensor | None) -> tuple[EpisodeProgress, dict]:
+    if bounds is not None:
+        ids, inside = boxes_from_checkpoint(args.checkpoint, bounds, oracle)
         print_box_counts([box[0] for box in args.box], ids, inside, args.per)
-    out, summary = exploration_from_checkpoint(args.checkpoint, episodes=args.episodes, near=args.near)
+    out, summary = exploration_from_checkpoint(args.checkpoint, episodes=args.episodes, near=args.near, oracle=oracle)
     if args.rows > 0:
         print(f"{'episode':>8} {'goal':>16} {'goal progress':>14} {'max progress':>13} {'end progress':>13}")
         for k in range(max(len(out.episode_ids) - args.rows, 0), len(out.episode_ids)):

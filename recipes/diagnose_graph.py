@@ -14,6 +14,11 @@ limits it?
     python recipes/diagnose_graph.py outputs/<date>/<time>            # the run directory
     python recipes/diagnose_graph.py run/checkpoint --no-rollout --pairs 12 --plot /tmp/scatter.png
     python recipes/diagnose_graph.py run --no-rollout --budgets 200:3000 300:6000 --draws 3
+    python recipes/diagnose_graph.py run --oracle-margin 0.125 --oracle-speed 0.0523   # the maze's agent radius and speed
+
+``--oracle-margin`` and ``--oracle-speed`` replace the run's recorded ``planner.oracle_margin`` and
+``planner.oracle_speed`` (the true geometry's agent radius and the true distances' goal units per step), e.g. for a
+gymnasium-robotics maze trained by 0.4.0 or earlier, which recorded the configuration's values.
 """
 
 from __future__ import annotations
@@ -23,7 +28,14 @@ import math
 from pathlib import Path
 
 import torch
-from dhrl_utils import agent_from_checkpoint, build_environment, build_replay_buffers, run_maze
+from dhrl_utils import (
+    add_oracle_options,
+    agent_from_checkpoint,
+    build_environment,
+    build_replay_buffers,
+    oracle_overrides,
+    run_maze,
+)
 
 from torchrl_dhrl.diagnostics import (
     GraphDiagnosis,
@@ -31,7 +43,7 @@ from torchrl_dhrl.diagnostics import (
     graph_diagnosis,
     landmark_budget_sweep,
 )
-from torchrl_dhrl.recipe import checkpoint_file, load_checkpoint, plot_distance_scatter
+from torchrl_dhrl.recipe import ConfigError, checkpoint_file, load_checkpoint, plot_distance_scatter
 
 
 def graph_diagnosis_from_checkpoint(
@@ -41,14 +53,18 @@ def graph_diagnosis_from_checkpoint(
     max_sources: int | None = 64,
     resolution: float | None = None,
     device: str | torch.device = "cpu",
+    oracle: dict | None = None,
 ) -> tuple[GraphDiagnosis, dict]:
     """:func:`~torchrl_dhrl.diagnostics.graph_diagnosis` of a recipe checkpoint's agent (rebuilt from its
     configuration, graph included) on its evaluation envs; returns the diagnosis and the configuration.
+
+    ``oracle``: ``planner`` keys (``oracle_margin``, ``oracle_speed``) in place of the run's recorded ones.
 
     Raises:
         ValueError: when the run's env is not a maze.
     """
     cfg, agent = agent_from_checkpoint(path, device)
+    cfg["planner"].update(oracle or {})
     env = build_environment(cfg, torch.device(device), eval=True, agent=agent)
     maze = run_maze(cfg, env)  # a built-in maze's geometry, or a gymnasium-robotics maze's from its map
     if maze is None:
@@ -65,11 +81,20 @@ def graph_diagnosis_from_checkpoint(
     return diagnosis, cfg
 
 
-def budget_table(path, budgets, *, draws: int = 3, seed: int = 0, device: str | torch.device = "cpu"):
+def budget_table(
+    path,
+    budgets,
+    *,
+    draws: int = 3,
+    seed: int = 0,
+    device: str | torch.device = "cpu",
+    oracle: dict | None = None,
+):
     """:func:`~torchrl_dhrl.diagnostics.landmark_budget_sweep` of a recipe checkpoint: its agent's learned
-    distance and its low-level buffer, the progress measured from the maze's start; returns the rows and the
-    buffer's progress."""
+    distance and its low-level buffer, the progress measured from the maze's start (walls grown by the run's
+    ``planner.oracle_margin``, or ``oracle``'s); returns the rows and the buffer's progress."""
     cfg, agent = agent_from_checkpoint(path, device)
+    cfg["planner"].update(oracle or {})
     low_rb, _ = build_replay_buffers(cfg, agent, torch.device(device))
     low_rb.load_state_dict(load_checkpoint(path, map_location=device, components=("low_rb",))["low_rb"])
     geometry = run_maze(cfg, build_environment(cfg, torch.device("cpu")))
@@ -144,15 +169,21 @@ def main(argv: list[str] | None = None):
         help="also rebuild the graph from the buffer with these landmark and candidate counts",
     )
     parser.add_argument("--draws", type=int, default=3, help="rebuilds per budget (--budgets)")
+    add_oracle_options(parser)
     parser.add_argument("--device", default="cpu")
     args = parser.parse_args(argv)
-    diagnosis, cfg = graph_diagnosis_from_checkpoint(
-        args.checkpoint,
-        rollout=not args.no_rollout,
-        max_sources=args.sources,
-        resolution=args.resolution,
-        device=args.device,
-    )
+    oracle = oracle_overrides(parser, args)
+    try:
+        diagnosis, cfg = graph_diagnosis_from_checkpoint(
+            args.checkpoint,
+            rollout=not args.no_rollout,
+            max_sources=args.sources,
+            resolution=args.resolution,
+            device=args.device,
+            oracle=oracle,
+        )
+    except ConfigError as err:  # a recorded margin that closes the maze
+        parser.error(f"{err} Give the agent's radius with --oracle-margin.")
     speed = cfg["planner"]["oracle_speed"]
     metrics = diagnosis.metrics
     print(f"{cfg['env_name']}: {metrics['graph/landmarks']} landmarks, {metrics['graph/edges']} edges")
@@ -206,7 +237,7 @@ def main(argv: list[str] | None = None):
     budgets = None
     if args.budgets:
         budgets, buffer_progress = budget_table(
-            args.checkpoint, args.budgets, draws=args.draws, device=args.device
+            args.checkpoint, args.budgets, draws=args.draws, device=args.device, oracle=oracle
         )
         print(
             f"\nGraphs rebuilt from the buffer ({args.draws} draws each): how far the landmarks reach along the maze "

@@ -10,6 +10,7 @@ import sys
 
 import pytest
 import torch
+import yaml
 from _recipe import RECIPES, load_recipe, recipe_config
 from torchrl_dhrl.envs.geometry import MazeGeometry
 
@@ -464,3 +465,17 @@ def test_the_scripts_read_a_gymnasium_maze_run(tmp_path, capsys):
     with pytest.raises(SystemExit):  # a start in a wall: one line
         load_recipe("diagnose_low_level").main([str(tmp_path), "--start", "-1", "0"])
     assert "lies in cell (2, 1), a wall, of PointMaze_UMaze-v3" in capsys.readouterr().err
+    # --oracle-margin in place of the run's recorded radius (0.125, derived from the U's 1-unit cells): 0.6 closes its
+    # corridors, so only the option can make the scripts refuse the run, in one line naming it
+    assert float(yaml.safe_load((tmp_path / "config.yaml").read_text())["planner"]["oracle_margin"]) == 0.125
+    for script, extra in (("diagnose_graph", ["--no-rollout", "--pairs", "0"]), ("diagnose_exploration", ["--rows", "0"])):
+        with pytest.raises(SystemExit):
+            load_recipe(script).main([str(tmp_path), *extra, "--oracle-margin", "0.6"])
+        err = capsys.readouterr().err
+        assert "planner.oracle_margin=0.6" in err and "Give the agent's radius with --oracle-margin." in err
+    # a smaller radius grows the walls less: no edge crosses the bare walls that does not cross the grown ones
+    cli = load_recipe("diagnose_graph")
+    recorded, _ = cli.graph_diagnosis_from_checkpoint(tmp_path, rollout=False)
+    bare, cfg = cli.graph_diagnosis_from_checkpoint(tmp_path, rollout=False, oracle={"oracle_margin": 0.0})
+    assert cfg["planner"]["oracle_margin"] == 0.0
+    assert bare.metrics["diag/edges_crossing_walls"] <= recorded.metrics["diag/edges_crossing_walls"]
