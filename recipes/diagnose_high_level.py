@@ -20,7 +20,7 @@ from dhrl_utils import agent_from_checkpoint, build_environment, run_maze
 from tensordict import TensorDict
 
 from torchrl_dhrl.diagnostics import landscape_summary, subgoal_box, subgoal_landscape, subgoal_values
-from torchrl_dhrl.recipe import load_checkpoint
+from torchrl_dhrl.recipe import agent_checkpoint_file, load_checkpoint
 from torchrl_dhrl.training import evaluate
 
 
@@ -57,8 +57,9 @@ def main(argv: list[str] | None = None) -> dict:
     if not 0 < args.top <= 1:
         parser.error(f"--top must be in (0, 1], got {args.top}")
     device = torch.device(args.device)
-    cfg, agent = agent_from_checkpoint(args.checkpoint, device)
-    steps = load_checkpoint(args.checkpoint, components=("counters",))["counters"]["env_steps"]
+    path = agent_checkpoint_file(args.checkpoint)  # the run's checkpoint, else its saved agent
+    cfg, agent = agent_from_checkpoint(path, device)
+    steps = load_checkpoint(path, components=("counters",))["counters"]["env_steps"]
     env = build_environment(cfg, device, eval=True, agent=agent)
     start = env.reset()
     observations, goals = (

@@ -6,6 +6,7 @@ and diagnose_graph.py (with the recipe's ``diag/`` columns)."""
 import csv
 import importlib.util
 import math
+import shutil
 import sys
 
 import pytest
@@ -443,6 +444,14 @@ def test_the_scripts_read_a_gymnasium_maze_run(tmp_path, capsys):
     report = load_recipe("diagnose_high_level").main([str(tmp_path), "--resolution", "0.5"])
     assert 0.0 < report["walls_share"] < 1.0  # the U's inner wall lies inside the subgoal box
     assert report["actor_in_wall"] == bool(walls.in_walls(report["actor_subgoal"][None])[0])
+    # a run kept as results keep it (the saved agent, no checkpoint): the same landscape
+    kept = tmp_path / "kept"
+    kept.mkdir()
+    shutil.copytree(tmp_path / "agent", kept / "agent")
+    shutil.copy(tmp_path / "config.yaml", kept / "config.yaml")
+    again = load_recipe("diagnose_high_level").main([str(kept), "--resolution", "0.5"])
+    assert again["walls_share"] == report["walls_share"]
+    assert torch.equal(torch.as_tensor(again["actor_subgoal"]), torch.as_tensor(report["actor_subgoal"]))
     out, summary = load_recipe("diagnose_exploration").main([str(tmp_path), "--episodes", "3", "--rows", "1"])
     farthest = walls.path_length(walls.start, walls.cell_centers[walls.free]).max().item()
     assert 0.0 < summary["explored"] <= farthest + 1e-6 and len(out.episode_ids) >= 1
