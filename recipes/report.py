@@ -83,6 +83,10 @@ class Entry:
         self.baseline = [read_run(self.folder / name) for name in baseline.get("runs", [])]
         self.compared: Entry | None = None  # the entry its `compare_to` names, set by read_entries
 
+    def first_successes(self, run: RunRecord) -> int:
+        """The successes of ``first_at`` of ``run``'s test episodes per evaluation, whole (0.8 of 10 is 8)."""
+        return math.ceil(self.first_at * eval_episodes(run) - 1e-9)
+
     def named_runs(self) -> list[tuple[str, RunRecord]]:
         """Every run of the entry, the baseline's after, with its folder's name."""
         names = [*self.spec["runs"], *(self.spec.get("baseline") or {}).get("runs", [])]
@@ -215,17 +219,16 @@ def folder_report(entry: Entry) -> str:
         lines += _points_table(entry, entry.baseline, entry.spec["baseline"]["runs"])
     if entry.compared is not None:
         lines += ["", *comparison_lines(entry, entry.compared)]
-    episodes = eval_episodes(entry.runs[0])
-    at_least = math.ceil(entry.first_at * episodes - 1e-9)  # whole episodes: 0.8 of 10 is 8
     lines += [
         "",
-        f"| run | last evaluation | first evaluation with >= {at_least} of {episodes} | final agent re-evaluated | "
+        f"| run | last evaluation | first evaluation with >= {entry.first_successes(entry.runs[0])} of "
+        f"{eval_episodes(entry.runs[0])} | final agent re-evaluated | "
         "code | machine | provenance |",
         "|---|---|---|---|---|---|---|",
     ]
     for name, run in entry.named_runs():
         prov = provenance_rows(run)
-        first = first_at_least(run, math.ceil(entry.first_at * eval_episodes(run) - 1e-9))
+        first = first_at_least(run, entry.first_successes(run))
         lines.append(
             f"| [{name}]({name}) | {steps_text(last_step(run))} | {steps_text(first) if first is not None else 'never'} | "
             f"{final_eval_text(run)} | {prov['code']} | {prov['machine']} | {prov['provenance']} |"
