@@ -144,7 +144,8 @@ def paper_text(entry: Entry) -> str:
 def machine_text(start: Mapping) -> str:
     machine = start.get("machine") or {}
     text = str(machine.get("cpu", "?"))
-    if machine.get("native_bfloat16") is not None and "(" not in text:  # what update_dtype=auto resolves by
+    says_it = "AVX" in text or "bfloat16" in text.lower()  # names reconstructed from the docs carry it
+    if machine.get("native_bfloat16") is not None and not says_it:  # what update_dtype=auto resolves by
         text += " (native bfloat16)" if machine["native_bfloat16"] else " (no native bfloat16)"
     if machine.get("cores"):
         text += f", {machine['cores']} cores"

@@ -202,3 +202,5 @@ def test_the_machine_column_says_whether_the_cpu_has_native_bfloat16():
     named = {"machine": {"cpu": "AMD EPYC (AVX2, no AVX512)", "cores": 2, "native_bfloat16": False}}
     assert report.machine_text(named) == "AMD EPYC (AVX2, no AVX512), 2 cores"
     assert report.machine_text({"machine": {"cpu": "Intel Xeon"}, "device": "cuda"}) == "Intel Xeon, cuda"
+    trademarked = {"machine": {"cpu": "Intel(R) Xeon(R) Processor", "cores": 2, "native_bfloat16": True}}
+    assert report.machine_text(trademarked) == "Intel(R) Xeon(R) Processor (native bfloat16), 2 cores"
