@@ -386,10 +386,12 @@ def runs_table(entries: Sequence[Entry], frm: Path) -> str:
         "|---|---|---|---|---|---|---|",
     ]
     for entry in entries:
-        for name, run in entry.named_runs():
+        # a baseline's run is named by its agent, as in the results table, not by DHRL's configuration
+        configurations = [f"`{entry.spec['configuration']}`"] * len(entry.runs) + [entry.baseline_name] * len(entry.baseline)
+        for (name, run), configuration in zip(entry.named_runs(), configurations, strict=True):
             prov = provenance_rows(run)
             lines.append(
-                f"| {entry.task} | `{entry.spec['configuration']}` | [{entry.spec['folder']}/{name}]({_rel(frm, run.path)}) | "
+                f"| {entry.task} | {configuration} | [{entry.spec['folder']}/{name}]({_rel(frm, run.path)}) | "
                 f"{steps_text(last_step(run))} | {prov['code']} | {prov['machine']} | {prov['provenance']} |"
             )
     return "\n".join(lines)

@@ -78,9 +78,28 @@ def test_a_baseline_runs_final_evaluation_is_reported(tmp_path):
     shutil.copytree(ROOT / "results", tmp_path / "results")
     sac = tmp_path / "results" / "pointmaze_umaze_dhrl_vs_sac" / "sac_s1"
     (sac / "final_eval.yaml").write_text(yaml.safe_dump({"env_steps": 30000, "episodes": 100, "successes": 87}))
-    table = report.render(tmp_path)[tmp_path / "docs" / "results.md"]
+    doc = report.render(tmp_path)[tmp_path / "docs" / "results.md"]
+    table = doc.split("<!-- report:results -->")[1].split("<!-- /report:results -->")[0]
     rows = [line for line in table.splitlines() if line.startswith("| gymnasium:PointMaze_UMaze-v3 | SAC + HER")]
     assert rows and all("| agent not kept, 87/100 (87.0%) at 30k, agent not kept |" in row for row in rows)
+
+
+def test_the_runs_table_names_a_baseline_run_by_its_agent():
+    """docs/results.md's provenance table: a DHRL run's row holds its entry's configuration, a baseline run's the
+    baseline's name (it did not run that configuration)."""
+    entries = report.read_entries(ROOT)
+    table = report.runs_table(entries, ROOT / "docs")
+    checked = 0
+    for entry in (e for e in entries if e.baseline):
+        for name, _ in entry.named_runs():
+            row = next(line for line in table.splitlines() if f"[{entry.spec['folder']}/{name}](" in line)
+            configuration = row.split(" | ")[1]
+            if name in entry.spec["baseline"]["runs"]:
+                assert configuration == entry.baseline_name, row
+                checked += 1
+            else:
+                assert configuration == f"`{entry.spec['configuration']}`", row
+    assert checked >= 2
 
 
 def test_the_provenance_column_says_what_was_reconstructed_and_from_what():
