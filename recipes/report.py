@@ -386,9 +386,10 @@ def runs_table(entries: Sequence[Entry], frm: Path) -> str:
         "|---|---|---|---|---|---|---|",
     ]
     for entry in entries:
-        # a baseline's run is named by its agent, as in the results table, not by DHRL's configuration
-        configurations = [f"`{entry.spec['configuration']}`"] * len(entry.runs) + [entry.baseline_name] * len(entry.baseline)
-        for (name, run), configuration in zip(entry.named_runs(), configurations, strict=True):
+        baseline = (entry.spec.get("baseline") or {}).get("runs", [])
+        for name, run in entry.named_runs():
+            # a baseline's run is named by its agent, as in the results table, not by DHRL's configuration
+            configuration = entry.baseline_name if name in baseline else f"`{entry.spec['configuration']}`"
             prov = provenance_rows(run)
             lines.append(
                 f"| {entry.task} | {configuration} | [{entry.spec['folder']}/{name}]({_rel(frm, run.path)}) | "
