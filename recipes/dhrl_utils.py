@@ -52,13 +52,14 @@ from torchrl_dhrl.recipe import (
     resolve_speed,
     run_precisions,
     start_run,
+    upside_down_steps,
     validate_config,
     validate_env_name,
     with_changes,
     with_implied_keys,
 )
 from torchrl_dhrl.recipe.routing import TARGETS, check_components, component_arguments
-from torchrl_dhrl.training import LossUpdater, available_cpus
+from torchrl_dhrl.training import LossUpdater, available_cpus, evaluate
 
 #: The configuration directory; ``config.yaml`` there is the schema of every configuration key.
 CONFIG_DIR = Path(__file__).resolve().parent / "config"
@@ -215,6 +216,22 @@ def seed_everything(seed: int, *envs) -> None:
     random.seed(seed)
     for env in envs:
         env.set_seed(seed)
+
+
+def episode_outcomes(
+    env, policy, batches: int, seed: int, upside_down=None
+) -> tuple[torch.Tensor, torch.Tensor | None]:
+    """Final-state success of each of ``batches`` batches of deterministic episodes (bool, batch after batch),
+    batch k seeded with ``seed + k``, and, with an ``upside_down`` test (:func:`upside_down_test`), whether each
+    ended with the agent upside down (else ``None``)."""
+    successes, flipped = [], []
+    for k in range(batches):
+        seed_everything(seed + k, env)
+        rollout = evaluate(env, policy, env.max_episode_steps).rollout
+        successes.append(rollout["next", "is_success"].reshape(*rollout.shape, -1).any(-1)[..., -1].reshape(-1).cpu())
+        if upside_down is not None:
+            flipped.append(upside_down_steps(rollout, upside_down)[..., -1].reshape(-1).cpu())
+    return torch.cat(successes), torch.cat(flipped) if flipped else None
 
 
 def resumed_run_dir(cfg: DictConfig | dict) -> Path | None:

@@ -32,7 +32,7 @@ from pathlib import Path
 
 import torch
 import yaml
-from dhrl_utils import agent_from_checkpoint, build_environment, seed_everything, upside_down_test
+from dhrl_utils import agent_from_checkpoint, build_environment, episode_outcomes, upside_down_test
 
 from torchrl_dhrl.recipe import (
     ConfigError,
@@ -40,31 +40,14 @@ from torchrl_dhrl.recipe import (
     code_and_machine,
     load_checkpoint,
     paired_comparison,
-    upside_down_steps,
     write_yaml,
 )
-from torchrl_dhrl.training import evaluate, goal_as_waypoint
+from torchrl_dhrl.training import goal_as_waypoint
 
 #: The default record's name, in the run directory.
 FINAL_EVAL_NAME = "final_eval.yaml"
 #: The default record's name with ``--variant``.
 VARIANTS_EVAL_NAME = "variants_eval.yaml"
-
-
-def episode_outcomes(
-    env, policy, batches: int, seed: int, upside_down=None
-) -> tuple[torch.Tensor, torch.Tensor | None]:
-    """Final-state success of each of ``batches`` batches of deterministic episodes (bool, batch after batch),
-    batch k seeded with ``seed + k``, and, with an ``upside_down`` test (:func:`upside_down_test`), whether each
-    ended with the agent upside down (else ``None``)."""
-    successes, flipped = [], []
-    for k in range(batches):
-        seed_everything(seed + k, env)
-        rollout = evaluate(env, policy, env.max_episode_steps).rollout
-        successes.append(rollout["next", "is_success"].reshape(*rollout.shape, -1).any(-1)[..., -1].reshape(-1).cpu())
-        if upside_down is not None:
-            flipped.append(upside_down_steps(rollout, upside_down)[..., -1].reshape(-1).cpu())
-    return torch.cat(successes), torch.cat(flipped) if flipped else None
 
 
 def parse_changes(items: list[str]) -> dict:
