@@ -14,9 +14,10 @@ An agent is a DHRL run directory, its saved agent (``agent/``) or a checkpoint o
 with seed ``--seed`` + i, as its ``final_eval.yaml``). Every agent must be on the same env id and maze.
 
 Writes ``<out>.csv`` (a row per agent and goal cell: ``agent``, ``kind``, ``goal_row``, ``goal_col``,
-``distance``, ``episodes``, ``successes``), ``<out>.md`` (success per band of distances, per agent and per kind
-over its agents, with the command, code and machine) and ``<out>.png`` (success against distance, a thin line per
-agent and a thick one per kind).
+``distance``, ``episodes``, ``successes``, with the start cell), ``<out>.md`` (success per band of distances, per
+agent and per kind over its agents, with the command, code and machine), ``<out>.png`` (success against distance, a
+thin line per agent and a thick one per kind) and ``<out>_cells.png`` (the maze from above, each goal cell
+coloured by its success, a panel per kind).
 """
 
 from __future__ import annotations
@@ -34,6 +35,7 @@ from collections import deque
 from collections.abc import Sequence
 from pathlib import Path
 
+import matplotlib
 import numpy as np
 import torch
 from dhrl_utils import agent_from_checkpoint, build_environment, episode_outcomes, print_table
@@ -46,7 +48,7 @@ from torchrl_dhrl.recipe import agent_checkpoint_file, code_and_machine
 SAC_SCRIPT = Path(__file__).resolve().parents[1] / "benchmarks" / "sac_her_baseline.py"
 #: The agent kinds, as the table and figure name them.
 DHRL, SAC_HER = "DHRL", "SAC + HER"
-CSV_FIELDS = ("agent", "kind", "goal_row", "goal_col", "distance", "episodes", "successes")
+CSV_FIELDS = ("agent", "kind", "start_row", "start_col", "goal_row", "goal_col", "distance", "episodes", "successes")
 
 
 def free_cell(value) -> bool:
@@ -144,6 +146,44 @@ def plot_goal_distance(rows: list[dict], path: str | Path, title: str) -> Path:
     ax.set_title(title, fontsize=10)
     fig.tight_layout()
     fig.savefig(path, dpi=120)
+    return Path(path)
+
+
+def cell_success(rows: list[dict], kind: str) -> np.ndarray:
+    """The maze's cells (``[rows, cols]``, the map's outer walls included) holding each goal cell's success for the
+    agents of ``kind``, their episodes pooled; ``NaN`` where no goal was tested (walls, the start)."""
+    grid = np.full((max(int(r["goal_row"]) for r in rows) + 2, max(int(r["goal_col"]) for r in rows) + 2), np.nan)
+    mine = [r for r in rows if r["kind"] == kind]
+    for cell in {(int(r["goal_row"]), int(r["goal_col"])) for r in mine}:
+        at = [r for r in mine if (int(r["goal_row"]), int(r["goal_col"])) == cell]
+        grid[cell] = sum(int(r["successes"]) for r in at) / sum(int(r["episodes"]) for r in at)
+    return grid
+
+
+def plot_cells(rows: list[dict], path: str | Path, title: str) -> Path:
+    """The maze seen from above, a panel per kind: each goal cell coloured and labelled with its success (the
+    kind's agents pooled), the start marked ``S``, cells without a goal grey."""
+    kinds = list(dict.fromkeys(row["kind"] for row in rows))
+    start = (int(rows[0]["start_row"]), int(rows[0]["start_col"]))
+    grids = [cell_success(rows, kind) for kind in kinds]
+    height, width = grids[0].shape
+    fig = Figure(figsize=(0.36 * width * len(kinds) + 1.6, 0.36 * height + 0.9), layout="constrained")
+    axes = fig.subplots(1, len(kinds), squeeze=False)[0]
+    cmap = matplotlib.colormaps["viridis"].with_extremes(bad="0.55")
+    for ax, kind, grid in zip(axes, kinds, grids, strict=True):
+        image = ax.imshow(grid, cmap=cmap, vmin=0.0, vmax=1.0)
+        for (row, col), value in np.ndenumerate(grid):
+            if not np.isnan(value):
+                ax.text(col, row, f"{100 * value:.0f}", ha="center", va="center", fontsize=7,
+                        color="black" if value > 0.5 else "white")
+        ax.text(start[1], start[0], "S", ha="center", va="center", fontsize=9, fontweight="bold", color="white")
+        agents = len({r["agent"] for r in rows if r["kind"] == kind})
+        ax.set_title(f"{kind} ({agents} agent{'s' if agents > 1 else ''})", fontsize=10)
+        ax.set_xticks([])
+        ax.set_yticks([])
+    fig.colorbar(image, ax=list(axes), shrink=0.8, label="test success (%)", format=lambda v, _: f"{100 * v:.0f}")
+    fig.suptitle(title, fontsize=10)
+    fig.savefig(path, dpi=120, bbox_inches="tight")
     return Path(path)
 
 
@@ -264,7 +304,7 @@ def main(argv: list[str] | None = None) -> list[dict]:
             parser.error("--from-csv tests no agent: give either agents or --from-csv")
         rows = read_rows(args.from_csv)
         header = f"Redrawn from {args.from_csv} by `{command}`.\n\n"
-        title = Path(args.from_csv).stem
+        where = Path(args.from_csv).stem
     else:
         if not args.agents or args.start is None:
             parser.error("give the agents and --start ROW COL (or --from-csv)")
@@ -289,6 +329,8 @@ def main(argv: list[str] | None = None) -> list[dict]:
                 rows.append({
                     "agent": str(path),
                     "kind": agent.kind,
+                    "start_row": args.start[0],
+                    "start_col": args.start[1],
                     "goal_row": goal[0],
                     "goal_col": goal[1],
                     "distance": distances[goal],
@@ -310,9 +352,11 @@ def main(argv: list[str] | None = None) -> list[dict]:
             f"{record['machine']['cpu']}, {datetime.datetime.now(datetime.timezone.utc):%Y-%m-%d}, "
             f"{round(time.perf_counter() - start_time)} s.\n\n"
         )
-        title = f"{env_id}: success against the goal's distance from cell ({args.start[0]}, {args.start[1]})"
+        where = env_id
     print_table(header + band_table(rows, args.band), out.with_suffix(".md"))
-    plot_goal_distance(rows, out.with_suffix(".png"), title)
+    where += f" from cell ({rows[0]['start_row']}, {rows[0]['start_col']})"
+    plot_goal_distance(rows, out.with_suffix(".png"), f"{where}: success against the goal's distance")
+    plot_cells(rows, out.parent / f"{out.name}_cells.png", f"{where}: success per goal cell")
     return rows
 
 

@@ -85,6 +85,21 @@ def test_the_band_table_pools_episodes_per_agent_and_averages_agents_per_kind():
         assert cols[4:] == [f"{100 * pooled(a):.0f}%" for a in ("a/dhrl_s0", "a/dhrl_s1", "a/sac_s0")]
 
 
+def test_each_goal_cell_holds_its_kinds_pooled_success_and_the_rest_is_empty():
+    rows = [  # two DHRL agents with unequal episodes on (1, 2), one SAC + HER agent; (2, 1) tested by DHRL only
+        {"agent": "d0", "kind": "DHRL", "goal_row": 1, "goal_col": 2, "episodes": 10, "successes": 10},
+        {"agent": "d1", "kind": "DHRL", "goal_row": 1, "goal_col": 2, "episodes": 30, "successes": 0},
+        {"agent": "d0", "kind": "DHRL", "goal_row": 2, "goal_col": 1, "episodes": 10, "successes": 3},
+        {"agent": "s0", "kind": "SAC + HER", "goal_row": 1, "goal_col": 2, "episodes": 10, "successes": 7},
+    ]
+    dhrl = goal_distance.cell_success([{k: str(v) for k, v in r.items()} for r in rows], "DHRL")
+    assert dhrl.shape == (4, 4)  # the outer walls around rows 1-2 and columns 1-2
+    assert dhrl[1, 2] == pytest.approx(10 / 40) and dhrl[2, 1] == pytest.approx(0.3)
+    assert np.isnan(np.delete(dhrl.reshape(-1), [1 * 4 + 2, 2 * 4 + 1])).all()
+    sac = goal_distance.cell_success(rows, "SAC + HER")
+    assert sac[1, 2] == pytest.approx(0.7) and np.isnan(sac[2, 1])
+
+
 @pytest.fixture(scope="module")
 def agents(tmp_path_factory):
     """A smoke-trained DHRL run and a short SAC + HER run on PointMaze_UMaze-v3, both started in cell (3, 1)."""
@@ -151,7 +166,8 @@ def test_every_goal_cell_is_tested_and_reaches_the_env(agents, tmp_path, monkeyp
             assert cells == {goal}, (kind, goal, positions)
     with (out.with_suffix(".csv")).open() as file:
         assert [{k: str(v) for k, v in r.items()} for r in rows] == list(csv.DictReader(file))
-    assert out.with_suffix(".png").is_file()
+    assert out.with_suffix(".png").is_file() and (tmp_path / "umaze_cells.png").is_file()
+    assert {(r["start_row"], r["start_col"]) for r in rows} == {(3, 1)}
     table = out.with_suffix(".md").read_text()
     assert "PointMaze_UMaze-v3, start cell (3, 1), 6 goal cells, 2 deterministic test episodes" in table
     # the table again from the CSV alone, no episode run
