@@ -89,6 +89,12 @@ def distance_bands(max_distance: int, width: int) -> list[tuple[int, int]]:
     return [(low, min(low + width - 1, max_distance)) for low in range(1, max_distance + 1, width)]
 
 
+def pooled_success(rows: list[dict]) -> float:
+    """The success of ``rows``' episodes pooled (successes over episodes; ``NaN`` without an episode)."""
+    episodes = sum(int(r["episodes"]) for r in rows)
+    return sum(int(r["successes"]) for r in rows) / episodes if episodes else math.nan
+
+
 def band_table(rows: list[dict], width: int) -> str:
     """The markdown table of success per distance band: a column per agent (its episodes pooled over the band's
     goal cells) and per kind (the mean over its agents, ± their standard deviation)."""
@@ -97,17 +103,13 @@ def band_table(rows: list[dict], width: int) -> str:
     kind_of = {row["agent"]: row["kind"] for row in rows}
     bands = distance_bands(max(int(row["distance"]) for row in rows), width)
 
-    def success(agent, band):
-        inside = [r for r in rows if r["agent"] == agent and band[0] <= int(r["distance"]) <= band[1]]
-        episodes = sum(int(r["episodes"]) for r in inside)
-        return sum(int(r["successes"]) for r in inside) / episodes if episodes else math.nan
-
     names = [Path(agent).name if Path(agent).name not in ("agent", "checkpoint") else agent for agent in agents]
     header = ["goal distance (cells)", "goal cells", *[f"{kind}, mean ± std" for kind in kinds], *names]
     lines = ["| " + " | ".join(header) + " |", "|" + "---|" * len(header)]
     for band in bands:
-        cells = {(r["goal_row"], r["goal_col"]) for r in rows if band[0] <= int(r["distance"]) <= band[1]}
-        per_agent = {agent: success(agent, band) for agent in agents}
+        inside = [r for r in rows if band[0] <= int(r["distance"]) <= band[1]]
+        cells = {(r["goal_row"], r["goal_col"]) for r in inside}
+        per_agent = {agent: pooled_success([r for r in inside if r["agent"] == agent]) for agent in agents}
         summaries = []
         for kind in kinds:
             values = np.array([per_agent[a] for a in agents if kind_of[a] == kind])
@@ -155,8 +157,7 @@ def cell_success(rows: list[dict], kind: str) -> np.ndarray:
     grid = np.full((max(int(r["goal_row"]) for r in rows) + 2, max(int(r["goal_col"]) for r in rows) + 2), np.nan)
     mine = [r for r in rows if r["kind"] == kind]
     for cell in {(int(r["goal_row"]), int(r["goal_col"])) for r in mine}:
-        at = [r for r in mine if (int(r["goal_row"]), int(r["goal_col"])) == cell]
-        grid[cell] = sum(int(r["successes"]) for r in at) / sum(int(r["episodes"]) for r in at)
+        grid[cell] = pooled_success([r for r in mine if (int(r["goal_row"]), int(r["goal_col"])) == cell])
     return grid
 
 
@@ -190,11 +191,7 @@ def plot_cells(rows: list[dict], path: str | Path, title: str) -> Path:
 def per_distance(rows: list[dict]) -> tuple[np.ndarray, np.ndarray]:
     """One agent's success at each distance (its episodes pooled over the goal cells at that distance)."""
     distances = sorted({int(r["distance"]) for r in rows})
-    success = [
-        sum(int(r["successes"]) for r in rows if int(r["distance"]) == d)
-        / sum(int(r["episodes"]) for r in rows if int(r["distance"]) == d)
-        for d in distances
-    ]
+    success = [pooled_success([r for r in rows if int(r["distance"]) == d]) for d in distances]
     return np.array(distances), np.array(success)
 
 
@@ -222,11 +219,12 @@ class SacAgent:
         env = self.baseline._env(self.env_id, self.config.get("reset_options"), self.make_kwargs)
         self.model = SAC.load(folder / "model.zip", env=env, device="cpu")  # HER's buffer class wants the env
 
-    def successes(self, start, goal, episodes: int, seed: int) -> int:
+    def successes(self, start, goal, episodes: int, seed: int) -> tuple[int, int]:
+        """Successes and episodes from ``start`` to ``goal`` (episode i reset with seed ``seed`` + i)."""
         env = self.baseline._env(self.env_id, {"reset_cell": list(start), "goal_cell": list(goal)}, self.make_kwargs)
         final, _ = self.baseline.episode_successes(self.model, env, episodes, [seed + i for i in range(episodes)])
         env.close()
-        return int(sum(final))
+        return int(sum(final)), episodes
 
 
 class DhrlAgent:
@@ -246,14 +244,16 @@ class DhrlAgent:
             )
         self.make_kwargs = dict(self.cfg["gymnasium"].get("make_kwargs") or {})
 
-    def successes(self, start, goal, episodes: int, seed: int) -> int:
+    def successes(self, start, goal, episodes: int, seed: int) -> tuple[int, int]:
+        """Successes and episodes from ``start`` to ``goal``: at least ``episodes``, in whole batches of the run's
+        test envs (batch k seeded with ``seed`` + k)."""
         cfg = copy.deepcopy(self.cfg)
         cfg["gymnasium"]["eval_reset_options"] = {"reset_cell": list(start), "goal_cell": list(goal)}
         env = build_environment(cfg, self.device, eval=True, agent=self.agent)
         batches = math.ceil(episodes / env.batch_size.numel())
         outcome, _ = episode_outcomes(env, self.agent.policy, batches, seed)
         env.close()
-        return int(outcome.sum())
+        return int(outcome.sum()), outcome.numel()
 
 
 def load_agent(path: str | Path, device: torch.device):
@@ -322,10 +322,7 @@ def main(argv: list[str] | None = None) -> list[dict]:
         rows = []
         for path, agent in zip(args.agents, agents, strict=True):
             for goal in goals:
-                episodes = args.episodes
-                if agent.kind == DHRL:  # whole batches of the run's test envs
-                    batch = agent.cfg["schedule"]["eval_episodes"]
-                    episodes = math.ceil(args.episodes / batch) * batch
+                successes, episodes = agent.successes(args.start, goal, args.episodes, args.seed)
                 rows.append({
                     "agent": str(path),
                     "kind": agent.kind,
@@ -335,7 +332,7 @@ def main(argv: list[str] | None = None) -> list[dict]:
                     "goal_col": goal[1],
                     "distance": distances[goal],
                     "episodes": episodes,
-                    "successes": agent.successes(args.start, goal, args.episodes, args.seed),
+                    "successes": successes,
                 })
             mine = [r for r in rows if r["agent"] == str(path)]
             print(f"{path}: {sum(r['successes'] for r in mine)}/{sum(r['episodes'] for r in mine)} test episodes "
