@@ -113,7 +113,8 @@ def band_table(rows: list[dict], width: int) -> str:
         summaries = []
         for kind in kinds:
             values = np.array([per_agent[a] for a in agents if kind_of[a] == kind])
-            summaries.append(f"{100 * values.mean():.1f}% ± {100 * values.std(ddof=1) if len(values) > 1 else 0:.1f}")
+            spread = f" ± {100 * values.std(ddof=1):.1f}" if len(values) > 1 else ""  # no spread over one agent
+            summaries.append(f"{100 * values.mean():.1f}%{spread}")
         label = f"{band[0]}" if band[0] == band[1] else f"{band[0]}-{band[1]}"
         lines.append(
             "| " + " | ".join([label, str(len(cells)), *summaries, *(f"{100 * per_agent[a]:.0f}%" for a in agents)])
