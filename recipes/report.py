@@ -8,7 +8,8 @@ committed runs, under the protocol of docs/results.md (:mod:`torchrl_dhrl.recipe
 The entries come from ``results/index.yaml`` (a folder of seeds per task and configuration); every figure
 comes from a run's ``metrics.csv``, ``config.yaml``, ``provenance.yaml`` and, where its agent was kept,
 ``final_eval.yaml`` (``recipes/evaluate.py``). In README.md and docs/results.md the tables sit between
-``<!-- report:NAME -->`` and ``<!-- /report:NAME -->``; the text around them is not touched.
+``<!-- report:NAME -->`` and ``<!-- /report:NAME -->``; the text around them is not touched. README's
+``against-flat`` table is also rendered into any other ``docs/*.md`` page that holds its block.
 """
 
 from __future__ import annotations
@@ -499,6 +500,10 @@ def render(root: Path = ROOT) -> dict[Path, str]:
     results = root / "docs" / "results.md"
     text = replace_block(results.read_text(), "results", results_table(entries, results.parent), results)
     out[results] = replace_block(text, "runs", runs_table(entries, results.parent), results)
+    for page in sorted((root / "docs").glob("*.md")):  # pages that quote the against-flat table
+        text = page.read_text()
+        if page != results and "<!-- report:against-flat -->" in text:
+            out[page] = replace_block(text, "against-flat", against_flat_table(entries, page.parent), page)
     return out
 
 

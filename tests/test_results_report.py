@@ -223,3 +223,24 @@ def test_the_machine_column_says_whether_the_cpu_has_native_bfloat16():
     assert report.machine_text({"machine": {"cpu": "Intel Xeon"}, "device": "cuda"}) == "Intel Xeon, cuda"
     trademarked = {"machine": {"cpu": "Intel(R) Xeon(R) Processor", "cores": 2, "native_bfloat16": True}}
     assert report.machine_text(trademarked) == "Intel(R) Xeon(R) Processor (native bfloat16), 2 cores"
+
+
+def test_a_docs_page_holding_the_against_flat_block_gets_readmes_table_with_its_own_links(tmp_path):
+    """README's against-flat table, rendered into a ``docs/*.md`` page that holds its block (docs/goal_env.md), with
+    the links relative to that page; a page without the block is left out."""
+    (tmp_path / "docs").mkdir()
+    shutil.copy(ROOT / "README.md", tmp_path / "README.md")
+    shutil.copy(ROOT / "docs" / "results.md", tmp_path / "docs" / "results.md")
+    shutil.copytree(ROOT / "results", tmp_path / "results")
+    (tmp_path / "docs" / "page.md").write_text("# A page\n\n<!-- report:against-flat -->\nold\n<!-- /report:against-flat -->\n")
+    (tmp_path / "docs" / "other.md").write_text("# No block\n")
+    out = report.render(tmp_path)
+    assert tmp_path / "docs" / "other.md" not in out
+
+    def block(text):
+        return text.split("<!-- report:against-flat -->\n")[1].split("<!-- /report:against-flat -->")[0]
+
+    page, readme = block(out[tmp_path / "docs" / "page.md"]), block(out[tmp_path / "README.md"])
+    assert "old" not in page and "](results/" in readme
+    assert page == readme.replace("](results/", "](../results/")
+    assert out[tmp_path / "docs" / "page.md"].startswith("# A page\n\n")
