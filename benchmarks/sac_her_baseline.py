@@ -13,7 +13,9 @@ by default they are the training ones. At the end the final model (``<out>/model
 ``--final-episodes`` deterministic test episodes, episode ``i`` reset with seed ``--final-seed + i``, and
 ``<out>/final_eval.yaml`` records them as ``recipes/evaluate.py`` records a DHRL agent's (``episodes``,
 ``successes``, ``success``, the code, versions and machine); ``--evaluate-only`` does that again for a finished run.
-``<out>/provenance.yaml`` holds one entry per start (command, code, versions, machine).
+``--right-flipped-after K`` (gymnasium-robotics' ant mazes) puts a flipped ant back on its feet after ``K`` steps
+upside down in training and test episodes alike, as the recipe's ``right_flipped_after=K``
+(:class:`~torchrl_dhrl.envs.RightFlippedAnt`). ``<out>/provenance.yaml`` holds one entry per start (command, code, versions, machine).
 
 Long runs: the model and its HER buffer are checkpointed every ``--checkpoint-every`` evaluations, at the end and
 on SIGTERM or Ctrl-C (at the next episode's end, then exit 130), to ``<out>/checkpoint/`` (staged, then renamed into
@@ -45,7 +47,7 @@ from torchrl_dhrl.recipe import code_and_machine, write_csv, write_yaml
 CHECKPOINT = "checkpoint"
 
 
-def _env(env_id: str, options: dict | None, make_kwargs: dict):
+def _env(env_id: str, options: dict | None, make_kwargs: dict, right_flipped_after: int | None = None):
     import gymnasium as gym
 
     try:
@@ -62,7 +64,12 @@ def _env(env_id: str, options: dict | None, make_kwargs: dict):
             return self.env.reset(seed=seed, options=options if options is not None else ResetOptions.options)
 
     ResetOptions.options = {k: np.asarray(v) for k, v in (options or {}).items()} or None
-    return ResetOptions(gym.make(env_id, **make_kwargs))
+    env = ResetOptions(gym.make(env_id, **make_kwargs))
+    if right_flipped_after is not None:  # the recipe's right_flipped_after, the same righting
+        from torchrl_dhrl.envs import RightFlippedAnt
+
+        env = RightFlippedAnt(env, right_flipped_after)
+    return env
 
 
 def episode_successes(model, env, episodes: int, seeds=None) -> tuple[list[bool], list[bool]]:
@@ -126,7 +133,7 @@ def recover_checkpoint(out: Path) -> None:
 
 def final_evaluation(model, args, command: str, env_steps: int) -> dict:
     """``--final-episodes`` test episodes of the model, written to ``<out>/final_eval.yaml``."""
-    env = _env(args.env_id, args.eval_reset_options, args.make_kwargs)
+    env = _env(args.env_id, args.eval_reset_options, args.make_kwargs, args.right_flipped_after)
     start = time.perf_counter()
     seeds = [args.final_seed + i for i in range(args.final_episodes)]
     final, anytime = episode_successes(model, env, args.final_episodes, seeds)
@@ -141,6 +148,7 @@ def final_evaluation(model, args, command: str, env_steps: int) -> dict:
         "seed": args.final_seed,
         "episode_length": env.spec.max_episode_steps,
         "reset_options": args.eval_reset_options,
+        "right_flipped_after": args.right_flipped_after,
         "command": command,
         **_machine(),
         "date": datetime.datetime.now(datetime.timezone.utc).isoformat(timespec="seconds"),
@@ -166,6 +174,13 @@ def main(argv: list[str] | None = None) -> Path:
         "--eval-reset-options", type=json.loads, default=None, help="JSON, the test episodes' (default: the training's)"
     )
     parser.add_argument("--make-kwargs", type=json.loads, default={})
+    parser.add_argument(
+        "--right-flipped-after",
+        type=int,
+        default=None,
+        help="ant mazes: right a flipped ant after this many steps upside down, training and test episodes alike "
+        "(the recipe's right_flipped_after; default: never, as the env)",
+    )
     parser.add_argument("--learning-starts", type=int, default=1_000)
     parser.add_argument("--final-episodes", type=int, default=100, help="test episodes of the final model")
     parser.add_argument("--final-seed", type=int, default=0, help="final test episode i is reset with this + i")
@@ -183,12 +198,12 @@ def main(argv: list[str] | None = None) -> Path:
 
     torch.set_num_threads(1)
     if args.evaluate_only:
-        env = _env(args.env_id, args.reset_options, args.make_kwargs)  # HER's buffer class wants it to load
+        env = _env(args.env_id, args.reset_options, args.make_kwargs, args.right_flipped_after)  # HER's buffer class wants it to load
         model = SAC.load(args.out / "model.zip", env=env, device="cpu")
         steps = json.loads((args.out / CHECKPOINT / "state.json").read_text())["env_steps"]
         final_evaluation(model, args, command, steps)
         return args.out / "final_eval.yaml"
-    env = _env(args.env_id, args.reset_options, args.make_kwargs)
+    env = _env(args.env_id, args.reset_options, args.make_kwargs, args.right_flipped_after)
     episode = env.spec.max_episode_steps
     if not episode or args.eval_every % episode or args.steps % episode:
         parser.error(
@@ -207,7 +222,7 @@ def main(argv: list[str] | None = None) -> Path:
     if not args.resume and checkpoint.exists():
         parser.error(f"{args.out} already holds a checkpoint; continue it with --resume, or give another --out.")
     args.out.mkdir(parents=True, exist_ok=True)
-    eval_env = _env(args.env_id, args.eval_reset_options, args.make_kwargs)
+    eval_env = _env(args.env_id, args.eval_reset_options, args.make_kwargs, args.right_flipped_after)
     eval_env.reset(seed=args.seed + 10_000)
     if args.resume:
         model = SAC.load(checkpoint / "model.zip", env=env, device="cpu")

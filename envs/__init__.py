@@ -32,10 +32,12 @@ from .gym_env import GymGoalEnv, register_gym_envs
 from .gymnasium_goal_env import (
     GYMNASIUM_PREFIX,
     GymnasiumGoalEnv,
+    RightFlippedAnt,
     goal_extent,
     goal_indices_of,
     goal_speed,
     gymnasium_id,
+    is_gymnasium_ant_maze,
 )
 from .layouts import COMPLEX_MAZE, U_MAZE, MazeLayout, WallBox, bottleneck_walls
 from .mazes import MAZE_NAMES, MAZES, MazeSpec, build_maze_mjcf, compile_maze_model, get_maze_spec
@@ -97,8 +99,10 @@ __all__ = [
     "GYM_IDS",
     "GymGoalEnv",
     "gymnasium_id",
+    "is_gymnasium_ant_maze",
     "GYMNASIUM_PREFIX",
     "GymnasiumGoalEnv",
+    "RightFlippedAnt",
     "lookup_spec",
     "make_env",
     "MAZE_NAMES",

@@ -22,12 +22,41 @@ with warnings.catch_warnings():
     warnings.filterwarnings("ignore", message=".*DISPLAY.*")
     from dm_control import mjcf
 
-__all__ = ["AntAgent", "PointAgent", "MazeAgent", "MotorControl"]
+__all__ = ["AntAgent", "PointAgent", "MazeAgent", "MotorControl", "upright_pose"]
 
 # Collision bits. Agent geoms carry ``contype=AGENT_CONTYPE, conaffinity=0`` so that two agent geoms never
 # collide (``(c1.contype & c2.conaffinity) | (c2.contype & c1.conaffinity) == 0``), while walls (and the
 # floor, for agents that touch it) carry ``conaffinity=AGENT_CONTYPE`` so that agents collide with them.
 AGENT_CONTYPE = 1
+
+
+def upright_pose(qpos: np.ndarray, rest_qpos: np.ndarray) -> np.ndarray:
+    """A free-floating body's rest pose ``rest_qpos`` moved to the (x, y) of ``qpos`` and turned to its heading.
+
+    ``qpos[..., :7]`` is the root's position and quaternion ``(w, x, y, z)``; the heading is the yaw of the root's
+    x axis projected on the floor (``0`` when that axis is vertical). Every other entry (height, joints) is
+    ``rest_qpos``'s. Used to right a flipped ant (:meth:`AntAgent.upright_qpos`, and gymnasium-robotics' ant
+    mazes in :class:`~torchrl_dhrl.envs.GymnasiumGoalEnv`).
+
+    Examples:
+        >>> import numpy as np
+        >>> flipped = np.zeros(15)
+        >>> flipped[:3] = (2.0, 3.0, 0.3)
+        >>> flipped[3:7] = (0.0, 0.0, 1.0, 0.0)  # half a turn about y: upside down, heading pi
+        >>> rest = np.zeros(15)
+        >>> rest[2:4] = (0.75, 1.0)
+        >>> upright_pose(flipped, rest)[:7].round(3).tolist()
+        [2.0, 3.0, 0.75, 0.0, 0.0, 0.0, 1.0]
+    """
+    qpos = np.asarray(qpos, dtype=np.float64)
+    w, x, y, z = (qpos[..., k] for k in range(3, 7))
+    yaw = np.arctan2(2.0 * (x * y + w * z), 1.0 - 2.0 * (y * y + z * z))
+    out = np.broadcast_to(np.asarray(rest_qpos, dtype=np.float64), qpos.shape).copy()
+    out[..., :2] = qpos[..., :2]
+    out[..., 3] = np.cos(yaw / 2.0)
+    out[..., 4:6] = 0.0
+    out[..., 6] = np.sin(yaw / 2.0)
+    return out
 
 
 class MotorControl:
@@ -345,14 +374,7 @@ class AntAgent(MotorControl):
             >>> AntAgent().upright_qpos(flipped)[:7].round(3).tolist()
             [2.0, 3.0, 0.75, 1.0, 0.0, 0.0, 0.0]
         """
-        qpos = np.asarray(qpos, dtype=np.float64)
-        w, x, y, z = (qpos[..., k] for k in range(3, 7))
-        yaw = np.arctan2(2.0 * (x * y + w * z), 1.0 - 2.0 * (y * y + z * z))
-        out = np.broadcast_to(np.asarray(self.init_qpos, dtype=np.float64), qpos.shape).copy()
-        out[..., :2] = qpos[..., :2]
-        out[..., 3] = np.cos(yaw / 2.0)
-        out[..., 6] = np.sin(yaw / 2.0)
-        return out
+        return upright_pose(qpos, self.init_qpos)
 
     def normalize_qpos(self, qpos: np.ndarray) -> None:
         """Renormalises the torso quaternion ``qpos[..., 3:7]`` in place (after additive reset noise)."""

@@ -15,6 +15,7 @@ import math
 from collections.abc import Mapping, Sequence
 from typing import Any
 
+import gymnasium
 import numpy as np
 import torch
 from tensordict import TensorDict, TensorDictBase
@@ -23,9 +24,18 @@ from torchrl.envs import EnvBase
 
 from torchrl_dhrl.checks import ArgumentCheck, checked, integer, number
 
+from .agents import AntAgent, upright_pose
 from .goal_env import GoalEnvError
 
-__all__ = ["GYMNASIUM_PREFIX", "GymnasiumGoalEnv", "goal_extent", "goal_indices_of", "gymnasium_id"]
+__all__ = [
+    "GYMNASIUM_PREFIX",
+    "GymnasiumGoalEnv",
+    "RightFlippedAnt",
+    "goal_extent",
+    "goal_indices_of",
+    "gymnasium_id",
+    "is_gymnasium_ant_maze",
+]
 
 #: ``make_env`` names of Gymnasium goal envs: ``"gymnasium:<id>"``.
 GYMNASIUM_PREFIX = "gymnasium:"
@@ -59,6 +69,119 @@ def _import_gymnasium(env_id: str):
         hint = " (gymnasium-robotics' envs need `pip install gymnasium-robotics`)" if "Maze" in env_id or "Fetch" in env_id else ""
         raise GoalEnvError(f"No Gymnasium env {env_id!r} is registered{hint}.")
     return gym
+
+
+def is_gymnasium_ant_maze(env_id: str) -> bool:
+    """Whether a registered Gymnasium id is one of gymnasium-robotics' ant mazes (``AntMaze_*``: its entry point
+    is their ``AntMazeEnv``), whose ant can flip over (``right_flipped_after``).
+
+    Raises:
+        GoalEnvError: for an id that is not registered.
+    """
+    entry = _import_gymnasium(env_id).registry[env_id].entry_point
+    name = entry if isinstance(entry, str) else f"{entry.__module__}:{entry.__qualname__}"
+    return name.rsplit(":", 1)[-1].rsplit(".", 1)[-1] == "AntMazeEnv"
+
+
+def _holds_an_ant(env: Any) -> bool:
+    """Whether an unwrapped Gymnasium env drives an ant as gymnasium-robotics' ant mazes do (``env.ant_env``,
+    a MuJoCo env whose ``qpos[:7]`` is the torso's position and quaternion)."""
+    ant = getattr(env, "ant_env", None)
+    return ant is not None and hasattr(ant, "data") and hasattr(ant, "set_state") and hasattr(env, "_get_obs")
+
+
+def _ant_upside_down(env: Any) -> bool:
+    """Whether the ant of an unwrapped gymnasium-robotics ant maze lies with its torso's up axis below the horizon."""
+    return bool(AntAgent.is_upside_down(env.ant_env.data.qpos))
+
+
+def _right_ant(env: Any) -> dict[str, np.ndarray]:
+    """Puts the ant of an unwrapped gymnasium-robotics ant maze back on its feet and returns the maze's observation.
+
+    The ant takes its reset pose at rest (``ant_env.init_qpos``: torso height, identity tilt, joints) at its
+    (x, y) and heading (:func:`~torchrl_dhrl.envs.agents.upright_pose`), moved to the nearest place (0.1 steps,
+    up to 2 away) where none of its geoms overlaps a wall, as the built-in ant mazes' ``right_flipped_after``.
+    """
+    import mujoco
+
+    from .simulation import _SEPARATION_OFFSETS
+
+    ant = env.ant_env
+    model, data = ant.model, ant.data
+    pose = upright_pose(data.qpos, ant.init_qpos)
+    still = np.zeros(model.nv)
+    static = model.geom_bodyid == 0
+    plane = model.geom_type == mujoco.mjtGeom.mjGEOM_PLANE
+
+    def overlaps_wall() -> bool:
+        for contact in data.contact[: data.ncon]:
+            g1, g2 = contact.geom
+            if contact.dist < 0.0 and static[g1] != static[g2] and not (plane[g1] or plane[g2]):
+                return True
+        return False
+
+    for offset in _SEPARATION_OFFSETS:
+        trial = pose.copy()
+        trial[:2] += offset
+        ant.set_state(trial, still)  # runs mj_forward: contacts of the new pose
+        if not overlaps_wall():
+            break
+    else:  # nowhere clear: righted in place, the contacts push it out
+        ant.set_state(pose, still)
+    return env._get_obs(ant._get_obs())
+
+
+def _righted_step(env: Any, obs: Mapping[str, np.ndarray]) -> tuple[dict[str, np.ndarray], float, bool]:
+    """The observation, reward and success of an unwrapped ant maze after :func:`_right_ant` (its own sparse or
+    dense reward and its 0.45 success radius, read from ``compute_reward`` on the new achieved goal)."""
+    obs = _right_ant(env)
+    reward = float(np.asarray(env.compute_reward(obs["achieved_goal"], env.goal, {})).reshape(-1)[0])
+    success = bool(np.linalg.norm(obs["achieved_goal"] - env.goal) <= 0.45)
+    return obs, reward, success
+
+
+class RightFlippedAnt(gymnasium.Wrapper):
+    """A gymnasium-robotics ant maze whose flipped ant is put back on its feet after ``after`` consecutive steps
+    upside down (the recipe's ``right_flipped_after``, for a Gymnasium pipeline such as the SAC + HER baseline).
+
+    The ant takes its reset pose at rest at its (x, y) and heading, clear of the walls; the episode goes on.
+    The step that rights it returns the new observation with its reward and ``info["success"]`` recomputed.
+
+    Args:
+        env (gymnasium.Env): an ant maze (``AntMaze_*``), wrapped or not.
+        after (int): consecutive env steps upside down before the ant is righted (>= 1).
+
+    Examples:
+        >>> import gymnasium as gym, gymnasium_robotics  # doctest: +SKIP
+        >>> gym.register_envs(gymnasium_robotics)  # doctest: +SKIP
+        >>> env = RightFlippedAnt(gym.make("AntMaze_UMaze-v5"), after=10)  # doctest: +SKIP
+    """
+
+    def __init__(self, env: gymnasium.Env, after: int) -> None:
+        super().__init__(env)
+        if isinstance(after, bool) or not isinstance(after, (int, np.integer)) or after < 1:
+            raise ValueError(f"`after` must be a positive number of env steps, got {after!r}.")
+        if not _holds_an_ant(env.unwrapped):
+            raise ValueError(
+                f"RightFlippedAnt rights a flipped ant: it wraps gymnasium-robotics' ant mazes (AntMaze_*), not "
+                f"{type(env.unwrapped).__name__}."
+            )
+        self.after = int(after)
+        self.upside_down_steps = 0
+
+    def reset(self, **kwargs):
+        self.upside_down_steps = 0
+        return self.env.reset(**kwargs)
+
+    def step(self, action):
+        obs, reward, terminated, truncated, info = self.env.step(action)
+        maze = self.env.unwrapped
+        self.upside_down_steps = self.upside_down_steps + 1 if _ant_upside_down(maze) else 0
+        if self.upside_down_steps >= self.after:
+            obs, reward, success = _righted_step(maze, obs)
+            info = {**info, "success": success, "righted": True}
+            self.upside_down_steps = 0
+        return obs, reward, terminated, truncated, info
 
 
 # ---- the simulator's state, for exact resumes ------------------------------------------------------------------
@@ -200,11 +323,18 @@ class GymnasiumGoalEnv(EnvBase):
             ``True`` always, ``False`` never, ``None`` (default) when the env's own observation does not hold it,
             as found at construction from a reset and a few random steps of the first copy (every achieved-goal
             entry equal to an observation entry at each of them).
+        right_flipped_after (int, optional): gymnasium-robotics' ant mazes only: after this many consecutive env
+            steps upside down (the torso's up axis below the horizon) the ant is put back on its feet in its
+            reset pose at rest, at its (x, y) and heading, clear of the walls; the episode goes on (the built-in
+            ant mazes' option of the same name; :class:`RightFlippedAnt` for a Gymnasium pipeline). Defaults
+            to ``None``: a flipped ant stays flipped until its episode ends, as the env's own.
 
     Attributes:
         max_episode_steps (int): the episode length (the contract's attribute).
         env_id (str): the Gymnasium id.
         achieved_goal_in_observation (bool): whether the adapter puts the achieved goal first in the observation.
+        upside_down_steps (np.ndarray): consecutive env steps each copy's ant has been upside down (counted with
+            ``right_flipped_after`` only; part of :meth:`state_dict`).
         refusal (str or None): the message of an env that ended an episode itself, from that step until the next
             step after the episode's end raises it (``None`` otherwise): a training loop reads it at its batch
             boundaries to stop there.
@@ -224,6 +354,7 @@ class GymnasiumGoalEnv(EnvBase):
         goals=ArgumentCheck(_goal_list, "a goal (a list of numbers) or a non-empty list of goals", optional=True),
         make_kwargs=ArgumentCheck(lambda v: isinstance(v, Mapping), "a dict of gymnasium.make arguments", optional=True),
         achieved_goal_in_observation=ArgumentCheck(lambda v: isinstance(v, bool), "a bool", optional=True),
+        right_flipped_after=integer(1, optional=True, what="env steps upside down before the ant is righted"),
     )
     def __init__(
         self,
@@ -238,6 +369,7 @@ class GymnasiumGoalEnv(EnvBase):
         goals: Sequence[float] | Sequence[Sequence[float]] | None = None,
         make_kwargs: Mapping[str, Any] | None = None,
         achieved_goal_in_observation: bool | None = None,
+        right_flipped_after: int | None = None,
     ) -> None:
         gym = _import_gymnasium(env_id)
         super().__init__(device=device or "cpu", batch_size=torch.Size([num_envs]))
@@ -252,6 +384,14 @@ class GymnasiumGoalEnv(EnvBase):
                 "itself when its goal is reached, and every episode must last max_episode_steps steps; accepted: "
                 "continuing_task=True (the mazes' default: leave it out of `make_kwargs`, or set it there)."
             )
+        if right_flipped_after is not None and not _holds_an_ant(first.unwrapped):
+            for env in self._envs:
+                env.close()
+            raise GoalEnvError(
+                f"right_flipped_after rights a flipped ant: it applies to gymnasium-robotics' ant mazes (AntMaze_*), "
+                f"not to {env_id}; leave it None (null)."
+            )
+        self.right_flipped_after = None if right_flipped_after is None else int(right_flipped_after)
         space = first.observation_space
         if not isinstance(space, gym.spaces.Dict) or any(k not in space.spaces for k in _GOAL_KEYS):
             raise GoalEnvError(
@@ -316,6 +456,7 @@ class GymnasiumGoalEnv(EnvBase):
         self._success = np.zeros(num_envs, dtype=bool)
         self._held = np.zeros(num_envs, dtype=bool)  # ended its episode itself: held at its last state
         self._rewards = np.zeros(num_envs, dtype=np.float32)
+        self.upside_down_steps = np.zeros(num_envs, dtype=np.int64)
         self.refusal: str | None = None
         if seed is not None:
             self.set_seed(seed)
@@ -343,6 +484,7 @@ class GymnasiumGoalEnv(EnvBase):
         self._episodes[i] += 1
         self._steps[i] = 0
         self._held[i] = False
+        self.upside_down_steps[i] = 0
         self._last[i] = obs
         self._success[i] = self._is_success(obs, info)
 
@@ -414,8 +556,15 @@ class GymnasiumGoalEnv(EnvBase):
             if self._held[i]:  # ended its episode itself: its last state until the episode's end
                 continue
             obs, reward, terminated, _, info = env.unwrapped.step(actions[i])
+            success = self._is_success(obs, info)
+            if self.right_flipped_after is not None:
+                flipped = _ant_upside_down(env.unwrapped)
+                self.upside_down_steps[i] = self.upside_down_steps[i] + 1 if flipped else 0
+                if self.upside_down_steps[i] >= self.right_flipped_after:  # rare: no hot path
+                    obs, reward, success = _righted_step(env.unwrapped, obs)
+                    self.upside_down_steps[i] = 0
             self._last[i] = obs
-            self._success[i] = self._is_success(obs, info)
+            self._success[i] = success
             self._rewards[i] = float(reward)
             if terminated:
                 self._held[i] = True
@@ -523,6 +672,7 @@ class GymnasiumGoalEnv(EnvBase):
             "seeds": list(self._seeds),
             "held": self._held.copy(),
             "rewards": self._rewards.copy(),
+            "upside_down_steps": self.upside_down_steps.copy(),
         }
 
     def load_state_dict(self, state_dict: Mapping[str, Any], *args, **kwargs) -> None:
@@ -537,9 +687,10 @@ class GymnasiumGoalEnv(EnvBase):
         self._success = np.array(state_dict["success"])
         self._last = [None if last is None else dict(last) for last in state_dict["last"]]
         self._seeds = list(state_dict["seeds"])
-        n = len(self._envs)  # (states saved before these two entries: no copy held)
+        n = len(self._envs)  # (states saved before these entries: no copy held, no ant upside down)
         self._held = np.array(state_dict.get("held", np.zeros(n, dtype=bool)))
         self._rewards = np.array(state_dict.get("rewards", np.zeros(n, dtype=np.float32)))
+        self.upside_down_steps = np.array(state_dict.get("upside_down_steps", np.zeros(n, dtype=np.int64)))
 
     def close(self, *args, **kwargs) -> None:
         for env in self._envs:
@@ -551,6 +702,7 @@ class GymnasiumGoalEnv(EnvBase):
             f"{type(self).__name__}({self.env_id!r}, num_envs={self.batch_size[0]}, "
             f"max_episode_steps={self.max_episode_steps}"
             + (", achieved_goal_in_observation=True" if self.achieved_goal_in_observation else "")
+            + (f", right_flipped_after={self.right_flipped_after}" if self.right_flipped_after is not None else "")
             + ")"
         )
 

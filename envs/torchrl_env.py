@@ -319,8 +319,9 @@ def make_env(
             episode; Reacher3D: the train distribution; UR3Obstacle: goals inside the bin, behind the
             fence). Defaults to ``False`` (train goals).
         max_episode_steps (int, optional): time limit override (defaults to the paper's episode length).
-        right_flipped_after (int, optional): built-in ant mazes only: put a flipped ant back on its feet
-            after this many consecutive env steps upside down. Defaults to ``None`` (never, as the reference).
+        right_flipped_after (int, optional): ant mazes only (the built-in ones and gymnasium-robotics'
+            ``AntMaze_*``): put a flipped ant back on its feet after this many consecutive env steps upside down.
+            Defaults to ``None`` (never, as the reference and the Gymnasium envs).
         reference_engine (bool): built-in ant mazes only: emulate MuJoCo 2.0 where MuJoCo 3 differs: every
             geom of the scene gets a 0.005 margin (0.01 per contact, as the reference's MuJoCo 2.0, which took
             the larger of the two margins where MuJoCo 3 adds them) and the leg capsules MuJoCo 2.0's masses and
@@ -351,11 +352,12 @@ def make_env(
     if env_kwargs and env_id is None:
         raise ValueError(f"env_kwargs are options of the Gymnasium goal envs (gymnasium:<id>), not of {name!r}.")
     if env_id is not None:
-        if right_flipped_after is not None or reference_engine:
-            raise ValueError(f"right_flipped_after and reference_engine are options of the built-in ant mazes, not of {name!r}.")
-        env = GymnasiumGoalEnv(
-            env_id, num_envs, seed=seed, device=device, max_episode_steps=max_episode_steps, **dict(env_kwargs or {})
-        )
+        if reference_engine:
+            raise ValueError(f"reference_engine is an option of the built-in ant mazes, not of {name!r}.")
+        kwargs = dict(env_kwargs or {})
+        if right_flipped_after is not None:
+            kwargs["right_flipped_after"] = right_flipped_after
+        env = GymnasiumGoalEnv(env_id, num_envs, seed=seed, device=device, max_episode_steps=max_episode_steps, **kwargs)
         check_goal_env(env, steps=0)
         return env
     factory = get_env_factory(name)

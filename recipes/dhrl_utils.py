@@ -527,11 +527,15 @@ def evaluation_kwargs(cfg: dict) -> dict[str, Any]:
 
 
 def upside_down_test(cfg: dict):
-    """The built-in ant mazes' :meth:`~torchrl_dhrl.envs.AntAgent.is_upside_down` (the ant can flip over, and only
+    """The ant mazes' :meth:`~torchrl_dhrl.envs.AntAgent.is_upside_down` (the ant can flip over, and only
     ``right_flipped_after`` rights it: the recipe logs how much of the training and test episodes it spends so),
-    ``None`` for any other env."""
-    from torchrl_dhrl.envs import MAZE_NAMES, get_maze_spec
+    ``None`` for any other env. gymnasium-robotics' ``AntMaze_*`` count: their observation, as the adapter hands
+    it on (the achieved goal first), starts with the torso's x, y, z and quaternion, as the built-in ant's."""
+    from torchrl_dhrl.envs import MAZE_NAMES, AntAgent, get_maze_spec, gymnasium_id, is_gymnasium_ant_maze
 
+    env_id = gymnasium_id(cfg["env_name"])
+    if env_id is not None:
+        return AntAgent.is_upside_down if is_gymnasium_ant_maze(env_id) else None
     if cfg["env_name"] not in MAZE_NAMES:
         return None
     return getattr(get_maze_spec(cfg["env_name"]).agent, "is_upside_down", None)

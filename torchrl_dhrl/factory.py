@@ -44,7 +44,15 @@ from torchrl_dhrl.data import (
     RelabelReplayBuffer,
     SparseGoalReward,
 )
-from torchrl_dhrl.envs import ENVS, check_goal_env, get_env_factory, gymnasium_id, make_env
+from torchrl_dhrl.envs import (
+    ENVS,
+    GoalEnvError,
+    check_goal_env,
+    get_env_factory,
+    gymnasium_id,
+    is_gymnasium_ant_maze,
+    make_env,
+)
 from torchrl_dhrl.envs.transforms import AngleFeatures
 from torchrl_dhrl.modules import (
     GaussianUniformExplorationModule,
@@ -307,12 +315,21 @@ def _angle_features_fit(env_name, angle_features, goal_indices) -> None:
 
 
 def _right_flipped_needs_an_ant(env_name, right_flipped_after) -> None:
-    spec = _built_in(env_name)
-    if right_flipped_after is not None and not hasattr(getattr(spec, "agent", None), "upright_qpos"):
-        raise ValueError(
-            f"`right_flipped_after` rights a flipped ant: it applies to the ant mazes only, not to {env_name}; "
-            "leave it None (null)."
-        )
+    if right_flipped_after is None:
+        return
+    env_id = gymnasium_id(env_name)
+    if env_id is not None:
+        try:
+            if is_gymnasium_ant_maze(env_id):
+                return
+        except GoalEnvError:  # not registered: the env's construction says so
+            return
+    elif hasattr(getattr(_built_in(env_name), "agent", None), "upright_qpos"):
+        return
+    raise ValueError(
+        f"`right_flipped_after` rights a flipped ant: it applies to the ant mazes only (the built-in ones and "
+        f"gymnasium-robotics' AntMaze_*), not to {env_name}; leave it None (null)."
+    )
 
 
 def _reference_engine_needs_an_ant_maze(env_name, reference_engine) -> None:

@@ -14,6 +14,7 @@ from tensordict import TensorDict
 from torchrl.envs import TransformedEnv
 from torchrl.envs.utils import check_env_specs
 from torchrl_dhrl.envs import (
+    AntAgent,
     GoalEnvError,
     GymnasiumGoalEnv,
     check_goal_env,
@@ -352,3 +353,165 @@ def test_a_gymnasium_maze_s_geometry_is_its_map(env_id, start_cell, far_cell):
     assert GymnasiumGoalEnv(env_id, 1, seed=0).maze_geometry().start is None
     assert GymnasiumGoalEnv(env_id, 1, seed=0, reset_options=[{"reset_cell": [1, 1]}, {"reset_cell": list(far_cell)}]).maze_geometry().start is None
     assert GymnasiumGoalEnv(TERMINATING, 1, seed=0).maze_geometry() is None  # no maze
+
+
+# ---- right_flipped_after: gymnasium-robotics' ant mazes ------------------------------------------------------------
+
+
+def _flip(maze_env, qx: float = 1.0) -> None:
+    """Turns the ant of an unwrapped ant maze upside down in place (half a turn about the torso's x axis, or a tilt
+    between), at rest, and re-observes nothing: the next step reads the new state."""
+    data = maze_env.ant_env.data
+    qpos, qvel = data.qpos.copy(), np.zeros_like(data.qvel)
+    quat = np.array([np.sqrt(max(0.0, 1 - qx * qx)), qx, 0.0, 0.0])
+    qpos[2], qpos[3:7] = 0.3, quat / np.linalg.norm(quat)
+    maze_env.ant_env.set_state(qpos, qvel)
+
+
+def _overlaps_wall(maze_env) -> bool:
+    """Whether a geom of the ant penetrates a wall block of the maze, from the maze's own wall list (the geoms the
+    maze builder names ``block_*``)."""
+    import mujoco
+
+    model, data = maze_env.ant_env.model, maze_env.ant_env.data
+    mujoco.mj_forward(model, data)
+    walls = {i for i in range(model.ngeom) if (mujoco.mj_id2name(model, mujoco.mjtObj.mjOBJ_GEOM, i) or "").startswith("block")}
+    return any(c.dist < 0 and (c.geom[0] in walls) != (c.geom[1] in walls) for c in data.contact[: data.ncon])
+
+
+def test_upright_pose_keeps_position_and_heading_and_stands_the_body_up():
+    """Against scipy's rotations, over random orientations (upside down, tilted, upright, the vertical x axis):
+    the body keeps its (x, y) and the heading of its x axis projected on the floor, and stands up (no tilt)."""
+    from scipy.spatial.transform import Rotation
+    from torchrl_dhrl.envs.agents import upright_pose
+
+    rng = np.random.default_rng(0)
+    quats = np.concatenate([Rotation.random(200, random_state=1).as_quat(), [[0, 0, 0, 1], [0, 1, 0, 0], [1, 0, 0, 0]]])
+    qpos = np.zeros((len(quats), 15))
+    qpos[:, :3] = rng.uniform(-5, 5, (len(quats), 3))
+    qpos[:, 3], qpos[:, 4:7] = quats[:, 3], quats[:, :3]  # MuJoCo's (w, x, y, z)
+    rest = np.concatenate([[0.0, 0.0, 0.75, 1.0, 0.0, 0.0, 0.0], rng.uniform(-1, 1, 8)])
+    out = upright_pose(qpos, rest)
+    assert np.allclose(out[:, :2], qpos[:, :2]) and np.allclose(out[:, 2], 0.75) and np.allclose(out[:, 7:], rest[7:])
+    after = Rotation.from_quat(np.concatenate([out[:, 4:7], out[:, 3:4]], axis=1))
+    assert np.allclose(after.apply([0.0, 0.0, 1.0]), [0.0, 0.0, 1.0], atol=1e-9)  # the up axis points up
+    x_before, x_after = Rotation.from_quat(quats).apply([1.0, 0.0, 0.0]), after.apply([1.0, 0.0, 0.0])
+    flat = np.hypot(x_before[:, 0], x_before[:, 1]) > 1e-6  # a heading to keep
+    heading = np.arctan2(x_before[flat, 1], x_before[flat, 0])
+    assert np.allclose(np.angle(np.exp(1j * (np.arctan2(x_after[flat, 1], x_after[flat, 0]) - heading))), 0.0, atol=1e-9)
+
+
+@pytest.mark.parametrize("after", [1, 4])
+def test_a_gymnasium_ant_upside_down_for_right_flipped_after_steps_is_righted_and_the_episode_goes_on(after):
+    env = make_env(f"gymnasium:{ANT_UMAZE}", num_envs=2, seed=0, right_flipped_after=after)
+    plain = GymnasiumGoalEnv(ANT_UMAZE, 2, seed=0)
+    assert env.right_flipped_after == after and "right_flipped_after=4" in repr(make_env(f"gymnasium:{ANT_UMAZE}", right_flipped_after=4))
+    td, td_plain = env.reset(), plain.reset()
+    _flip(env._envs[0].unwrapped)  # copy 0 upside down, copy 1 as it is
+    _flip(plain._envs[0].unwrapped)
+    zero = torch.zeros(2, 8)
+    for step in range(1, after + 3):
+        td = env.step(td.set("action", zero))["next"]
+        td_plain = plain.step(td_plain.set("action", zero))["next"]
+        flipped = AntAgent.is_upside_down(td["observation"])
+        assert bool(flipped[0]) == (step < after), step  # righted at its `after`-th step upside down
+        assert not flipped[1] and bool(AntAgent.is_upside_down(td_plain["observation"])[0])  # never righted: stays
+        assert td["step_count"][0].item() == step and not td["done"].any()  # the episode goes on
+    assert torch.allclose(td["achieved_goal"][0], td_plain["achieved_goal"][0], atol=0.3)  # where it lay
+    assert env.upside_down_steps.tolist() == [0, 0] and plain.upside_down_steps.tolist() == [0, 0]
+
+
+def test_a_righted_ant_is_moved_clear_of_the_walls():
+    """A flipped ant lying against a wall, where its standing legs would overlap the wall, stands up clear of it
+    (the nearest clear place, within 2 units); the reward and success are those of where it stands."""
+    from torchrl_dhrl.envs.gymnasium_goal_env import _right_ant
+
+    env = GymnasiumGoalEnv(ANT_UMAZE, 1, seed=0, reset_options={"reset_cell": [1, 1]}, right_flipped_after=1)
+    env.reset()
+    maze = env._envs[0].unwrapped
+    x, y = maze.maze.cell_rowcol_to_xy(np.array([1, 1]))
+    wall_y = y + maze.maze.maze_size_scaling / 2  # the wall above cell (1, 1): row 0
+    data = maze.ant_env.data
+    qpos = data.qpos.copy()
+    qpos[:2] = (x, wall_y - 0.45)
+    maze.ant_env.set_state(qpos, np.zeros_like(data.qvel))
+    _flip(maze)
+    upright_there = data.qpos.copy()
+    upright_there[2:7] = (0.75, 1.0, 0.0, 0.0, 0.0)
+    maze.ant_env.set_state(upright_there, np.zeros_like(data.qvel))
+    assert _overlaps_wall(maze)  # standing where it lies would overlap the wall
+    _flip(maze)
+    obs = _right_ant(maze)
+    assert not _overlaps_wall(maze) and not AntAgent.is_upside_down(maze.ant_env.data.qpos)
+    moved = np.linalg.norm(obs["achieved_goal"] - (x, wall_y - 0.45))
+    assert 0.0 < moved <= 2.0 + 1e-9 and obs["achieved_goal"][1] < wall_y - 0.45  # away from the wall
+    assert np.allclose(obs["observation"][:1], 0.75) and np.array_equal(obs["achieved_goal"], data.qpos[:2])
+
+
+def test_the_upside_down_count_is_part_of_the_state_dict():
+    """Stopped with the ant upside down for 3 of its 5 steps, a resumed env rights it at the same step as the
+    uninterrupted one."""
+    zero = torch.zeros(1, 8)
+    env = GymnasiumGoalEnv(ANT_UMAZE, 1, seed=0, right_flipped_after=5)
+    td = env.reset()
+    _flip(env._envs[0].unwrapped)
+    for _ in range(3):
+        td = env.step(td.set("action", zero))["next"]
+    state = env.state_dict()
+    assert state["upside_down_steps"].tolist() == [3]
+    resumed = GymnasiumGoalEnv(ANT_UMAZE, 1, seed=7, right_flipped_after=5)
+    resumed.reset()
+    resumed.load_state_dict(state)
+    td_resumed = resumed._output()
+    for _ in range(2):
+        td = env.step(td.set("action", zero))["next"]
+        td_resumed = resumed.step(td_resumed.set("action", zero))["next"]
+        assert (td.exclude("reward") == td_resumed.exclude("reward")).all()
+    assert not AntAgent.is_upside_down(td_resumed["observation"]).any()
+    legacy = {k: v for k, v in state.items() if k != "upside_down_steps"}  # saved before the count existed
+    resumed.load_state_dict(legacy)
+    assert resumed.upside_down_steps.tolist() == [0]
+
+
+def test_the_gymnasium_wrapper_rights_the_ant_as_the_adapter_does():
+    """RightFlippedAnt (a Gymnasium pipeline's, e.g. the SAC + HER baseline's) and the adapter's
+    right_flipped_after give the same states, rewards and successes for the same actions."""
+    from torchrl_dhrl.envs import RightFlippedAnt
+
+    gym_env = RightFlippedAnt(gym.make(ANT_UMAZE), after=3)
+    env = GymnasiumGoalEnv(ANT_UMAZE, 1, seed=5, right_flipped_after=3)
+    obs, _ = gym_env.reset(seed=5)
+    td = env.reset()
+    assert np.allclose(obs["achieved_goal"], td["achieved_goal"][0].numpy(), atol=1e-6)
+    _flip(gym_env.unwrapped)
+    _flip(env._envs[0].unwrapped)
+    actions = np.random.default_rng(0).uniform(-1, 1, (6, 8))
+    righted = []
+    for action in actions:
+        obs, reward, _, _, info = gym_env.step(action)
+        td = env.step(td.set("action", torch.as_tensor(action, dtype=torch.float32).reshape(1, 8)))["next"]
+        assert np.allclose(obs["achieved_goal"], td["achieved_goal"][0].numpy(), atol=1e-5)
+        assert np.allclose(obs["observation"], td["observation"][0, 2:].numpy(), atol=1e-4)
+        assert reward == td["reward"].item() and info["success"] == td["is_success"].item()
+        righted.append(info.get("righted", False))
+    assert righted[:3] == [False, False, True]
+    with pytest.raises(ValueError, match="ant mazes"):
+        RightFlippedAnt(gym.make(UMAZE), after=3)
+    with pytest.raises(ValueError, match="positive number of env steps"):
+        RightFlippedAnt(gym.make(ANT_UMAZE), after=0)
+
+
+def test_right_flipped_after_is_refused_where_there_is_no_ant():
+    from torchrl_dhrl.envs import is_gymnasium_ant_maze
+
+    from torchrl_dhrl.factory import make_environment
+
+    assert is_gymnasium_ant_maze(ANT_UMAZE) and is_gymnasium_ant_maze("AntMaze_Large_Diverse_GR-v5")
+    assert not is_gymnasium_ant_maze(UMAZE) and not is_gymnasium_ant_maze(TERMINATING)
+    with pytest.raises(GoalEnvError, match="applies to gymnasium-robotics' ant mazes"):
+        GymnasiumGoalEnv(UMAZE, 1, right_flipped_after=10)
+    with pytest.raises(ValueError, match="`right_flipped_after` rights a flipped ant"):
+        make_environment(f"gymnasium:{UMAZE}", right_flipped_after=10)
+    with pytest.raises(ValueError, match="right_flipped_after"):
+        GymnasiumGoalEnv(ANT_UMAZE, 1, right_flipped_after=0)
+    assert make_environment(f"gymnasium:{ANT_UMAZE}", right_flipped_after=10).right_flipped_after == 10

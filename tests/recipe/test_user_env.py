@@ -172,6 +172,26 @@ def test_an_ant_maze_whose_observation_leaves_out_the_goal_starts_and_trains(tmp
     assert yaml.safe_load((tmp_path / "run" / "config.yaml").read_text())["goal_indices"] == [0, 1]
 
 
+@pytest.mark.recipe
+def test_a_gymnasium_ant_maze_logs_its_upside_down_steps_and_right_flipped_after_rights_the_ant(tmp_path):
+    """gymnasium-robotics' ant flips over (its gear-150 motors): the run logs the share of training steps spent upside
+    down, as the built-in ant mazes' runs; ``right_flipped_after`` reaches the adapter (training and test envs)."""
+    pytest.importorskip("gymnasium_robotics")
+    base = ("env=gymnasium", "env_name=gymnasium:AntMaze_UMaze-v5", *SMOKE, "episode_length=10", "total_steps=20")
+    utils = load_recipe("dhrl_utils")
+    cfg = utils.resolve_goal_units(recipe_config(*base, "right_flipped_after=1"))
+    assert utils.build_environment(cfg, torch.device("cpu")).right_flipped_after == 1
+    assert utils.build_environment(cfg, torch.device("cpu"), eval=True).right_flipped_after == 1
+    recipe.train(cfg, run_dir=tmp_path / "run")
+    rows = metrics_rows(tmp_path / "run")
+    shares = [float(r["train/upside_down"]) for r in rows if r.get("train/upside_down")]
+    assert shares and all(0.0 <= s <= 1.0 for s in shares)
+    point = recipe_config("env=gymnasium", "env_name=gymnasium:PointMaze_UMaze-v3", *SMOKE, "right_flipped_after=1")
+    with pytest.raises(ConfigError, match="`right_flipped_after` rights a flipped ant: it applies to the ant mazes"):
+        recipe.train(point, run_dir=tmp_path / "point")
+    assert not (tmp_path / "point").exists()  # refused before the run began
+
+
 GOAL_UNITS = ("goal_indices=[0,1]", "high.subgoal_low=[-2.0,-2.0]", "high.subgoal_high=[2.0,2.0]",
               "high.subgoal_noise=0.3", "low.reward_threshold=0.45", "planner.reach_radius=0.45", "fgs.noise=0.5",
               "planner.oracle_margin=0.125", "planner.oracle_speed=0.052")
