@@ -15,6 +15,12 @@ corridor past it::
 
     python recipes/diagnose_exploration.py <run> --rows 0 --box gap 15.4 17 7 9 --box past 12 20 9 16 --per 100
 
+``--upside-down`` (the ant mazes, built-in and gymnasium-robotics' ``AntMaze_*``) reads the low-level buffer too and
+prints, per group of ``--per`` training episodes, the share of their steps the ant spent upside down and how many
+ended so: a run logged before ``train/upside_down`` existed, or where a flipped ant may be what stops exploring::
+
+    python recipes/diagnose_exploration.py <run> --rows 0 --upside-down --per 20
+
 ``--oracle-margin`` replaces the run's recorded ``planner.oracle_margin`` (the agent's radius, by which the walls grow
 in the path lengths), e.g. for a gymnasium-robotics maze trained by 0.4.0 or earlier, which recorded the
 configuration's value.
@@ -32,10 +38,17 @@ from dhrl_utils import (
     build_replay_buffers,
     oracle_overrides,
     run_maze,
+    upside_down_test,
 )
 from tensordict import TensorDictBase
+from torch import Tensor
 
-from torchrl_dhrl.diagnostics import EpisodeProgress, episode_progress, episodes_in_boxes
+from torchrl_dhrl.diagnostics import (
+    EpisodeProgress,
+    episode_progress,
+    episodes_in_boxes,
+    upside_down_by_episode,
+)
 from torchrl_dhrl.recipe import ConfigError, load_checkpoint
 
 
@@ -86,6 +99,28 @@ def boxes_from_checkpoint(path, boxes, oracle: dict | None = None) -> tuple[torc
     return episodes_in_boxes(steps["achieved_goal"][..., :2], steps["collector", "traj_ids"], boxes)
 
 
+def upside_down_from_checkpoint(path, oracle: dict | None = None) -> tuple[Tensor, Tensor, Tensor]:
+    """:func:`~torchrl_dhrl.diagnostics.upside_down_by_episode` over every step of an ant maze run's low-level buffer
+    (the ant's :meth:`~torchrl_dhrl.envs.AntAgent.is_upside_down` after each step; episodes from ``traj_ids``)."""
+    cfg, steps = stored_records(path, "low_rb", oracle)
+    upside_down = upside_down_test(cfg)
+    if upside_down is None:
+        raise ValueError(f"--upside-down needs an ant maze run; {path} is a {cfg['env_name']} run.")
+    flipped = torch.as_tensor(upside_down(steps["next", "observation"]))
+    count = steps.get("step_count", None)
+    return upside_down_by_episode(flipped, steps["collector", "traj_ids"], None if count is None else count.reshape(-1))
+
+
+def print_upside_down(ids: Tensor, share: Tensor, ended: Tensor, per: int) -> None:
+    """Per group of ``per`` episodes (oldest first): the share of their steps upside down, how many ended so."""
+    print(f"{'episodes':>12} {'steps upside down':>18} {'ended upside down':>18}")
+    for start in range(0, len(ids), per):
+        group, last = share[start : start + per], ended[start : start + per]
+        label = f"{start}-{start + len(group) - 1}"
+        print(f"{label:>12} {float(group.mean()):>18.1%} {int(last.sum()):>9} of {len(group):<6}")
+    print(f"{'all':>12} {float(share.mean()):>18.1%} {int(ended.sum()):>9} of {len(ids):<6}")
+
+
 def print_box_counts(names: list[str], ids: torch.Tensor, inside: torch.Tensor, per: int) -> None:
     """Per group of ``per`` episodes (oldest first): how many entered each box."""
     print(f"{'episodes':>12} " + " ".join(f"{name:>12}" for name in names))
@@ -114,7 +149,12 @@ def main(argv: list[str] | None = None) -> tuple[EpisodeProgress, dict]:
         metavar=("NAME", "X0", "X1", "Y0", "Y1"),
         help="count the training episodes whose agent entered this box (repeatable; reads the low-level buffer)",
     )
-    parser.add_argument("--per", type=int, default=100, help="with --box: episodes per row")
+    parser.add_argument(
+        "--upside-down",
+        action="store_true",
+        help="ant mazes: the share of the training steps upside down per --per episodes (reads the low-level buffer)",
+    )
+    parser.add_argument("--per", type=int, default=100, help="with --box or --upside-down: episodes per row")
     add_oracle_options(parser)
     args = parser.parse_args(argv)
     oracle = oracle_overrides(parser, args)
@@ -124,8 +164,8 @@ def main(argv: list[str] | None = None) -> tuple[EpisodeProgress, dict]:
             bounds = torch.tensor([[float(v) for v in box[1:]] for box in args.box])
         except ValueError as err:
             parser.error(f"--box NAME X0 X1 Y0 Y1: the bounds must be numbers ({err})")
-        if args.per < 1:
-            parser.error(f"--per must be >= 1, got {args.per}")
+    if args.per < 1:
+        parser.error(f"--per must be >= 1, got {args.per}")
     try:
         return _report(args, oracle, bounds)
     except ConfigError as err:  # a recorded margin that closes the maze
@@ -133,6 +173,11 @@ def main(argv: list[str] | None = None) -> tuple[EpisodeProgress, dict]:
 
 
 def _report(args, oracle: dict, bounds: torch.Tensor | None) -> tuple[EpisodeProgress, dict]:
+    if args.upside_down:
+        try:
+            print_upside_down(*upside_down_from_checkpoint(args.checkpoint, oracle), args.per)
+        except ValueError as err:
+            raise SystemExit(f"diagnose_exploration.py: error: {err}") from err
     if bounds is not None:
         ids, inside = boxes_from_checkpoint(args.checkpoint, bounds, oracle)
         print_box_counts([box[0] for box in args.box], ids, inside, args.per)

@@ -248,3 +248,28 @@ def test_episodes_in_boxes_against_a_direct_loop(seed):
 def test_episodes_in_boxes_errors():
     with pytest.raises(ValueError, match="must match"):
         episodes_in_boxes(torch.zeros(3, 2), torch.zeros(2), torch.zeros(1, 4))
+
+
+@pytest.mark.parametrize("seed", range(6))
+def test_upside_down_by_episode_against_a_direct_loop(seed):
+    """Random flips over unordered episode ids; with a step count (an episode split by the ring buffer's wrap, so
+    that its last step is not its last stored one, and ties broken by storage order) and without."""
+    from torchrl_dhrl.diagnostics import upside_down_by_episode
+
+    generator = torch.Generator().manual_seed(seed)
+    n = int(torch.randint(1, 300, (1,), generator=generator))
+    flipped = torch.rand(n, generator=generator) < 0.4
+    episode_ids = torch.randint(-2, 12, (n,), generator=generator) * 3
+    step_count = torch.randint(0, 5, (n,), generator=generator)  # ties
+    for count in (None, step_count):
+        ids, share, ended = upside_down_by_episode(flipped, episode_ids, count)
+        assert ids.tolist() == sorted(set(episode_ids.tolist()))
+        for e, episode in enumerate(ids.tolist()):
+            steps = [i for i in range(n) if int(episode_ids[i]) == episode]
+            assert share[e].item() == pytest.approx(sum(bool(flipped[i]) for i in steps) / len(steps))
+            last = steps[-1] if count is None else max(steps, key=lambda i: (int(count[i]), i))
+            assert bool(ended[e]) == bool(flipped[last])
+    with pytest.raises(ValueError, match="must match"):
+        upside_down_by_episode(torch.zeros(3, dtype=torch.bool), torch.zeros(2))
+    with pytest.raises(ValueError, match="must match"):
+        upside_down_by_episode(torch.zeros(3, dtype=torch.bool), torch.zeros(3), torch.zeros(2))

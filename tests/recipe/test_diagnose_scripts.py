@@ -292,6 +292,46 @@ def test_the_script_reads_a_run(tmp_path, capsys):
     with pytest.raises(SystemExit):
         load_recipe("diagnose_exploration").main([str(run), "--box", "gap", "a", "1", "2", "3"])
     assert "the bounds must be numbers" in capsys.readouterr().err
+    with pytest.raises(SystemExit, match="--upside-down needs an ant maze run"):
+        load_recipe("diagnose_exploration").main([str(run), "--rows", "0", "--upside-down"])
+
+
+def test_the_upside_down_steps_of_an_ant_run_per_group_of_episodes(tmp_path, capsys, monkeypatch):
+    """gymnasium-robotics' ant maze, a few 10-step episodes: the rows are the per-episode shares of the stored steps
+    upside down, averaged per group, and the count of episodes that ended so, read from the buffer directly (the
+    test made a torso height threshold, so that both outcomes occur in 10-step episodes)."""
+    pytest.importorskip("gymnasium_robotics")
+    from torchrl_dhrl.recipe import load_checkpoint
+
+    run = tmp_path / "run"
+    load_recipe().train(
+        recipe_config("env=gymnasium", "env_name=gymnasium:AntMaze_UMaze-v5", "preset=smoke", "logger.backend=none",
+                      "plots.every_epochs=0", "episode_length=10", "total_steps=60", "threads=1"),
+        run_dir=run,
+    )
+    script = load_recipe("diagnose_exploration")
+    cfg, agent = load_recipe("dhrl_utils").agent_from_checkpoint(run)
+    low_rb, _ = load_recipe("dhrl_utils").build_replay_buffers(cfg, agent, torch.device("cpu"))
+    low_rb.load_state_dict(load_checkpoint(run, components=("low_rb",))["low_rb"])
+    steps = low_rb.storage[: len(low_rb.storage)]
+    height = steps["next", "observation"][..., 2].reshape(-1)
+    threshold = float(height.median())
+    monkeypatch.setattr(script, "upside_down_test", lambda cfg: lambda obs: obs[..., 2] < threshold)
+    capsys.readouterr()
+    script.main([str(run), "--rows", "0", "--upside-down", "--per", "2"])
+    printed = capsys.readouterr().out.splitlines()
+    ids = steps["collector", "traj_ids"].reshape(-1)
+    episodes = sorted(set(ids.tolist()))
+    shares = [float((height[ids == e] < threshold).float().mean()) for e in episodes]
+    ended = [bool(height[ids == e][-1] < threshold) for e in episodes]
+    assert printed[0].split() == ["episodes", "steps", "upside", "down", "ended", "upside", "down"]
+    for row, start in zip(printed[1:], range(0, len(episodes), 2), strict=False):
+        group = slice(start, start + 2)
+        label = f"{start}-{start + len(shares[group]) - 1}"
+        expected = [label, f"{sum(shares[group]) / len(shares[group]):.1%}", str(sum(ended[group])), "of", str(len(shares[group]))]
+        assert row.split() == expected
+    assert printed[len(range(0, len(episodes), 2)) + 1].split()[:2] == ["all", f"{sum(shares) / len(shares):.1%}"]
+    assert 0 < sum(ended) < len(ended) or 0 < sum(shares) < len(shares)  # the check saw both outcomes
 
 
 def test_script_on_a_pointmaze_run(tmp_path, capsys):

@@ -18,6 +18,7 @@ from .exploration import (
     TrainingEpisodeLog,
     episode_progress,
     episodes_in_boxes,
+    upside_down_by_episode,
 )
 from .feasibility import (
     feasibility_fractions,
@@ -81,6 +82,7 @@ __all__ = [
     "default_coverage_radius",
     "episode_progress",
     "episodes_in_boxes",
+    "upside_down_by_episode",
     "feasibility_fractions",
     "graph_diagnosis",
     "graph_quality",

@@ -22,7 +22,7 @@ from torch import Tensor
 
 from torchrl_dhrl.envs.geometry import MazeGeometry, furthest_progress
 
-__all__ = ["EpisodeProgress", "TrainingEpisodeLog", "episode_progress", "episodes_in_boxes"]
+__all__ = ["EpisodeProgress", "TrainingEpisodeLog", "episode_progress", "episodes_in_boxes", "upside_down_by_episode"]
 
 
 class EpisodeProgress(NamedTuple):
@@ -82,6 +82,49 @@ def episodes_in_boxes(positions: Tensor, episode_ids: Tensor, boxes: Tensor) -> 
     inside = torch.zeros(len(ids), boxes.shape[0], dtype=torch.long)
     inside.scatter_reduce_(0, inverse[:, None].expand_as(hit), hit.long(), "amax")
     return ids, inside.bool()
+
+
+def upside_down_by_episode(
+    flipped: Tensor, episode_ids: Tensor, step_count: Tensor | None = None
+) -> tuple[Tensor, Tensor, Tensor]:
+    """Per episode, the share of its stored steps the agent spent upside down and whether its last one was.
+
+    Args:
+        flipped (Tensor): ``[N]`` bool, whether the agent was upside down after each stored step (e.g. the ant's
+            :meth:`~torchrl_dhrl.envs.AntAgent.is_upside_down` of a low-level buffer's ``("next", "observation")``).
+        episode_ids (Tensor): ``[N]`` the episode of each step (e.g. the collector's ``traj_ids``), any integers.
+        step_count (Tensor, optional): ``[N]`` each step's place in its episode; an episode's last step is the one
+            of highest count. Defaults to ``None``: the last in storage order.
+
+    Returns:
+        ``(ids, share, ended)``: ``ids [E]`` the distinct episodes in increasing order (oldest first), ``share
+        [E]`` the fraction of each one's stored steps upside down, ``ended [E]`` bool, upside down at its last step.
+
+    Examples:
+        >>> import torch
+        >>> ids, share, ended = upside_down_by_episode(
+        ...     torch.tensor([False, True, True, False, False]), torch.tensor([3, 3, 3, 5, 5])
+        ... )
+        >>> ids.tolist(), share.tolist(), ended.tolist()
+        ([3, 5], [0.6666666865348816, 0.0], [True, False])
+    """
+    flipped = torch.as_tensor(flipped).reshape(-1).bool()
+    episode_ids = torch.as_tensor(episode_ids).reshape(-1)
+    if flipped.shape[0] != episode_ids.shape[0]:
+        raise ValueError(f"flipped ({flipped.shape[0]} steps) and episode_ids ({episode_ids.shape[0]}) must match.")
+    order = torch.arange(flipped.shape[0]) if step_count is None else torch.as_tensor(step_count).reshape(-1)
+    if order.shape[0] != flipped.shape[0]:
+        raise ValueError(f"step_count ({order.shape[0]} steps) and flipped ({flipped.shape[0]}) must match.")
+    ids, inverse = torch.unique(episode_ids, return_inverse=True)
+    steps = torch.zeros(len(ids)).index_add_(0, inverse, torch.ones(flipped.shape[0]))
+    share = torch.zeros(len(ids)).index_add_(0, inverse, flipped.float()) / steps
+    # the last step of each episode: the highest order, ties to the later stored step
+    rank = order.double() * flipped.shape[0] + torch.arange(flipped.shape[0], dtype=torch.float64)
+    last = torch.full((len(ids),), -1.0, dtype=torch.float64).scatter_reduce_(0, inverse, rank, "amax")
+    ended = torch.zeros(len(ids), dtype=torch.bool)
+    is_last = rank == last[inverse]
+    ended[inverse[is_last]] = flipped[is_last]
+    return ids, share, ended
 
 
 @torch.no_grad()
