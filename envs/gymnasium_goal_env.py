@@ -131,9 +131,10 @@ def _right_ant(env: Any) -> dict[str, np.ndarray]:
     return env._get_obs(ant._get_obs())
 
 
-def _righted_step(env: Any, obs: Mapping[str, np.ndarray]) -> tuple[dict[str, np.ndarray], float, bool]:
-    """The observation, reward and success of an unwrapped ant maze after :func:`_right_ant` (its own sparse or
-    dense reward and its 0.45 success radius, read from ``compute_reward`` on the new achieved goal)."""
+def _righted_step(env: Any) -> tuple[dict[str, np.ndarray], float, bool]:
+    """:func:`_right_ant` on an unwrapped ant maze, and the observation, reward and success where the ant now
+    stands: the env's own reward (``compute_reward`` on the new achieved goal, sparse or dense) and its success
+    radius (0.45, as gymnasium-robotics' mazes' ``info["success"]``)."""
     obs = _right_ant(env)
     reward = float(np.asarray(env.compute_reward(obs["achieved_goal"], env.goal, {})).reshape(-1)[0])
     success = bool(np.linalg.norm(obs["achieved_goal"] - env.goal) <= 0.45)
@@ -178,7 +179,7 @@ class RightFlippedAnt(gymnasium.Wrapper):
         maze = self.env.unwrapped
         self.upside_down_steps = self.upside_down_steps + 1 if _ant_upside_down(maze) else 0
         if self.upside_down_steps >= self.after:
-            obs, reward, success = _righted_step(maze, obs)
+            obs, reward, success = _righted_step(maze)
             info = {**info, "success": success, "righted": True}
             self.upside_down_steps = 0
         return obs, reward, terminated, truncated, info
@@ -561,7 +562,8 @@ class GymnasiumGoalEnv(EnvBase):
                 flipped = _ant_upside_down(env.unwrapped)
                 self.upside_down_steps[i] = self.upside_down_steps[i] + 1 if flipped else 0
                 if self.upside_down_steps[i] >= self.right_flipped_after:  # rare: no hot path
-                    obs, reward, success = _righted_step(env.unwrapped, obs)
+                    obs, reward, at_goal = _righted_step(env.unwrapped)
+                    success = self._is_success(obs, {"success": at_goal})  # success_threshold, where given, decides
                     self.upside_down_steps[i] = 0
             self._last[i] = obs
             self._success[i] = success

@@ -448,6 +448,19 @@ def test_a_righted_ant_is_moved_clear_of_the_walls():
     assert np.allclose(obs["observation"][:1], 0.75) and np.array_equal(obs["achieved_goal"], data.qpos[:2])
 
 
+def test_a_righted_step_s_success_follows_success_threshold_where_given():
+    """The step that rights the ant reports success as every other step does: within ``success_threshold`` where
+    given (here any distance in the maze), else the env's own 0.45."""
+    zero = torch.zeros(1, 8)
+    for threshold, expected in ((100.0, True), (None, False)):
+        env = GymnasiumGoalEnv(ANT_UMAZE, 1, seed=0, right_flipped_after=1, success_threshold=threshold)
+        td = env.reset()
+        _flip(env._envs[0].unwrapped)
+        td = env.step(td.set("action", zero))["next"]
+        assert not AntAgent.is_upside_down(td["observation"]).any()  # righted at this step
+        assert td["is_success"].item() is expected
+
+
 def test_the_upside_down_count_is_part_of_the_state_dict():
     """Stopped with the ant upside down for 3 of its 5 steps, a resumed env rights it at the same step as the
     uninterrupted one."""
