@@ -23,7 +23,7 @@ import numpy as np
 import torch
 from omegaconf import DictConfig, OmegaConf
 from omegaconf.errors import OmegaConfBaseException
-from torchrl_dhrl.envs import ENVS, GoalEnvError, gymnasium_id
+from torchrl_dhrl.envs import ENVS, GoalEnvError, gymnasium_id, is_gymnasium_ant_maze
 from torchrl_dhrl.envs.geometry import obstacle_boxes
 
 from torchrl_dhrl.diagnostics import TrainingEpisodeLog
@@ -154,6 +154,12 @@ def resolve_goal_units(cfg: dict) -> dict:
         print(
             f"{name}: its observation leaves out the achieved goal, so GymnasiumGoalEnv puts it first: "
             f"observation[0:{goal}] = achieved_goal ({size} entries, the env's {size - goal} after it)."
+        )
+    if gymnasium and cfg.get("right_flipped_after") is None and is_gymnasium_ant_maze(gymnasium_id(name)):
+        print(
+            f"{name}: its ant can flip over and nothing in the env rights it (the episode goes on with the ant on its "
+            "back; train/upside_down logs how often): right_flipped_after=10 puts it back on its feet "
+            "(docs/goal_env.md)."
         )
     if not derive:
         env.close()
@@ -531,7 +537,7 @@ def upside_down_test(cfg: dict):
     ``right_flipped_after`` rights it: the recipe logs how much of the training and test episodes it spends so),
     ``None`` for any other env. gymnasium-robotics' ``AntMaze_*`` count: their observation, as the adapter hands
     it on (the achieved goal first), starts with the torso's x, y, z and quaternion, as the built-in ant's."""
-    from torchrl_dhrl.envs import MAZE_NAMES, AntAgent, get_maze_spec, gymnasium_id, is_gymnasium_ant_maze
+    from torchrl_dhrl.envs import MAZE_NAMES, AntAgent, get_maze_spec
 
     env_id = gymnasium_id(cfg["env_name"])
     if env_id is not None:

@@ -170,16 +170,21 @@ def test_an_ant_maze_whose_observation_leaves_out_the_goal_starts_and_trains(tmp
     )
     assert "Derived from gymnasium:AntMaze_UMaze-v5: goal_indices=[0, 1]" in printed and "Done: 20 env steps" in printed
     assert yaml.safe_load((tmp_path / "run" / "config.yaml").read_text())["goal_indices"] == [0, 1]
+    assert (
+        "gymnasium:AntMaze_UMaze-v5: its ant can flip over and nothing in the env rights it (the episode goes on with "
+        "the ant on its back; train/upside_down logs how often): right_flipped_after=10 puts it back on its feet"
+    ) in printed
 
 
 @pytest.mark.recipe
-def test_a_gymnasium_ant_maze_logs_its_upside_down_steps_and_right_flipped_after_rights_the_ant(tmp_path):
+def test_a_gymnasium_ant_maze_logs_its_upside_down_steps_and_right_flipped_after_rights_the_ant(tmp_path, capsys):
     """gymnasium-robotics' ant flips over (its gear-150 motors): the run logs the share of training steps spent upside
     down, as the built-in ant mazes' runs; ``right_flipped_after`` reaches the adapter (training and test envs)."""
     pytest.importorskip("gymnasium_robotics")
     base = ("env=gymnasium", "env_name=gymnasium:AntMaze_UMaze-v5", *SMOKE, "episode_length=10", "total_steps=20")
     utils = load_recipe("dhrl_utils")
     cfg = utils.resolve_goal_units(recipe_config(*base, "right_flipped_after=1"))
+    assert "its ant can flip over" not in capsys.readouterr().out  # said only where nothing rights it
     assert utils.build_environment(cfg, torch.device("cpu")).right_flipped_after == 1
     assert utils.build_environment(cfg, torch.device("cpu"), eval=True).right_flipped_after == 1
     recipe.train(cfg, run_dir=tmp_path / "run")
