@@ -197,6 +197,11 @@ def main(argv: list[str] | None = None) -> Path:
     from stable_baselines3 import SAC, HerReplayBuffer
 
     torch.set_num_threads(1)
+    if args.right_flipped_after is not None:  # refused before anything is built where there is no ant to right
+        try:
+            _env(args.env_id, args.reset_options, args.make_kwargs, args.right_flipped_after).close()
+        except ValueError as err:
+            parser.error(f"--right-flipped-after: {err}")
     if args.evaluate_only:
         env = _env(args.env_id, args.reset_options, args.make_kwargs, args.right_flipped_after)  # HER's buffer class wants it to load
         model = SAC.load(args.out / "model.zip", env=env, device="cpu")

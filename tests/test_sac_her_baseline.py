@@ -154,6 +154,21 @@ def test_bad_arguments_are_refused_before_training(tmp_path, capsys, extra, mess
     assert not (tmp_path / "new" / "metrics.csv").exists()
 
 
+def test_right_flipped_after_wraps_the_ant_mazes_and_is_refused_elsewhere(tmp_path, capsys):
+    """--right-flipped-after gives the baseline the recipe's righting (RightFlippedAnt) on an ant maze; on an env
+    without an ant it is refused before training, naming the option."""
+    from torchrl_dhrl.envs import RightFlippedAnt
+
+    module = _load()
+    env = module._env("AntMaze_UMaze-v5", {"reset_cell": [1, 1]}, {}, 10)
+    assert isinstance(env, RightFlippedAnt) and env.after == 10
+    assert not isinstance(module._env("AntMaze_UMaze-v5", None, {}), RightFlippedAnt)
+    with pytest.raises(SystemExit):
+        module.main([*ARGS, "--steps", "1200", "--right-flipped-after", "10", "--out", str(tmp_path / "new")])
+    assert "--right-flipped-after: RightFlippedAnt rights a flipped ant" in capsys.readouterr().err
+    assert not (tmp_path / "new").exists()
+
+
 def test_an_existing_checkpoint_is_not_overwritten(run, capsys):
     with pytest.raises(SystemExit):
         _load().main([*ARGS, "--steps", "1200", "--out", str(run)])
