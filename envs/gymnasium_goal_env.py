@@ -100,34 +100,17 @@ def _right_ant(env: Any) -> dict[str, np.ndarray]:
 
     The ant takes its reset pose at rest (``ant_env.init_qpos``: torso height, identity tilt, joints) at its
     (x, y) and heading (:func:`~torchrl_dhrl.envs.agents.upright_pose`), moved to the nearest place (0.1 steps,
-    up to 2 away) where none of its geoms overlaps a wall, as the built-in ant mazes' ``right_flipped_after``.
+    up to 2 away) where none of its geoms overlaps a wall (:func:`~torchrl_dhrl.envs.simulation.clear_of_walls`),
+    as the built-in ant mazes' ``right_flipped_after``.
     """
-    import mujoco
-
-    from .simulation import _SEPARATION_OFFSETS
+    from .simulation import clear_of_walls
 
     ant = env.ant_env
     model, data = ant.model, ant.data
-    pose = upright_pose(data.qpos, ant.init_qpos)
-    still = np.zeros(model.nv)
-    static = model.geom_bodyid == 0
-    plane = model.geom_type == mujoco.mjtGeom.mjGEOM_PLANE
-
-    def overlaps_wall() -> bool:
-        for contact in data.contact[: data.ncon]:
-            g1, g2 = contact.geom
-            if contact.dist < 0.0 and static[g1] != static[g2] and not (plane[g1] or plane[g2]):
-                return True
-        return False
-
-    for offset in _SEPARATION_OFFSETS:
-        trial = pose.copy()
-        trial[:2] += offset
-        ant.set_state(trial, still)  # runs mj_forward: contacts of the new pose
-        if not overlaps_wall():
-            break
-    else:  # nowhere clear: righted in place, the contacts push it out
-        ant.set_state(pose, still)
+    data.qpos[:] = upright_pose(data.qpos, ant.init_qpos)
+    data.qvel[:] = 0.0
+    clear_of_walls(model, data, model.geom_bodyid != 0)  # the maze's walls and floor are the world's geoms
+    ant.set_state(data.qpos.copy(), np.zeros(model.nv))
     return env._get_obs(ant._get_obs())
 
 

@@ -37,6 +37,36 @@ _SEPARATION_OFFSETS = np.concatenate(
 )
 
 
+def overlaps_wall(model: mujoco.MjModel, data: mujoco.MjData, agent_geoms: np.ndarray) -> bool:
+    """Whether, at ``data``'s forwarded state, a geom of the agent (``agent_geoms``, a boolean mask over the model's
+    geoms) penetrates another geom other than a floor plane (a wall)."""
+    planes = model.geom_type == mujoco.mjtGeom.mjGEOM_PLANE
+    for contact in data.contact[: data.ncon]:
+        g1, g2 = contact.geom
+        if contact.dist < 0.0 and agent_geoms[g1] != agent_geoms[g2] and not (planes[g1] or planes[g2]):
+            return True
+    return False
+
+
+def clear_of_walls(model: mujoco.MjModel, data: mujoco.MjData, agent_geoms: np.ndarray) -> None:
+    """Moves an agent whose root's (x, y) is ``data.qpos[:2]`` to the nearest place in the floor plane where none
+    of its geoms (``agent_geoms``, a boolean mask over the model's geoms) penetrates another geom other than a
+    floor plane (a wall).
+
+    Candidates are the current (x, y), then rings of 16 directions at radii 0.1, 0.2, ..., 2 around it; the first
+    one clear is kept (none clear: the agent stays put and the contacts push it out). ``data`` is left forwarded
+    (``mj_forward``) at the pose kept. Used to right a flipped ant (the built-in ant mazes and gymnasium-robotics').
+    """
+    xy = data.qpos[:2].copy()
+    for offset in _SEPARATION_OFFSETS:
+        data.qpos[:2] = xy + offset
+        mujoco.mj_forward(model, data)
+        if not overlaps_wall(model, data, agent_geoms):
+            return
+    data.qpos[:2] = xy
+    mujoco.mj_forward(model, data)
+
+
 def sparse_reward(achieved_goal, desired_goal, threshold: float = 0.5) -> np.ndarray:
     """The DHRL sparse reward: ``0`` within ``threshold`` of the goal, else ``-1``, over leading dims.
 
@@ -202,7 +232,6 @@ class GoalSimulation:
         #: Consecutive env steps each ant has been upside down (counted with ``right_flipped_after`` only).
         self.upside_down_steps = np.zeros(num_envs, dtype=np.int64)
         self._agent_geoms = self._geoms_of_agent()
-        self._plane_geoms = model.geom_type == mujoco.mjtGeom.mjGEOM_PLANE
         self.rngs: list[np.random.Generator] = []
         self.seed(seed)
         # A valid, noise-free state until the first reset (it consumes no randomness).
@@ -491,31 +520,15 @@ class GoalSimulation:
             self.upside_down_steps[i] = 0
 
     def _separate_from_walls(self, index: int) -> None:
-        """Moves agent ``index`` to the nearest place in the floor plane where none of its geoms overlaps a wall.
-
-        Candidates are the current (x, y), then rings of 16 directions at radii 0.1, 0.2, ..., 2 around it;
-        the first one clear of every non-floor static geom is kept (none clear: the agent stays put and the
-        contacts push it out).
-        """
+        """Moves agent ``index`` to the nearest place in the floor plane where none of its geoms overlaps a wall
+        (:func:`clear_of_walls`), at rest, and observes it."""
         data = self.datas[index]
-        qpos = data.qpos.copy()
-        for offset in _SEPARATION_OFFSETS:
-            data.qpos[:2] = qpos[:2] + offset
-            mujoco.mj_forward(self.model, data)
-            if not self._overlaps_wall(data):
-                break
-        else:
-            data.qpos[:2] = qpos[:2]
+        clear_of_walls(self.model, data, self._agent_geoms)
         self.set_state(index, data.qpos.copy())
 
     def _overlaps_wall(self, data: mujoco.MjData) -> bool:
-        """Whether a geom of the agent penetrates a static geom other than the floor plane."""
-        agent, planes = self._agent_geoms, self._plane_geoms
-        for contact in data.contact[: data.ncon]:
-            g1, g2 = contact.geom
-            if contact.dist < 0.0 and agent[g1] != agent[g2] and not (planes[g1] or planes[g2]):
-                return True
-        return False
+        """Whether a geom of the agent penetrates a static geom other than the floor plane (:func:`overlaps_wall`)."""
+        return overlaps_wall(self.model, data, self._agent_geoms)
 
     def evaluate(self) -> tuple[np.ndarray, np.ndarray]:
         """Sparse reward (``-1``/``0`` at the reward threshold) and success (within the evaluation threshold)
