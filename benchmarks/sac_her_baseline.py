@@ -12,7 +12,8 @@ The baseline next to ``env=gymnasium`` runs of the recipe (docs/results.md)::
 by default they are the training ones. At the end the final model (``<out>/model.zip``) is re-evaluated over
 ``--final-episodes`` deterministic test episodes, episode ``i`` reset with seed ``--final-seed + i``, and
 ``<out>/final_eval.yaml`` records them as ``recipes/evaluate.py`` records a DHRL agent's (``episodes``,
-``successes``, ``success``, the code, versions and machine); ``--evaluate-only`` does that again for a finished run.
+``successes``, ``success``, the code, versions and machine); ``--evaluate-only`` does that again for a finished run,
+or for one stopped short: ``<out>/model.zip`` is also written with each checkpoint (the model of the last one).
 ``--right-flipped-after K`` (gymnasium-robotics' ant mazes) puts a flipped ant back on its feet after ``K`` steps
 upside down in training and test episodes alike, as the recipe's ``right_flipped_after=K``
 (:class:`~torchrl_dhrl.envs.RightFlippedAnt`). ``<out>/provenance.yaml`` holds one entry per start (command, code, versions, machine).
@@ -104,7 +105,8 @@ def _machine() -> dict:
 
 def save_checkpoint(model, rows: list[dict], wall_s: float, out: Path) -> None:
     """The model, its replay buffer, the metrics so far and the training's wall clock, to ``out/checkpoint`` (a
-    staged copy renamed)."""
+    staged copy renamed); then the model alone to ``out/model.zip`` (written, then renamed), the saved agent of a
+    run stopped short, as the recipe saves ``agent/`` with each checkpoint."""
     stage, final, old = out / f".{CHECKPOINT}.stage", out / CHECKPOINT, out / f".{CHECKPOINT}.old"
     shutil.rmtree(stage, ignore_errors=True)
     stage.mkdir(parents=True)
@@ -116,6 +118,8 @@ def save_checkpoint(model, rows: list[dict], wall_s: float, out: Path) -> None:
         final.rename(old)
     stage.rename(final)
     shutil.rmtree(old, ignore_errors=True)
+    shutil.copyfile(final / "model.zip", out / ".model.zip")
+    (out / ".model.zip").replace(out / "model.zip")
 
 
 def recover_checkpoint(out: Path) -> None:
@@ -289,7 +293,6 @@ def main(argv: list[str] | None = None) -> Path:
     if stop:
         print(f"Interrupted at {model.num_timesteps} env steps: checkpoint written; continue with --resume.")
         raise SystemExit(130)
-    model.save(args.out / "model.zip")
     final_evaluation(model, args, command, int(model.num_timesteps))
     return args.out / "metrics.csv"
 

@@ -133,6 +133,20 @@ def test_sigterm_stops_at_an_episode_end_with_a_checkpoint(run, tmp_path, monkey
     assert state["env_steps"] == 1800 and [row["env_steps"] for row in state["rows"]] == [600, 1200, 1800]
     assert signal.getsignal(signal.SIGTERM) is handler  # put back
     assert not (out / ".checkpoint.stage").exists() and not (out / ".checkpoint.old").exists()
+    # the run stopped short has its agent: model.zip is the checkpoint's model (1800 steps), not the 1200-step one
+    from stable_baselines3 import SAC
+
+    def actor(path):
+        env = baseline._env("PointMaze_UMaze-v3", None, {})  # HER's buffer class wants it to load
+        return SAC.load(path, env=env, device="cpu").policy.actor.state_dict()
+
+    saved, checkpointed = actor(out / "model.zip"), actor(out / "checkpoint" / "model.zip")
+    earlier = actor(run / "model.zip")
+    assert all((saved[k] == checkpointed[k]).all() for k in saved)
+    assert any((saved[k] != earlier[k]).any() for k in saved)
+    monkeypatch.setattr(baseline, "episode_successes", real)
+    baseline.main([*ARGS, "--out", str(out), "--evaluate-only"])
+    assert yaml.safe_load((out / "final_eval.yaml").read_text())["env_steps"] == 1800
 
 
 @pytest.mark.parametrize(
