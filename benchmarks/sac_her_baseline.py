@@ -209,8 +209,7 @@ def main(argv: list[str] | None = None) -> Path:
     if args.evaluate_only:
         env = _env(args.env_id, args.reset_options, args.make_kwargs, args.right_flipped_after)  # HER's buffer class wants it to load
         model = SAC.load(args.out / "model.zip", env=env, device="cpu")
-        steps = json.loads((args.out / CHECKPOINT / "state.json").read_text())["env_steps"]
-        final_evaluation(model, args, command, steps)
+        final_evaluation(model, args, command, int(model.num_timesteps))  # the model's own count: no checkpoint needed
         return args.out / "final_eval.yaml"
     env = _env(args.env_id, args.reset_options, args.make_kwargs, args.right_flipped_after)
     episode = env.spec.max_episode_steps

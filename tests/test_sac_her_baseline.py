@@ -145,8 +145,11 @@ def test_sigterm_stops_at_an_episode_end_with_a_checkpoint(run, tmp_path, monkey
     assert all((saved[k] == checkpointed[k]).all() for k in saved)
     assert any((saved[k] != earlier[k]).any() for k in saved)
     monkeypatch.setattr(baseline, "episode_successes", real)
-    baseline.main([*ARGS, "--out", str(out), "--evaluate-only"])
-    assert yaml.safe_load((out / "final_eval.yaml").read_text())["env_steps"] == 1800
+    alone = tmp_path / "model_only"  # a results folder keeps model.zip, not the checkpoint
+    alone.mkdir()
+    shutil.copyfile(out / "model.zip", alone / "model.zip")
+    baseline.main([*ARGS, "--out", str(alone), "--evaluate-only"])
+    assert yaml.safe_load((alone / "final_eval.yaml").read_text())["env_steps"] == 1800
 
 
 @pytest.mark.parametrize(
