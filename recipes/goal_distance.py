@@ -217,12 +217,16 @@ class SacAgent:
         self.baseline = _sac_module()
         self.config = json.loads((folder / "config.json").read_text())
         self.env_id, self.make_kwargs = self.config["env_id"], self.config.get("make_kwargs") or {}
-        env = self.baseline._env(self.env_id, self.config.get("reset_options"), self.make_kwargs)
+        self.right_flipped_after = self.config.get("right_flipped_after")  # its training and test episodes'
+        env = self.baseline._env(
+            self.env_id, self.config.get("reset_options"), self.make_kwargs, self.right_flipped_after
+        )
         self.model = SAC.load(folder / "model.zip", env=env, device="cpu")  # HER's buffer class wants the env
 
     def successes(self, start, goal, episodes: int, seed: int) -> tuple[int, int]:
         """Successes and episodes from ``start`` to ``goal`` (episode i reset with seed ``seed`` + i)."""
-        env = self.baseline._env(self.env_id, {"reset_cell": list(start), "goal_cell": list(goal)}, self.make_kwargs)
+        options = {"reset_cell": list(start), "goal_cell": list(goal)}
+        env = self.baseline._env(self.env_id, options, self.make_kwargs, self.right_flipped_after)
         final, _ = self.baseline.episode_successes(self.model, env, episodes, [seed + i for i in range(episodes)])
         env.close()
         return int(sum(final)), episodes
@@ -244,6 +248,7 @@ class DhrlAgent:
                 "env=gymnasium runs (env_name=gymnasium:PointMaze_*/AntMaze_*) and SAC + HER baselines."
             )
         self.make_kwargs = dict(self.cfg["gymnasium"].get("make_kwargs") or {})
+        self.right_flipped_after = self.cfg.get("right_flipped_after")  # built into its test envs by the recipe
 
     def successes(self, start, goal, episodes: int, seed: int) -> tuple[int, int]:
         """Successes and episodes from ``start`` to ``goal``: at least ``episodes``, in whole batches of the run's
@@ -313,9 +318,12 @@ def main(argv: list[str] | None = None) -> list[dict]:
             parser.error("--episodes must be at least 1")
         device = torch.device(args.device)
         agents = [load_agent(path, device) for path in args.agents]  # every agent loaded before the first episode
-        envs = {(a.env_id, repr(sorted(a.make_kwargs.items()))) for a in agents}
+        envs = {(a.env_id, repr(sorted(a.make_kwargs.items())), a.right_flipped_after) for a in agents}
         if len(envs) > 1:
-            parser.error(f"the agents are on different envs or maze maps: {sorted(envs)}")
+            parser.error(
+                "the agents are on different envs, maze maps or right_flipped_after (env id, make_kwargs, "
+                f"right_flipped_after): {sorted(envs, key=repr)}"
+            )
         env_id = agents[0].env_id
         distances = maze_distances(maze_map_of(env_id, agents[0].make_kwargs), tuple(args.start))
         goals = sorted((cell for cell in distances if distances[cell] > 0), key=lambda c: (distances[c], c))
@@ -343,8 +351,10 @@ def main(argv: list[str] | None = None) -> list[dict]:
             writer.writeheader()
             writer.writerows(rows)
         record = code_and_machine(device)
+        righted = agents[0].right_flipped_after
+        righted = "" if righted is None else f" (a flipped ant righted after {righted} steps upside down)"
         header = (
-            f"`{command}`\n\n{env_id}, start cell ({args.start[0]}, {args.start[1]}), {len(goals)} goal cells, "
+            f"`{command}`\n\n{env_id}{righted}, start cell ({args.start[0]}, {args.start[1]}), {len(goals)} goal cells, "
             f"{args.episodes} deterministic test episodes per goal cell and agent (seed {args.seed}); code "
             f"{record['code']['commit'][:7]}{' (modified)' if record['code']['modified'] else ''}, "
             f"{record['machine']['cpu']}, {datetime.datetime.now(datetime.timezone.utc):%Y-%m-%d}, "

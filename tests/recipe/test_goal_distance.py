@@ -6,7 +6,9 @@ goal cell reaching the env."""
 from __future__ import annotations
 
 import csv
+import json
 import random
+from pathlib import Path
 
 import networkx as nx
 import numpy as np
@@ -186,7 +188,52 @@ def test_agents_on_different_mazes_are_refused_before_any_episode(agents, tmp_pa
     monkeypatch.setattr(goal_distance, "episode_outcomes", lambda *a, **k: pytest.fail("an episode ran"))
     with pytest.raises(SystemExit):
         goal_distance.main([str(agents / "dhrl"), str(other), "--start", "3", "1", "--out", str(tmp_path / "x")])
-    assert "the agents are on different envs or maze maps" in capsys.readouterr().err
+    assert "the agents are on different envs, maze maps or right_flipped_after" in capsys.readouterr().err
+
+
+def test_agents_whose_ant_is_righted_differently_are_refused_before_any_episode(tmp_path, monkeypatch, capsys):
+    """A DHRL agent tested with the flipped ant righted and a SAC + HER one without would not face the same env."""
+    from types import SimpleNamespace
+
+    def fake(path, device):
+        rf = None if Path(path).name == "plain" else 10
+        return SimpleNamespace(env_id="AntMaze_Medium-v5", make_kwargs={}, right_flipped_after=rf,
+                               successes=lambda *a: pytest.fail("an episode ran"))
+
+    monkeypatch.setattr(goal_distance, "load_agent", fake)
+    with pytest.raises(SystemExit):
+        goal_distance.main([str(tmp_path / "righted"), str(tmp_path / "plain"), "--start", "1", "1",
+                            "--out", str(tmp_path / "x")])
+    err = capsys.readouterr().err
+    assert "different envs, maze maps or right_flipped_after" in err and "None" in err and "10" in err
+
+
+@pytest.mark.recipe
+def test_a_sac_model_is_tested_with_its_own_right_flipped_after(agents, tmp_path, monkeypatch):
+    """The baseline's env of every goal cell gets the model's --right-flipped-after (its config.json)."""
+    folder = tmp_path / "sac_righted"
+    folder.mkdir()
+    config = json.loads((agents / "sac" / "config.json").read_text())
+    (folder / "config.json").write_text(json.dumps(config | {"right_flipped_after": 7}))
+    (folder / "model.zip").write_bytes((agents / "sac" / "model.zip").read_bytes())
+    real_module, seen = goal_distance._sac_module, []
+
+    def sac_module():
+        module = real_module()
+        real_env = module._env
+
+        def recording(env_id, options, make_kwargs, right_flipped_after=None):
+            seen.append(right_flipped_after)
+            return real_env(env_id, options, make_kwargs)  # a point maze has no ant to right
+
+        module._env = recording
+        return module
+
+    monkeypatch.setattr(goal_distance, "_sac_module", sac_module)
+    agent = goal_distance.load_agent(folder, "cpu")
+    assert agent.right_flipped_after == 7
+    agent.successes((3, 1), (1, 1), 1, 0)
+    assert seen == [7, 7]  # the env it loads with, then the goal cell's
 
 
 def test_a_run_of_another_env_is_named_and_refused(tmp_path, monkeypatch):
