@@ -32,7 +32,9 @@ from torchrl_dhrl.recipe.protocol import (
     eval_episodes,
     evaluation_steps,
     first_at_least,
+    last_evaluation,
     paired_windows,
+    reached,
     report_points,
     summarize_point,
 )
@@ -112,11 +114,10 @@ def seeds_text(point: Mapping) -> str:
 def point_label(point: Mapping, entry: Entry, runs: Sequence[RunRecord] | None = None) -> str:
     """``84k (the last point every seed reached; short of 250k)``, ``1M (seed1 only)``, ``500k``."""
     notes = []
-    if point["kind"] == "last common":
+    if point["kind"] in ("last common", "both agents"):
         short = [b for b in entry.protocol.budgets if b > point["steps"]]
-        notes.append(
-            "the last point every seed reached" + (f"; short of {steps_text(short[0])}" if short else "")
-        )
+        which = "every seed" if point["kind"] == "last common" else "every run of both agents"
+        notes.append(f"the last point {which} reached" + (f"; short of {steps_text(short[0])}" if short else ""))
     runs = entry.runs if runs is None else runs
     if len(point["seeds"]) < len(runs):
         notes.append(f"{len(point['seeds'])} of {len(runs)} seeds")
@@ -315,7 +316,9 @@ def glance_table(entries: Sequence[Entry], frm: Path) -> str:
 
 def against_flat_table(entries: Sequence[Entry], frm: Path) -> str:
     """README's "Against a flat agent": every entry with a baseline, both agents at each of its reporting points
-    (a point only one of them reached reads ``-`` for the other), with their final agents' re-evaluations."""
+    (a point only one of them reached reads ``-`` for the other), and where the two stopped at different points
+    short of a budget, both at the last evaluation every run of both reached; with their final agents'
+    re-evaluations."""
     lines = [
         "| task | env steps | DHRL: mean ± std over seeds (per seed) | flat agent, the same protocol | "
         "final agents re-evaluated (DHRL; flat) | seeds | details |",
@@ -342,6 +345,13 @@ def against_flat_table(entries: Sequence[Entry], frm: Path) -> str:
             continue
         ours = {pt["steps"]: pt for pt in entry.points(entry.runs)}
         theirs = {pt["steps"]: pt for pt in entry.points(entry.baseline)}
+        both = [*entry.runs, *entry.baseline]
+        common = min(last_evaluation(r) for r in both)
+        by_all = [b for b in entry.protocol.budgets if all(reached(r, b) for r in both)]
+        if common > max(by_all, default=0) and not (common in ours and common in theirs):
+            point = ReportPoint(common, "both agents")  # side by side where both got, not only apart
+            ours[common] = summarize_point(entry.runs, point, entry.protocol)
+            theirs[common] = summarize_point(entry.baseline, point, entry.protocol)
         flat = entry.baseline_name.split(" (")[0]
         for steps in sorted(ours.keys() | theirs.keys()):
             lines.append(

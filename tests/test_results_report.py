@@ -244,3 +244,37 @@ def test_a_docs_page_holding_the_against_flat_block_gets_readmes_table_with_its_
     assert "old" not in page and "](results/" in readme
     assert page == readme.replace("](results/", "](../results/")
     assert out[tmp_path / "docs" / "page.md"].startswith("# A page\n\n")
+
+
+def test_agents_stopped_apart_short_of_a_budget_are_also_set_side_by_side_where_both_got(tmp_path):
+    """DHRL's runs stop at 28.5k and 42k, the baseline's at 27k and 36k, all short of the budget: the table keeps
+    each agent's own last point (the other's cell ``-``) and sets both at 27k, the last evaluation every run of both
+    reached, each seed's window read off its metrics.csv directly."""
+    import csv
+
+    (tmp_path / "docs").mkdir()
+    shutil.copy(ROOT / "README.md", tmp_path / "README.md")
+    shutil.copy(ROOT / "docs" / "results.md", tmp_path / "docs" / "results.md")
+    shutil.copytree(ROOT / "results", tmp_path / "results")
+    index = tmp_path / "results" / "index.yaml"
+    specs = yaml.safe_load(index.read_text())
+    spec = next(e for e in specs if e["folder"] == "pointmaze_umaze_dhrl_vs_sac")
+    spec["budgets"] = [60000]  # beyond every run
+    index.write_text(yaml.safe_dump(specs, sort_keys=False))
+    table = report.render(tmp_path)[tmp_path / "README.md"]
+    rows = {row.split(" | ")[1]: row.split(" | ") for row in table.splitlines()
+            if row.startswith("| gymnasium:PointMaze_UMaze-v3 |")}
+    assert list(rows) == ["27k", "28.5k"]
+    folder = tmp_path / "results" / "pointmaze_umaze_dhrl_vs_sac"
+
+    def per_seed(run):  # the 9k window ending at 27k: successes over its test episodes
+        with open(folder / run / "metrics.csv", newline="") as file:
+            evals = [float(r["eval/success"]) for r in csv.DictReader(file)
+                     if r.get("eval/success") not in (None, "", "nan") and 18000 < float(r["env_steps"]) <= 27000]
+        return f"{100 * sum(evals) / len(evals):.1f}%"
+
+    dhrl, sac = rows["27k"][2], rows["27k"][3]
+    assert "the last point every run of both agents reached; short of 60k" in dhrl
+    assert ", ".join(per_seed(f"dhrl_s{k}") for k in range(3)) in dhrl
+    assert sac.startswith("SAC + HER: **") and ", ".join(per_seed(f"sac_s{k}") for k in range(3)) in sac
+    assert rows["28.5k"][3] == "SAC + HER: -" and "the last point every seed reached" in rows["28.5k"][2]
