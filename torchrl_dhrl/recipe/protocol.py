@@ -98,7 +98,8 @@ class WindowSuccess:
 
 @dataclass(frozen=True)
 class ReportPoint:
-    """Where success is reported: ``steps`` (the window's end), ``kind`` ``"budget"`` or ``"last common"``."""
+    """Where success is reported: ``steps`` (the window's end), ``kind`` ``"budget"``, ``"last common"`` or
+    (``recipes/report.py``'s DHRL-against-baseline table) ``"both agents"``."""
 
     steps: int
     kind: str
