@@ -32,9 +32,7 @@ from torchrl_dhrl.recipe.protocol import (
     eval_episodes,
     evaluation_steps,
     first_at_least,
-    last_evaluation,
     paired_windows,
-    reached,
     report_points,
     summarize_point,
 )
@@ -345,13 +343,12 @@ def against_flat_table(entries: Sequence[Entry], frm: Path) -> str:
             continue
         ours = {pt["steps"]: pt for pt in entry.points(entry.runs)}
         theirs = {pt["steps"]: pt for pt in entry.points(entry.baseline)}
-        both = [*entry.runs, *entry.baseline]
-        common = min(last_evaluation(r) for r in both)
-        by_all = [b for b in entry.protocol.budgets if all(reached(r, b) for r in both)]
-        if common > max(by_all, default=0) and not (common in ours and common in theirs):
-            point = ReportPoint(common, "both agents")  # side by side where both got, not only apart
-            ours[common] = summarize_point(entry.runs, point, entry.protocol)
-            theirs[common] = summarize_point(entry.baseline, point, entry.protocol)
+        # the protocol's last common point over the runs of both agents, side by side where both got
+        for joint, _ in report_points([*entry.runs, *entry.baseline], entry.protocol):
+            if joint.kind == "last common" and not (joint.steps in ours and joint.steps in theirs):
+                point = ReportPoint(joint.steps, "both agents")
+                ours[joint.steps] = summarize_point(entry.runs, point, entry.protocol)
+                theirs[joint.steps] = summarize_point(entry.baseline, point, entry.protocol)
         flat = entry.baseline_name.split(" (")[0]
         for steps in sorted(ours.keys() | theirs.keys()):
             lines.append(
